@@ -1,0 +1,5 @@
+import sys
+
+from d2turb.cli import main
+
+sys.exit(main())

@@ -1,0 +1,11 @@
+"""`d2turb demo` (placeholder until implemented)."""
+from d2turb.errors import D2TurbError
+
+
+def register(sub):
+    p = sub.add_parser("demo", help="(not implemented yet)")
+    p.set_defaults(func=run)
+
+
+def run(args):
+    raise D2TurbError("'demo' is not implemented yet")

@@ -1,0 +1,3 @@
+from d2turb.ops.warp import Warp, warp
+
+__all__ = ["Warp", "warp"]

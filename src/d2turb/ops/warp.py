@@ -1,0 +1,48 @@
+"""Differentiable backward warping by a dense pixel flow."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from d2turb.errors import D2TurbError
+
+
+def base_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """Pixel coordinates (1, 2, H, W): channel 0 is x (column), channel 1 is y (row)."""
+    ys, xs = torch.meshgrid(
+        torch.arange(height, device=device, dtype=dtype),
+        torch.arange(width, device=device, dtype=dtype),
+        indexing="ij",
+    )
+    return torch.stack((xs, ys))[None]
+
+
+def warp(image: torch.Tensor, flow: torch.Tensor, padding_mode: str = "border", mode: str = "bilinear") -> torch.Tensor:
+    """Sample ``image`` at ``x + flow(x)``: out(x) = image(x + flow(x)).
+
+    image (B, C, H, W); flow (B, 2, H, W) in pixels, channel 0 = x, channel 1 = y.
+    Differentiable with respect to both image and flow.
+    """
+    if image.ndim != 4 or flow.ndim != 4 or flow.shape[1] != 2:
+        raise D2TurbError(f"warp: expected image (B,C,H,W) and flow (B,2,H,W), got {tuple(image.shape)} and {tuple(flow.shape)}")
+    if image.shape[0] != flow.shape[0] or image.shape[-2:] != flow.shape[-2:]:
+        raise D2TurbError(f"warp: image {tuple(image.shape)} and flow {tuple(flow.shape)} do not match")
+    _, _, h, w = image.shape
+    coords = base_grid(h, w, flow.device, flow.dtype) + flow
+    # align_corners=True: -1 and +1 are the centres of the first and last pixels
+    gx = coords[:, 0] * (2.0 / max(w - 1, 1)) - 1.0
+    gy = coords[:, 1] * (2.0 / max(h - 1, 1)) - 1.0
+    grid = torch.stack((gx, gy), dim=-1).to(image.dtype)
+    return F.grid_sample(image, grid, mode=mode, padding_mode=padding_mode, align_corners=True)
+
+
+class Warp(nn.Module):
+    """Module wrapper of :func:`warp`."""
+
+    def __init__(self, padding_mode: str = "border", mode: str = "bilinear"):
+        super().__init__()
+        self.padding_mode, self.mode = padding_mode, mode
+
+    def forward(self, image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+        return warp(image, flow, self.padding_mode, self.mode)

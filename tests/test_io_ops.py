@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from d2turb.errors import D2TurbError
+from d2turb.io import read_image, write_image
+from d2turb.ops import warp
+
+
+@pytest.mark.parametrize("mode", ["L", "RGBA", "P", "I;16", "RGB"])
+def test_read_image_modes(tmp_path, mode):
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    if mode == "I;16":
+        img = Image.new("I;16", (30, 20))
+        img.frombytes((rgb[..., 0].astype("<u2") * 257).tobytes())
+    else:
+        img = Image.fromarray(rgb).convert(mode)
+    path = tmp_path / "x.png"
+    img.save(path)
+    x = read_image(path)
+    assert x.shape == (3, 20, 30) and x.dtype == torch.float32
+    assert 0 <= x.min() and x.max() <= 1
+    if mode == "I;16":
+        torch.testing.assert_close(x[0], torch.from_numpy(rgb[..., 0] / 255.0).float(), atol=1e-6, rtol=0)
+
+
+def test_read_corrupt_image_raises_one_line(tmp_path):
+    path = tmp_path / "bad.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    with pytest.raises(D2TurbError, match="bad.png: cannot read image"):
+        read_image(path)
+
+
+def test_exif_orientation_respected(tmp_path):
+    img = Image.new("RGB", (40, 20), (255, 0, 0))
+    exif = img.getexif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise on display
+    img.save(tmp_path / "r.jpg", exif=exif)
+    assert read_image(tmp_path / "r.jpg").shape == (3, 40, 20)
+
+
+def test_write_image_roundtrip_and_no_temp_left(tmp_path):
+    x = torch.rand(3, 16, 24)
+    write_image(tmp_path / "a.png", x)
+    y = read_image(tmp_path / "a.png")
+    torch.testing.assert_close(y, x, atol=0.5 / 255 + 1e-6, rtol=0)
+    assert [p.name for p in tmp_path.iterdir()] == ["a.png"]
+
+
+def test_warp_integer_shift_and_gradcheck():
+    img = torch.rand(1, 3, 8, 9, dtype=torch.float64)
+    flow = torch.zeros(1, 2, 8, 9, dtype=torch.float64)
+    flow[:, 0] = 1.0  # sample one pixel to the right
+    out = warp(img, flow)
+    torch.testing.assert_close(out[..., :-1], img[..., 1:])
+    flow = (torch.rand(1, 2, 5, 6, dtype=torch.float64) - 0.5).requires_grad_()
+    img = torch.rand(1, 2, 5, 6, dtype=torch.float64, requires_grad=True)
+    # keep sample points away from integer positions where bilinear is not differentiable
+    flow.data = flow.data * 0.8 + 0.1
+    assert torch.autograd.gradcheck(lambda i, f: warp(i, f), (img, flow))
