@@ -1,11 +1,80 @@
-"""`d2turb bench` (placeholder until implemented)."""
+"""`d2turb bench model`: parameters, FLOPs/MACs and latency of a model, or the efficiency table of the registry."""
+from __future__ import annotations
+
 from d2turb.errors import D2TurbError
 
 
 def register(sub):
-    p = sub.add_parser("bench", help="(not implemented yet)")
+    p = sub.add_parser("bench", help="benchmark models (params, FLOPs/MACs, latency)")
+    what = p.add_subparsers(dest="bench_target", metavar="TARGET")
+    m = what.add_parser("model", help="params, FLOPs/MACs at --size and forward latency of a model",
+                        description="FLOPs are counted with torch FlopCounterMode (convolutions and matmuls, "
+                                    "MACs = FLOPs/2); 'conv GMACs' counts convolutions only, the papers' convention.")
+    m.add_argument("name", nargs="?", help="registered model (see `d2turb models`)")
+    m.add_argument("--all", action="store_true", help="efficiency table of the whole registry")
+    m.add_argument("--backbone", help="backbone of a d2turb model")
+    m.add_argument("--injection", choices=["aspi", "concat", "none"], help="injection of a d2turb model")
+    m.add_argument("--config", help="extra model config as JSON (string or path to a .json file)")
+    m.add_argument("--size", type=int, default=256, help="square input size (default 256)")
+    m.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    m.add_argument("--warmup", type=int, default=1, help="untimed forwards first (default 1)")
+    m.add_argument("--repeats", type=int, default=3, help="timed forwards, the median is reported (default 3)")
+    m.add_argument("--no-latency", action="store_true", help="only params and FLOPs (no forward pass is run)")
+    m.add_argument("--out", help="write the result to FILE.md (Markdown table) or FILE.json")
     p.set_defaults(func=run)
 
 
+def _config(args) -> dict:
+    import json
+    from pathlib import Path
+
+    cfg = {}
+    if args.config:
+        text = Path(args.config).read_text() if args.config.endswith(".json") and Path(args.config).is_file() else args.config
+        try:
+            cfg = json.loads(text)
+        except ValueError as exc:
+            raise D2TurbError(f"--config: not valid JSON ({exc})") from None
+        if not isinstance(cfg, dict):
+            raise D2TurbError("--config: expected a JSON object")
+    for key in ("backbone", "injection"):
+        if getattr(args, key):
+            cfg[key] = getattr(args, key)
+    return cfg
+
+
 def run(args):
-    raise D2TurbError("'bench' is not implemented yet")
+    import json
+
+    import torch
+
+    from d2turb.io import write_json, write_text
+    from d2turb.models.complexity import benchmark, efficiency_entries, markdown_table
+
+    if args.bench_target != "model":
+        raise D2TurbError("usage: d2turb bench model NAME [options] (or --all)")
+    if bool(args.name) == bool(args.all):
+        raise D2TurbError("bench model: give exactly one of a model NAME or --all")
+    if args.size < 8 or args.repeats < 1 or args.warmup < 0:
+        raise D2TurbError("bench model: need --size >= 8, --repeats >= 1, --warmup >= 0")
+    if args.out and not args.out.endswith((".md", ".json")):
+        raise D2TurbError(f"--out {args.out}: must end in .md or .json")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError:
+        raise D2TurbError(f"--device {args.device!r}: not a device (use cpu or cuda)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise D2TurbError("--device cuda: CUDA is not available on this machine")
+    entries = efficiency_entries() if args.all else [(args.name, _config(args))]
+    results = []
+    for name, cfg in entries:
+        results.append(benchmark(name, cfg, args.size, device, args.warmup, args.repeats, latency=not args.no_latency))
+    table = markdown_table(results)
+    print(table, end="")
+    if args.out:
+        if args.out.endswith(".json"):
+            write_json(args.out, results if args.all else results[0])
+        else:
+            write_text(args.out, f"FLOPs: torch FlopCounterMode at {args.size}², MACs = FLOPs/2; conv GMACs = "
+                                 f"convolutions only; latency = median of {args.repeats} forwards (batch 1, fp32).\n\n{table}")
+    return 0

@@ -1,0 +1,115 @@
+"""Verification of a generated pair dataset (``d2turb check-dataset``)."""
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from d2turb.data.layout import CONFIG_NAME, FILES, META_NAME, SHARD_DIR, file_path, read_depth_png
+from d2turb.errors import D2TurbError
+
+
+@dataclass
+class CheckReport:
+    samples: int = 0
+    counts: dict[str, int] = field(default_factory=dict)  # samples per bin
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def _check_sample(root: Path, rec: dict, patch: int, decode: bool) -> list[str]:
+    sid, problems = rec["id"], []
+    for kind in FILES:
+        if not file_path(root, kind, sid).is_file():
+            problems.append(f"{sid}: missing {kind}/{sid}{FILES[kind]}")
+    if problems or not decode:
+        return problems
+    for kind in ("turb", "tilt", "gt"):
+        try:
+            with Image.open(file_path(root, kind, sid)) as img:
+                img.load()
+                if img.mode != "RGB" or img.size != (patch, patch):
+                    problems.append(f"{sid}: {kind} is {img.mode} {img.size[0]}x{img.size[1]}, expected RGB {patch}x{patch}")
+        except (OSError, SyntaxError, ValueError) as exc:
+            problems.append(f"{sid}: {kind} does not decode ({exc.__class__.__name__})")
+    try:
+        flow = np.load(file_path(root, "flow", sid), allow_pickle=False)
+        if flow.shape != (2, patch, patch) or flow.dtype != np.float16:
+            problems.append(f"{sid}: flow is {flow.dtype} {flow.shape}, expected float16 (2, {patch}, {patch})")
+        elif not np.isfinite(flow).all():
+            problems.append(f"{sid}: flow contains NaN or infinite values")
+    except (OSError, ValueError, EOFError) as exc:
+        problems.append(f"{sid}: flow does not load ({exc.__class__.__name__})")
+    try:
+        depth = read_depth_png(file_path(root, "depth", sid))
+        if tuple(depth.shape) != (1, patch, patch):
+            problems.append(f"{sid}: depth is {tuple(depth.shape[-2:])}, expected ({patch}, {patch})")
+    except (OSError, SyntaxError, ValueError, D2TurbError) as exc:
+        problems.append(f"{sid}: depth does not decode ({exc.__class__.__name__})")
+    return problems
+
+
+def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
+    """Every meta id has all its files and they decode with the right shapes, no NaN in flow,
+    no orphan files, no duplicate ids, D/r0 inside the stated bin, as many samples as configured."""
+    root = Path(root)
+    if not root.is_dir():
+        raise D2TurbError(f"{root}: not a directory")
+    if not (root / CONFIG_NAME).is_file():
+        raise D2TurbError(f"{root}: not a d2turb dataset (no {CONFIG_NAME})")
+    try:
+        cfg = json.loads((root / CONFIG_NAME).read_text())
+        patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), {k: tuple(v) for k, v in cfg["bin_ranges"].items()}
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise D2TurbError(f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})") from None
+    report = CheckReport(counts={b: 0 for b in sorted(ranges, key=lambda b: ranges[b][0])})
+    problems = report.problems
+    meta_path = root / META_NAME
+    if not meta_path.is_file():
+        problems.append(f"no {META_NAME}: generation unfinished (rerun make-dataset with the same arguments)")
+        return report
+    if (root / SHARD_DIR).is_dir() and any((root / SHARD_DIR).iterdir()):
+        problems.append(f"unmerged meta shards in {SHARD_DIR}/: generation unfinished (rerun make-dataset)")
+
+    ids: Counter[str] = Counter()
+    records = []
+    for n, line in enumerate(meta_path.read_bytes().split(b"\n"), 1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+            sid, dr0, name = str(rec["id"]), float(rec["dr0"]), str(rec["bin"])
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
+            problems.append(f"{META_NAME} line {n}: not a valid sample record")
+            continue
+        ids[sid] += 1
+        if ids[sid] > 1:
+            problems.append(f"{sid}: duplicate id in {META_NAME} (line {n})")
+            continue
+        records.append(rec)
+        if name not in ranges:
+            problems.append(f"{sid}: bin {name!r} is not one of the dataset's bins ({', '.join(ranges)})")
+        elif not ranges[name][0] <= dr0 <= ranges[name][1] or not np.isfinite(dr0):
+            problems.append(f"{sid}: D/r0 = {dr0:.4f} lies outside its bin {name} {list(ranges[name])}")
+        else:
+            report.counts[name] += 1
+    for rec in records:
+        problems.extend(_check_sample(root, rec, patch, decode))
+    report.samples = len(records)
+    if report.samples != pairs:
+        problems.append(f"{report.samples} samples in {META_NAME}, expected {pairs}")
+    for kind, suffix in FILES.items():
+        folder = root / kind
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.iterdir()):
+            if p.name.startswith(".") or p.suffix != suffix or p.stem not in ids:
+                problems.append(f"orphan file {kind}/{p.name} (no meta record)")
+    return report

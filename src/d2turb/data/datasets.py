@@ -1,0 +1,203 @@
+"""PyTorch datasets: generated pairs from disk, and clean crops + on-the-fly synthesis on the training device."""
+from __future__ import annotations
+
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from d2turb.data.layout import BIN_NAMES, bin_of, bin_ranges, file_path, read_config, read_depth_png, read_meta
+from d2turb.errors import D2TurbError
+from d2turb.io import expand_inputs, read_image
+
+
+def flip_sample(sample: dict, horizontal: bool = True) -> dict:
+    """Mirror every image-like entry; the backward flow's matching component changes sign
+    (mirroring x → W-1-x turns a displacement +v into -v)."""
+    dim, comp = (-1, 0) if horizontal else (-2, 1)
+    out = dict(sample)
+    for key in ("turb", "tilt", "gt", "depth", "flow"):
+        if key in out and out[key] is not None:
+            out[key] = out[key].flip(dim)
+    if out.get("flow") is not None:
+        flow = out["flow"].clone()
+        flow[..., comp, :, :] = -flow[..., comp, :, :]
+        out["flow"] = flow
+    return out
+
+
+def crop_sample(sample: dict, y0: int, x0: int, size: int) -> dict:
+    """Crop every image-like entry; flow is in pixels, so its values stay valid after a crop."""
+    out = dict(sample)
+    for key in ("turb", "tilt", "gt", "depth", "flow"):
+        if key in out and out[key] is not None:
+            out[key] = out[key][..., y0:y0 + size, x0:x0 + size]
+    return out
+
+
+def bin_index(name: str) -> int:
+    return BIN_NAMES.index(name) if name in BIN_NAMES else -1
+
+
+class PairDataset(Dataset):
+    """Pairs written by ``d2turb make-dataset`` in ``root`` (or ``root/<split>``); ``split`` must match the data's.
+
+    Item: dict(turb, tilt, gt (3,H,W) float32 in [0,1]; flow (2,H,W) float32 px backward flow;
+    depth (1,H,W) in [0,1]; dr0 float32 scalar; bin int64 scalar (index into ("weak","medium","strong"));
+    id str). ``crop`` = random crop size, ``hflip``/``vflip`` = random mirroring (flow kept consistent).
+    Augmentation randomness comes from ``torch``'s global RNG (seeded per DataLoader worker).
+    """
+
+    def __init__(self, root: str | Path, split: str | None = None, crop: int | None = None,
+                 hflip: bool = False, vflip: bool = False):
+        self.root = Path(root)
+        if split is not None and (self.root / split / "dataset.json").is_file():
+            self.root = self.root / split  # a parent folder holding train/ and test/
+        config = read_config(self.root)
+        if split is not None and config.get("split") != split:
+            raise D2TurbError(f"{self.root}: dataset split is {config.get('split')!r}, not {split!r}")
+        self.records = sorted(read_meta(self.root), key=lambda r: r["index"])
+        self.patch = int(config["patch"])
+        if crop is not None and not 1 <= crop <= self.patch:
+            raise D2TurbError(f"crop {crop} must be between 1 and the dataset patch size {self.patch}")
+        self.crop, self.hflip, self.vflip = crop, hflip, vflip
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def load(self, index: int) -> dict:
+        rec = self.records[index]
+        sid = rec["id"]
+        flow = np.load(file_path(self.root, "flow", sid), allow_pickle=False)
+        return {
+            "turb": read_image(file_path(self.root, "turb", sid)),
+            "tilt": read_image(file_path(self.root, "tilt", sid)),
+            "gt": read_image(file_path(self.root, "gt", sid)),
+            "flow": torch.from_numpy(flow.astype(np.float32)),
+            "depth": read_depth_png(file_path(self.root, "depth", sid)),
+            "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
+            "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
+            "id": sid,
+        }
+
+    def __getitem__(self, index: int) -> dict:
+        sample = self.load(index)
+        if self.crop is not None and self.crop < self.patch:
+            h, w = sample["gt"].shape[-2:]
+            y0 = int(torch.randint(0, h - self.crop + 1, ()))
+            x0 = int(torch.randint(0, w - self.crop + 1, ()))
+            sample = crop_sample(sample, y0, x0, self.crop)
+        if self.hflip and torch.rand(()) < 0.5:
+            sample = flip_sample(sample, horizontal=True)
+        if self.vflip and torch.rand(()) < 0.5:
+            sample = flip_sample(sample, horizontal=False)
+        return sample
+
+
+class CleanCropDataset(Dataset):
+    """Random ``patch``² crops of clean images with their depth (computed on the full image, then
+    cropped the same way), for on-the-fly synthesis. Item: dict(gt (3,p,p), depth (1,p,p), id str).
+
+    ``length`` items per epoch (default: one per image); item i uses image i % n_images and a fresh
+    random crop (torch global RNG). Images smaller than the patch are resized up, as in make-dataset.
+    Full-image depth maps are cached per worker (``cache`` entries).
+    """
+
+    def __init__(self, dirs: list[str | Path], patch: int = 256, depth_spec: str = "prior",
+                 length: int | None = None, hflip: bool = True, cache: int = 32):
+        from d2turb.data.generate import make_depth_fn
+
+        self.paths = expand_inputs([str(d) for d in dirs])
+        if patch < 16:
+            raise D2TurbError(f"patch must be at least 16 px, got {patch}")
+        self.patch, self.depth_spec, self.hflip = patch, depth_spec, hflip
+        self.length = len(self.paths) if length is None else int(length)
+        self.depth_fn = make_depth_fn(depth_spec)
+        self.cache_size = cache
+        self._cache: OrderedDict[int, tuple] = OrderedDict()
+
+    def __len__(self) -> int:
+        return self.length
+
+    def _load(self, k: int):
+        from d2turb.data.generate import resize_up
+
+        if k in self._cache:
+            self._cache.move_to_end(k)
+            return self._cache[k]
+        image = read_image(self.paths[k])
+        if self.depth_fn is None:
+            depth = torch.ones(1, *image.shape[-2:])
+        else:
+            depth = self.depth_fn(image, self.paths[k]).float().reshape(1, *image.shape[-2:])
+        item = (resize_up(image, self.patch), resize_up(depth, self.patch))
+        self._cache[k] = item
+        if len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return item
+
+    def __getitem__(self, index: int) -> dict:
+        k = index % len(self.paths)
+        image, depth = self._load(k)
+        h, w = image.shape[-2:]
+        y0 = int(torch.randint(0, h - self.patch + 1, ()))
+        x0 = int(torch.randint(0, w - self.patch + 1, ()))
+        sample = crop_sample({"gt": image, "depth": depth}, y0, x0, self.patch)
+        if self.hflip and torch.rand(()) < 0.5:
+            sample = flip_sample(sample)
+        sample = {key: v.contiguous() for key, v in sample.items()}
+        sample["id"] = f"{self.paths[k].stem}@{x0},{y0}"
+        return sample
+
+
+class OnTheFlySynthesis:
+    """Applied to a collated CleanCropDataset batch on the training device: draws D/r0 uniformly over
+    the union of ``bins``, runs the simulator batched (new turbulence on every call) and returns the same
+    dict as PairDataset, with ``flow`` the backward flow (``backward_flow`` of the simulator's forward flow).
+    """
+
+    def __init__(self, simulator, bins=("weak", "medium", "strong"), device: str | torch.device = "cpu",
+                 seed: int | None = None, use_depth: bool = True):
+        ranges = bin_ranges()
+        unknown = [b for b in bins if b not in ranges]
+        if not bins or unknown:
+            raise D2TurbError(f"unknown bin {unknown[0]!r}; choose from {','.join(ranges)}" if unknown else "no bins given")
+        self.simulator, self.bins, self.ranges = simulator, tuple(bins), ranges
+        self.device = torch.device(device)
+        self.use_depth = use_depth
+        self.generator = torch.Generator(device=self.device)
+        if seed is None:
+            self.generator.seed()
+        else:
+            self.generator.manual_seed(seed)
+
+    def sample_dr0(self, n: int) -> torch.Tensor:
+        """n values uniform over the union of the bins (Eq.-free: uniform in D/r0 as in the train split)."""
+        spans = torch.tensor([self.ranges[b] for b in self.bins], dtype=torch.float64)
+        widths = spans[:, 1] - spans[:, 0]
+        t = torch.rand(n, generator=self.generator, device=self.device, dtype=torch.float64).cpu() * widths.sum()
+        edges = torch.cumsum(widths, 0)
+        k = torch.searchsorted(edges, t, right=False).clamp(max=len(self.bins) - 1)
+        return (spans[k, 0] + t - (edges[k] - widths[k])).float()
+
+    def __call__(self, batch: dict) -> dict:
+        from d2turb.ops.splat import backward_flow
+
+        gt = batch["gt"].to(self.device, non_blocking=True)
+        if gt.ndim != 4 or gt.shape[1] != 3:
+            raise D2TurbError(f"expected a batch of clean images (B,3,H,W), got {tuple(gt.shape)}")
+        depth = batch.get("depth")
+        depth = depth.to(self.device, non_blocking=True) if (depth is not None and self.use_depth) else None
+        dr0 = self.sample_dr0(gt.shape[0])
+        with torch.no_grad():
+            res = self.simulator(gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
+            flow = backward_flow(res.flow)
+        names = [bin_of(float(v), self.ranges) for v in dr0]
+        return {
+            "turb": res.turb, "tilt": res.tilt, "gt": gt, "flow": flow,
+            "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
+            "dr0": dr0.to(self.device), "bin": torch.tensor([bin_index(n) for n in names], device=self.device),
+            "id": batch.get("id"),
+        }

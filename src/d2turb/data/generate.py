@@ -1,0 +1,403 @@
+"""Paired-dataset generation at scale: deterministic per-sample plans, batched simulation,
+atomic per-sample writes, restartable, and data-parallel over ``torchrun`` ranks.
+
+Determinism: sample ``i`` draws its source image, crop and D/r0 from ``(seed, i)`` alone; the simulator's
+noise for the batch ("chunk") ``c = i // batch`` is seeded from ``(seed, c)``. Chunks are dealt to ranks
+round-robin (``c ≡ rank mod world``; with ``--batch 1`` that is ``i ≡ rank mod world``), so for a given
+seed, batch size and device the output does not depend on the number of processes or on restarts.
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import sys
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from d2turb.data.layout import (
+    CONFIG_NAME, FILES, FORMAT_VERSION, META_NAME, SHARD_DIR, append_line, bin_of, bin_ranges, file_path,
+    parse_meta_lines, sample_id, truncate_partial_line, write_depth_png,
+)
+from d2turb.errors import D2TurbError
+from d2turb.io import expand_inputs, read_image, write_image, write_json, write_npy, write_text
+
+SPLITS = ("train", "test")
+
+
+@dataclass
+class DatasetConfig:
+    clean: list[str]
+    out: str
+    pairs: int
+    patch: int = 256
+    split: str = "train"
+    bins: tuple[str, ...] = ("weak", "medium", "strong")
+    depth: str = "prior"
+    seed: int = 0
+    batch: int = 8
+    device: str = "auto"
+    params: dict = field(default_factory=dict)  # TurbulenceParams overrides
+
+
+@dataclass
+class SamplePlan:
+    index: int
+    id: str
+    source: int  # index into the sorted source list
+    dr0: float
+    bin: str
+    crop_u: float  # crop offsets as fractions of the free range, resolved once the image size is known
+    crop_v: float
+
+
+def validate(cfg: DatasetConfig) -> None:
+    ranges = bin_ranges()
+    if cfg.pairs < 1:
+        raise D2TurbError(f"--pairs must be at least 1, got {cfg.pairs}")
+    if cfg.patch < 16:
+        raise D2TurbError(f"--patch must be at least 16 px, got {cfg.patch}")
+    if cfg.split not in SPLITS:
+        raise D2TurbError(f"--split must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
+    if not cfg.bins or len(set(cfg.bins)) != len(cfg.bins):
+        raise D2TurbError(f"--bins must list distinct bins, got {','.join(cfg.bins) or 'nothing'}")
+    unknown = [b for b in cfg.bins if b not in ranges]
+    if unknown:
+        raise D2TurbError(f"unknown bin {unknown[0]!r}; choose from {','.join(ranges)}")
+    if cfg.batch < 1:
+        raise D2TurbError(f"--batch must be at least 1, got {cfg.batch}")
+
+
+def _rng(*key: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(k) for k in key]))
+
+
+def chunk_seed(seed: int, chunk: int) -> int:
+    """Simulator seed of chunk ``chunk`` (63-bit, from (seed, chunk) only)."""
+    return int(np.random.SeedSequence([int(seed), 1, int(chunk)]).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def sample_dr0_union(rng: np.random.Generator, bins: tuple[str, ...], ranges) -> float:
+    """D/r0 uniform over the union of the chosen bins (train split)."""
+    spans = [ranges[b] for b in bins]
+    t = rng.uniform(0.0, sum(hi - lo for lo, hi in spans))
+    for lo, hi in spans:
+        if t <= hi - lo:
+            return float(lo + t)
+        t -= hi - lo
+    return float(spans[-1][1])
+
+
+def plan_sample(index: int, seed: int, split: str, bins: tuple[str, ...], n_sources: int, ranges=None) -> SamplePlan:
+    """Everything random about sample ``index`` except the simulator noise, from (seed, index) only.
+
+    test: bin = bins[i % n_bins], D/r0 uniform inside it, source = (i // n_bins) % n_sources (each image
+    appears once per bin before any repeats); train: D/r0 uniform over the union of bins, random source.
+    """
+    ranges = ranges or bin_ranges()
+    rng = _rng(seed, 0, index)
+    if split == "test":
+        name = bins[index % len(bins)]
+        dr0 = float(rng.uniform(*ranges[name]))
+        source = (index // len(bins)) % n_sources
+    else:
+        dr0 = sample_dr0_union(rng, bins, ranges)
+        name = bin_of(dr0, ranges)
+        source = int(rng.integers(n_sources))
+    u, v = rng.random(2)
+    return SamplePlan(index, sample_id(index), source, dr0, name, float(u), float(v))
+
+
+def resize_up(image: torch.Tensor, patch: int) -> torch.Tensor:
+    """Images whose short side is below ``patch`` are resized up (bilinear, aspect kept) to short side = patch."""
+    h, w = image.shape[-2:]
+    if min(h, w) >= patch:
+        return image
+    scale = patch / min(h, w)
+    size = (max(patch, round(h * scale)), max(patch, round(w * scale)))
+    return F.interpolate(image[None], size=size, mode="bilinear", align_corners=False)[0].clamp(0, 1)
+
+
+def crop_box(plan: SamplePlan, height: int, width: int, patch: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the patch inside a height×width image."""
+    x0 = min(int(plan.crop_u * (width - patch + 1)), width - patch)
+    y0 = min(int(plan.crop_v * (height - patch + 1)), height - patch)
+    return x0, y0, x0 + patch, y0 + patch
+
+
+def make_depth_fn(spec: str, device=None):
+    """spec → f(image (3,H,W), path) -> depth (1,H,W) in [0,1] (far = 1), or None for ``none``."""
+    if spec == "none":
+        return None
+    try:
+        from d2turb.depth import depth_for_image
+    except ImportError:
+        from d2turb.depth.io import depth_for_image
+
+    def depth_fn(image: torch.Tensor, path) -> torch.Tensor:
+        if spec == "prior" and device is not None:
+            image = image.to(device)  # the weight-free prior is plain torch: run it where the simulator runs
+        return depth_for_image(spec, path, image, device=device).float().cpu()
+
+    return depth_fn
+
+
+def resolve_device(name: str, local_rank: int = 0) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise D2TurbError("--device cuda requested but no CUDA GPU is available")
+        return torch.device("cuda", local_rank % torch.cuda.device_count())
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise D2TurbError(f"unknown device {name!r} (use auto, cpu or cuda)") from None
+
+
+def simulator_params(overrides: dict):
+    """TurbulenceParams with the user's overrides, and the full parameter dict for the metadata."""
+    from d2turb.sim import TurbulenceParams
+
+    try:
+        params = TurbulenceParams(**overrides)
+    except TypeError as exc:
+        raise D2TurbError(f"bad simulator parameter: {exc}") from None
+    full = params.to_dict() if hasattr(params, "to_dict") else dataclasses.asdict(params)
+    return params, json.loads(json.dumps(full, default=str))
+
+
+class SourceCache:
+    """Loads source images (+ depth on the full image), skipping corrupt files deterministically."""
+
+    def __init__(self, sources: list[Path], patch: int, depth_fn, size: int = 4):
+        self.sources, self.patch, self.depth_fn, self.size = sources, patch, depth_fn, size
+        self.cache: OrderedDict[int, tuple] = OrderedDict()
+        self.bad: set[int] = set()
+
+    def get(self, index: int):
+        """(source index actually used, image (3,H,W), depth (1,H,W) | None); a corrupt source is
+        replaced by the next readable one in the list (same choice in every process)."""
+        for step in range(len(self.sources)):
+            k = (index + step) % len(self.sources)
+            if k in self.bad:
+                continue
+            if k in self.cache:
+                self.cache.move_to_end(k)
+                return (k, *self.cache[k])
+            try:
+                image = read_image(self.sources[k])
+            except D2TurbError as exc:
+                print(f"warning: skipping corrupt source {exc}", file=sys.stderr)
+                self.bad.add(k)
+                continue
+            depth = None if self.depth_fn is None else self.depth_fn(image, self.sources[k]).float().reshape(1, *image.shape[-2:])
+            image = resize_up(image, self.patch)
+            if depth is not None:
+                depth = resize_up(depth, self.patch)
+            self.cache[k] = (image, depth)
+            if len(self.cache) > self.size:
+                self.cache.popitem(last=False)
+            return k, image, depth
+        raise D2TurbError("no readable clean image among the sources")
+
+
+# ----------------------------------------------------------------------------------------- resume state
+def shard_dir(root: Path) -> Path:
+    return Path(root) / SHARD_DIR
+
+
+def sample_complete(root: Path, sid: str) -> bool:
+    return all(file_path(root, kind, sid).is_file() for kind in FILES)
+
+
+def collect_records(root: Path) -> dict[str, dict]:
+    """Meta records (final meta.jsonl and shards) whose files all exist: the samples that are done."""
+    root = Path(root)
+    paths = [root / META_NAME] + sorted(shard_dir(root).glob("*.jsonl"))
+    records: dict[str, dict] = {}
+    for path in paths:
+        if not path.is_file():
+            continue
+        for rec in parse_meta_lines(path.read_bytes()):
+            if rec["id"] not in records and sample_complete(root, rec["id"]):
+                records[rec["id"]] = rec
+    return records
+
+
+def remove_temp_files(root: Path) -> int:
+    """Temporary files a killed writer left behind (``.<name>.XXXX.tmp<suffix>``)."""
+    count = 0
+    for kind in FILES:
+        for p in (Path(root) / kind).glob(".*.tmp*"):
+            p.unlink(missing_ok=True)
+            count += 1
+    return count
+
+
+def merge_meta(root: Path) -> int:
+    """Rank 0, after all ranks finished: sorted, de-duplicated meta.jsonl; shards removed."""
+    root = Path(root)
+    records = collect_records(root)
+    lines = "".join(json.dumps(r, sort_keys=True) + "\n" for r in sorted(records.values(), key=lambda r: r["index"]))
+    write_text(root / META_NAME, lines)
+    for p in shard_dir(root).glob("*.jsonl"):
+        p.unlink()
+    if shard_dir(root).is_dir():
+        shard_dir(root).rmdir()
+    return len(records)
+
+
+def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
+    return {
+        "version": FORMAT_VERSION, "pairs": cfg.pairs, "patch": cfg.patch, "split": cfg.split,
+        "bins": list(cfg.bins), "bin_ranges": {b: list(bin_ranges()[b]) for b in cfg.bins},
+        "seed": cfg.seed, "batch": cfg.batch, "depth": cfg.depth, "params": params_full,
+        "clean": [str(c) for c in cfg.clean], "sources": len(sources),
+        "files": {k: f"{k}/<id>{s}" for k, s in FILES.items()},
+        "flow": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, flow) ~ gt",
+        "depth_encoding": "16-bit PNG, depth = value / 65535, far = 1",
+    }
+
+
+def check_same_config(root: Path, record: dict) -> None:
+    path = Path(root) / CONFIG_NAME
+    if not path.is_file():
+        return
+    old = json.loads(path.read_text())
+    keys = ["version", "pairs", "patch", "split", "bins", "seed", "batch", "depth", "params", "sources"]
+    diff = [k for k in keys if old.get(k) != record.get(k)]
+    if diff:
+        raise D2TurbError(f"{root} holds a dataset made with different settings ({', '.join(diff)}); use a new --out")
+
+
+# ------------------------------------------------------------------------------------------ distributed
+@dataclass
+class DistInfo:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+
+def dist_info() -> DistInfo:
+    try:
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = int(os.environ.get("RANK", "0"))
+        local = int(os.environ.get("LOCAL_RANK", str(rank)))
+    except ValueError:
+        raise D2TurbError("RANK, WORLD_SIZE and LOCAL_RANK must be integers") from None
+    if world < 1 or not 0 <= rank < world:
+        raise D2TurbError(f"bad distributed environment: RANK={rank} WORLD_SIZE={world}")
+    return DistInfo(rank, world, local)
+
+
+def _barrier(info: DistInfo) -> None:
+    if info.world > 1:
+        torch.distributed.barrier()
+
+
+# ----------------------------------------------------------------------------------------------- driver
+def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
+    """Generate (or finish) the dataset in ``cfg.out``; returns counts and timing of this process."""
+    validate(cfg)
+    info = dist_info()
+    root = Path(cfg.out)
+    sources = expand_inputs(list(cfg.clean))
+    params, params_full = simulator_params(cfg.params)
+    record = dataset_config_record(cfg, sources, params_full)
+    check_same_config(root, record)  # every rank checks, so a mismatch fails all of them before any barrier
+    initialized_here = False
+    if info.world > 1 and not torch.distributed.is_initialized():
+        torch.distributed.init_process_group("gloo", timeout=datetime.timedelta(hours=2))
+        initialized_here = True
+    try:
+        if info.rank == 0:
+            root.mkdir(parents=True, exist_ok=True)
+            if not (root / CONFIG_NAME).is_file():
+                write_json(root / CONFIG_NAME, record)
+            remove_temp_files(root)
+        _barrier(info)
+        stats = _generate_rank(cfg, info, root, sources, params, params_full, progress)
+        _barrier(info)
+        if info.rank == 0:
+            stats["total"] = merge_meta(root)
+        _barrier(info)
+    finally:
+        if initialized_here:
+            torch.distributed.destroy_process_group()
+    return stats
+
+
+def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> dict:
+    from d2turb.ops.splat import backward_flow
+    from d2turb.sim import Simulator
+
+    device = resolve_device(cfg.device, info.local_rank)
+    ranges = bin_ranges()
+    done = set(collect_records(root))
+    n_chunks = (cfg.pairs + cfg.batch - 1) // cfg.batch
+    my_chunks = [c for c in range(info.rank, n_chunks, info.world)
+                 if any(sample_id(i) not in done for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs)))]
+    todo = sum(1 for c in my_chunks for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs)) if sample_id(i) not in done)
+    shard = shard_dir(root) / f"rank-{info.rank}.jsonl"
+    shard.parent.mkdir(parents=True, exist_ok=True)
+    truncate_partial_line(shard)
+    for kind in FILES:
+        (root / kind).mkdir(parents=True, exist_ok=True)
+    sim = Simulator(params, device=str(device))
+    cache = SourceCache(sources, cfg.patch, make_depth_fn(cfg.depth, device))
+    bar = None
+    if progress and info.rank == 0:
+        from tqdm import tqdm
+
+        bar = tqdm(total=todo, unit="pair", desc=f"make-dataset (rank 0 of {info.world})", dynamic_ncols=True)
+    start, written = time.perf_counter(), 0
+    with torch.inference_mode():
+        for c in my_chunks:
+            indices = range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
+            plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources), ranges) for i in indices]
+            clean, depth, metas = [], [], []
+            for plan in plans:
+                k, image, dmap = cache.get(plan.source)
+                x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
+                clean.append(image[:, y0:y1, x0:x1])
+                depth.append(None if dmap is None else dmap[:, y0:y1, x0:x1])
+                metas.append({
+                    "id": plan.id, "index": plan.index, "split": cfg.split, "source": str(sources[k]),
+                    "crop": [x0, y0, x1, y1], "source_size": [int(image.shape[-1]), int(image.shape[-2])],
+                    "dr0": plan.dr0, "bin": plan.bin, "seed": cfg.seed, "chunk": c,
+                    "sim_seed": chunk_seed(cfg.seed, c), "depth": cfg.depth, "params": params_full,
+                })
+            clean_t = torch.stack(clean).to(device)
+            depth_t = None if depth[0] is None else torch.stack(depth).to(device)
+            dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
+            generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
+            res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
+            flow = backward_flow(res.flow).float()
+            if not torch.isfinite(flow).all() or not torch.isfinite(res.turb).all():
+                raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
+            turb, tilt, flow = res.turb.float().cpu(), res.tilt.float().cpu(), flow.cpu()
+            for b, (plan, meta) in enumerate(zip(plans, metas)):
+                if plan.id in done:
+                    continue
+                write_image(file_path(root, "turb", plan.id), turb[b])
+                write_image(file_path(root, "tilt", plan.id), tilt[b])
+                write_image(file_path(root, "gt", plan.id), clean[b])
+                write_npy(file_path(root, "flow", plan.id), flow[b].numpy().astype(np.float16))
+                write_depth_png(file_path(root, "depth", plan.id), depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch))
+                append_line(shard, meta)  # the meta line last: a sample is done once it is there
+                written += 1
+                if bar is not None:
+                    bar.update(1)
+    if bar is not None:
+        bar.close()
+    seconds = time.perf_counter() - start
+    return {"rank": info.rank, "world": info.world, "generated": written, "already_done": len(done),
+            "seconds": seconds, "pairs_per_s": written / seconds if seconds > 0 else 0.0, "device": str(device)}

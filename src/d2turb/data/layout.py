@@ -1,0 +1,125 @@
+"""On-disk layout of a generated pair dataset, shared by the generator, the checker and the loaders.
+
+out/dataset.json                 config (version, pairs, patch, split, bins, seed, batch, depth, params)
+out/meta.jsonl                   one JSON line per sample, sorted by index (written by the final merge)
+out/.meta/rank-<r>.jsonl         per-rank append-only meta shards while generating (merged, then removed)
+out/turb/<id>.png                8-bit RGB turbulent image (blur + tilt)
+out/tilt/<id>.png                8-bit RGB tilt-only image (Eq. 8: blur module bypassed)
+out/gt/<id>.png                  8-bit RGB clean crop
+out/flow/<id>.npy                float16 (2, H, W) backward flow in px, x then y: warp(tilt, flow) ≈ gt
+out/depth/<id>.png               16-bit grey relative depth, value = round(depth * 65535), far = 65535
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from d2turb.errors import D2TurbError
+from d2turb.io import atomic_path
+
+FORMAT_VERSION = 1
+FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "flow": ".npy", "depth": ".png"}
+META_NAME = "meta.jsonl"
+CONFIG_NAME = "dataset.json"
+SHARD_DIR = ".meta"
+# Eq. D/r0 bins of the benchmark (physics.md §5); the lower/upper ends are the sampling range 1–5.
+BIN_RANGES = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}
+BIN_NAMES = tuple(BIN_RANGES)
+
+
+def bin_ranges() -> dict[str, tuple[float, float]]:
+    """The simulator's bins when available (``d2turb.sim.BINS``), else the documented defaults."""
+    try:
+        from d2turb.sim import BINS
+    except ImportError:
+        return dict(BIN_RANGES)
+    return {name: (float(lo), float(hi)) for name, (lo, hi) in BINS.items()}
+
+
+def bin_of(dr0: float, ranges: dict[str, tuple[float, float]] | None = None) -> str | None:
+    """Bin of a D/r0 value: weak < 2.25 ≤ medium ≤ 3.75 < strong (physics.md §5); None outside all bins."""
+    ranges = ranges or bin_ranges()
+    hits = [name for name, (lo, hi) in ranges.items() if lo <= dr0 <= hi]
+    if len(hits) > 1:  # on a boundary: the closed middle bin wins
+        return "medium" if "medium" in hits else hits[0]
+    return hits[0] if hits else None
+
+
+def sample_id(index: int) -> str:
+    return f"{index:07d}"
+
+
+def file_path(root: Path, kind: str, sid: str) -> Path:
+    return Path(root) / kind / f"{sid}{FILES[kind]}"
+
+
+def write_depth_png(path: Path, depth: torch.Tensor) -> None:
+    """(1, H, W) or (H, W) depth in [0, 1] → 16-bit PNG, atomically."""
+    arr = np.round(depth.detach().float().cpu().clamp(0, 1).reshape(depth.shape[-2:]).numpy() * 65535.0)
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr.astype(np.uint16)).save(tmp, format="PNG")
+
+
+def read_depth_png(path: Path) -> torch.Tensor:
+    """16-bit depth PNG → float32 (1, H, W) in [0, 1]."""
+    with Image.open(path) as img:
+        img.load()
+        arr = np.asarray(img)
+    if arr.ndim != 2:
+        raise D2TurbError(f"{path}: depth must be a single-channel image, got shape {arr.shape}")
+    scale = 65535.0 if arr.dtype in (np.uint16, np.int32) or img.mode.startswith("I") else 255.0
+    return torch.from_numpy(arr.astype(np.float32) / scale)[None]
+
+
+def read_config(root: Path) -> dict:
+    path = Path(root) / CONFIG_NAME
+    if not path.is_file():
+        raise D2TurbError(f"{root}: not a d2turb dataset (no {CONFIG_NAME})")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise D2TurbError(f"{path}: unreadable ({exc})") from None
+
+
+def parse_meta_lines(data: bytes) -> list[dict]:
+    """Complete, valid JSON lines of a meta file; a trailing partial line (killed writer) is dropped."""
+    records = []
+    for line in data.split(b"\n")[:-1]:  # text after the last newline is a partial line
+        try:
+            rec = json.loads(line)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue
+        if isinstance(rec, dict) and "id" in rec:
+            records.append(rec)
+    return records
+
+
+def read_meta(root: Path) -> list[dict]:
+    path = Path(root) / META_NAME
+    if not path.is_file():
+        raise D2TurbError(f"{root}: no {META_NAME} (generation unfinished? rerun make-dataset)")
+    return parse_meta_lines(path.read_bytes())
+
+
+def append_line(path: Path, record: dict) -> None:
+    """Append one JSON line durably (flush + fsync), so a kill leaves at most one partial last line."""
+    with open(path, "ab") as f:
+        f.write((json.dumps(record, sort_keys=True) + "\n").encode())
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def truncate_partial_line(path: Path) -> None:
+    """Cut a trailing partial line left by a killed writer."""
+    if not path.is_file():
+        return
+    data = path.read_bytes()
+    end = data.rfind(b"\n") + 1
+    if end != len(data):
+        with open(path, "r+b") as f:
+            f.truncate(end)

@@ -1,0 +1,131 @@
+"""No-reference evaluation of real turbulence images (no ground truth), paper Table 2.
+
+``evaluate_real`` scores every image of a folder with NIQE / PIQE, optionally after restoring it with
+each model in ``weights`` ("input" = the unrestored image), and writes ``results.json``,
+``results.md`` and, with models, comparison grids ``grids/<name>.png`` (input | model 1 | ...).
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from d2turb.errors import D2TurbError
+from d2turb.io import list_images, read_image, write_image, write_json, write_text
+
+IDENTITY = "input"
+NO_REFERENCE = ("niqe", "piqe")
+FULL_REFERENCE = ("psnr", "ssim", "lpips")
+
+
+def no_reference_metric(name: str) -> Callable[[torch.Tensor], float]:
+    """(3, H, W) image in [0, 1] → float, for "niqe" or "piqe" (lower is better for both)."""
+    if name == "niqe":
+        from d2turb.eval.niqe import niqe
+
+        return lambda img: float(niqe(img))
+    if name == "piqe":
+        from d2turb.eval.piqe import piqe
+
+        return lambda img: float(piqe(img))
+    if name == "musiq":
+        raise D2TurbError("MUSIQ is not implemented in d2turb (no MUSIQ model or weights support); use --metrics niqe,piqe")
+    if name in FULL_REFERENCE:
+        raise D2TurbError(f"{name} needs ground truth; real images have none (use --data DATASET_DIR for {name})")
+    raise D2TurbError(f"unknown metric {name!r} for real images; available: {', '.join(NO_REFERENCE)}")
+
+
+def parse_metrics(text: str | list[str]) -> list[str]:
+    names = text.split(",") if isinstance(text, str) else list(text)
+    names = [n.strip().lower() for n in names if n.strip()]
+    if not names:
+        raise D2TurbError("no metrics given (e.g. --metrics niqe,piqe)")
+    return list(dict.fromkeys(names))
+
+
+def _model_names(weights: list[str]) -> list[str]:
+    stems = [IDENTITY if str(w) == IDENTITY else Path(str(w)).stem for w in weights]
+    return [str(w) if stems.count(s) > 1 else s for w, s in zip(weights, stems)]
+
+
+def _default_restorer(weights: str, device: str):
+    from d2turb.restore import Restorer  # written elsewhere; imported only when models are evaluated
+
+    return Restorer(weights, device=device).restore
+
+
+def _grid(images: list[torch.Tensor], gap: int = 4) -> torch.Tensor:
+    h = max(im.shape[1] for im in images)
+    padded = [torch.nn.functional.pad(im, (0, 0, 0, h - im.shape[1]), value=1.0) for im in images]
+    sep = torch.ones(3, h, gap)
+    parts = [p for im in padded for p in (im, sep)][:-1]
+    return torch.cat(parts, dim=2)
+
+
+def _fmt(v: float) -> str:
+    return "nan" if math.isnan(v) else f"{v:.4f}"
+
+
+def _markdown(results: dict) -> str:
+    metrics, models = results["metrics"], list(results["models"])
+    lines = [f"# No-reference evaluation of `{results['data']}` ({len(results['images'])} images)", "",
+             "Lower is better for NIQE and PIQE.", "",
+             "| model | " + " | ".join(f"{m.upper()} ↓" for m in metrics) + " |",
+             "|---|" + "---:|" * len(metrics)]
+    for model in models:
+        lines.append(f"| {model} | " + " | ".join(_fmt(results["models"][model][m]["mean"]) for m in metrics) + " |")
+    for m in metrics:
+        lines += ["", f"## {m.upper()} per image", "", "| image | " + " | ".join(models) + " |",
+                  "|---|" + "---:|" * len(models)]
+        for name in results["images"]:
+            lines.append(f"| {name} | " + " | ".join(_fmt(results["models"][k][m]["per_image"][name]) for k in models) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def evaluate_real(real_dir: str | os.PathLike, metrics=("niqe", "piqe"), out_dir: str | os.PathLike = "eval_real",
+                  weights: list[str] | None = None, device: str = "cpu", max_samples: int | None = None,
+                  restorer_factory: Callable[[str, str], Callable[[torch.Tensor], torch.Tensor]] | None = None) -> dict:
+    """Score the images of ``real_dir``; returns the dict written to ``out_dir/results.json``.
+
+    ``results["models"][model][metric] = {"per_image": {file name: value}, "mean": value}`` with one
+    model per entry of ``weights`` (default ``["input"]``); ``results[metric]`` repeats the first model's
+    entry. ``restorer_factory(weights, device)`` returns ``image (3,H,W) -> restored (3,H,W)``
+    (default: ``d2turb.restore.Restorer(weights, device=device).restore``).
+    """
+    metric_names = parse_metrics(metrics)
+    scorers = {m: no_reference_metric(m) for m in metric_names}
+    paths = list_images(real_dir)
+    if max_samples is not None:
+        paths = paths[:max_samples]
+    if not paths:
+        raise D2TurbError(f"{real_dir}: no images found")
+    names = [p.name for p in paths]
+    weights = list(weights) if weights else [IDENTITY]
+    model_names = _model_names(weights)
+    factory = restorer_factory or _default_restorer
+    restorers = {n: (None if str(w) == IDENTITY else factory(str(w), device)) for n, w in zip(model_names, weights)}
+
+    values = {n: {m: {} for m in metric_names} for n in model_names}
+    out_dir = Path(out_dir)
+    for path, name in zip(paths, names):
+        image = read_image(path)
+        outputs = {n: image if r is None else r(image).detach().float().cpu().clamp(0, 1) for n, r in restorers.items()}
+        for n, restored in outputs.items():
+            for m, score in scorers.items():
+                try:
+                    values[n][m][name] = score(restored)
+                except D2TurbError as exc:
+                    raise D2TurbError(f"{path.name} ({n}): {exc}") from None
+        if any(r is not None for r in restorers.values()):
+            write_image(out_dir / "grids" / f"{path.stem}.png", _grid([image, *[outputs[n] for n in model_names if restorers[n] is not None]]))
+
+    results = {"mode": "real", "data": str(real_dir), "metrics": metric_names, "images": names,
+               "models": {n: {m: {"per_image": values[n][m], "mean": sum(values[n][m].values()) / len(names)}
+                              for m in metric_names} for n in model_names}}
+    results.update({m: results["models"][model_names[0]][m] for m in metric_names})
+    write_json(out_dir / "results.json", results)
+    write_text(out_dir / "results.md", _markdown(results))
+    return results

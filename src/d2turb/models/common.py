@@ -1,0 +1,51 @@
+"""Small building blocks shared by the backbones and the rectifier."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Pad H and W at the bottom/right up to a multiple (reflect, or replicate when the image is too small)."""
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    if ph or pw:
+        mode = "reflect" if ph < h and pw < w else "replicate"
+        x = F.pad(x, (0, pw, 0, ph), mode=mode)
+    return x, (h, w)
+
+
+class ChannelLayerNorm(nn.Module):
+    """LayerNorm over channels of a (B, C, H, W) map, computed in float32. ``bias=False`` = Restormer's BiasFree
+    variant (x / sqrt(var + eps) * w, the mean is not subtracted)."""
+
+    def __init__(self, channels: int, bias: bool = True, eps: float = 1e-5):
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(channels))
+        self.bias = nn.Parameter(torch.zeros(channels)) if bias else None
+        self.eps = eps
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        xf = x.float()
+        var = xf.var(dim=1, keepdim=True, unbiased=False)
+        if self.bias is None:
+            y = xf / torch.sqrt(var + self.eps) * self.weight[:, None, None]
+        else:
+            y = (xf - xf.mean(dim=1, keepdim=True)) / torch.sqrt(var + self.eps)
+            y = y * self.weight[:, None, None] + self.bias[:, None, None]
+        return y.to(x.dtype)
+
+
+def transposed_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int, temperature: torch.Tensor,
+                         return_attn: bool = False):
+    """Attention across channels (Restormer MDTA): q, k, v (B, C, H, W); q and k are L2-normalised over pixels,
+    so logits are cosine similarities scaled by a learned per-head temperature, independent of image size.
+    Returns (B, C, H, W) and optionally the (B, heads, C/h, C/h) attention matrices."""
+    b, c, h, w = q.shape
+    q, k, v = (t.reshape(b, heads, t.shape[1] // heads, h * w) for t in (q, k, v))
+    q = F.normalize(q.float(), dim=-1)
+    k = F.normalize(k.float(), dim=-1)
+    attn = (q @ k.transpose(-2, -1) * temperature.float()).softmax(dim=-1)
+    out = (attn.to(v.dtype) @ v).reshape(b, -1, h, w)
+    return (out, attn) if return_attn else out

@@ -1,0 +1,84 @@
+"""Name → constructor registries for complete models and for deblurring backbones.
+
+``create_model(name, **cfg)`` builds a model and records ``model.config = {"name": name, **cfg}`` so
+:func:`d2turb.models.hub.save_pretrained` can rebuild it. Adding a backbone is a one-file job: decorate
+its class with ``@register_backbone("name")`` (and import the file in ``d2turb/models/__init__.py``).
+"""
+from __future__ import annotations
+
+import json
+from typing import Callable
+
+from torch import nn
+
+from d2turb.errors import D2TurbError
+
+_MODELS: dict[str, Callable[..., nn.Module]] = {}
+_BACKBONES: dict[str, Callable[..., nn.Module]] = {}
+
+
+def _register(table: dict, kind: str, name: str):
+    def deco(factory):
+        if name in table:
+            raise ValueError(f"{kind} {name!r} is already registered")
+        table[name] = factory
+        return factory
+
+    return deco
+
+
+def register_model(name: str):
+    """Decorator: register a complete model (forward(image) -> dict with deblurred/restored/flow/guide)."""
+    return _register(_MODELS, "model", name)
+
+
+def register_backbone(name: str):
+    """Decorator: register a deblurring backbone (forward(image) -> (image_out, F_guide), attr ``guide_channels``)."""
+    return _register(_BACKBONES, "backbone", name)
+
+
+def list_models() -> list[str]:
+    """Complete models, plus every backbone as a standalone restorer (restored = backbone output)."""
+    return sorted(set(_MODELS) | set(_BACKBONES))
+
+
+def list_backbones() -> list[str]:
+    return sorted(_BACKBONES)
+
+
+def _build(table: dict, kind: str, name: str, cfg: dict) -> nn.Module:
+    if name not in table:
+        raise D2TurbError(f"unknown {kind} {name!r}; available: {', '.join(sorted(table))}")
+    try:
+        json.dumps(cfg)
+    except TypeError as exc:
+        raise D2TurbError(f"{kind} {name!r}: config must be JSON-serialisable ({exc})") from None
+    try:
+        return table[name](**cfg)
+    except (TypeError, ValueError) as exc:  # unknown / missing keyword, inconsistent values
+        raise D2TurbError(f"{kind} {name!r}: bad config {cfg} ({exc})") from None
+
+
+def create_backbone(name: str, **cfg) -> nn.Module:
+    model = _build(_BACKBONES, "backbone", name, cfg)
+    model.config = {"name": name, **cfg}
+    return model
+
+
+def create_model(name: str, **cfg) -> nn.Module:
+    """Build a registered model, e.g. ``create_model("d2turb", backbone="restormer", injection="aspi")``; a backbone
+    name gives that backbone as a standalone restorer, configured by the backbone's own keywords."""
+    if name not in _MODELS and name not in _BACKBONES:
+        raise D2TurbError(f"unknown model {name!r}; available: {', '.join(list_models())}")
+    if name not in _MODELS:
+        from d2turb.models.d2turb import BackboneRestorer
+
+        try:
+            json.dumps(cfg)
+        except TypeError as exc:
+            raise D2TurbError(f"model {name!r}: config must be JSON-serialisable ({exc})") from None
+        model = BackboneRestorer(name, **cfg)
+    else:
+        model = _build(_MODELS, "model", name, cfg)
+    model.config = {"name": name, **cfg}
+    return model

@@ -1,0 +1,258 @@
+"""Restore images of any size with a trained D²Turb model: tiled inference with seamless blending.
+
+Tiling (see docs/restore.md): the image is cut into overlapping tiles; every tile runs through the
+model; its *deblurred* image (Î_tilt) and *flow* (V̂) are accumulated with a smooth window that is > 0
+everywhere and then divided by the accumulated weight. The geometric rectification of Eq. 9,
+Î_clean = S(Î_tilt, V̂), is then applied ONCE to the whole blended image (in row strips to bound
+memory) rather than per tile: the backward flow near a tile border points outside the tile, and a
+per-tile warp would sample the tile's clamped border instead of the true neighbouring pixels. A global
+warp of blended, seamless fields cannot create a seam, and it equals the untiled model's warp
+wherever the tiles agree with the untiled model.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from importlib import resources
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from d2turb.errors import D2TurbError
+
+IDENTITY_NAME = "input"
+WEIGHTS_SUFFIX = ".safetensors"
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+_WARP_STRIP_PIXELS = 1 << 21  # output pixels per strip of the global warp (bounds its temporaries)
+_WINDOW_FLOOR = 1e-6  # tile windows never reach 0, so every pixel has a positive accumulated weight
+
+
+class IdentityRestorer(nn.Module):
+    """The "input" baseline: returns its input unchanged (zero flow)."""
+
+    def forward(self, x: torch.Tensor) -> dict:
+        return {"deblurred": x, "restored": x, "flow": torch.zeros_like(x[:, :2]), "guide": None}
+
+
+def weights_search_path(name: str) -> list[Path]:
+    """Where a weights *name* is looked for, in order: each folder of $D2TURB_WEIGHTS_DIR (os.pathsep
+    separated), ~/.cache/d2turb/weights, then the package's resources/weights."""
+    folders = [Path(p).expanduser() for p in os.environ.get("D2TURB_WEIGHTS_DIR", "").split(os.pathsep) if p]
+    folders.append(Path.home() / ".cache" / "d2turb" / "weights")
+    folders.append(Path(str(resources.files("d2turb"))) / "resources" / "weights")
+    return [folder / f"{name}{WEIGHTS_SUFFIX}" for folder in folders]
+
+
+def resolve_weights(weights: str | os.PathLike) -> Path | str:
+    """A weights argument → an existing .safetensors path, or the identity name "input"."""
+    text = os.fspath(weights)
+    if text == IDENTITY_NAME:
+        return IDENTITY_NAME
+    path = Path(text).expanduser()
+    weight_suffixes = (WEIGHTS_SUFFIX, ".pt", ".pth", ".ckpt", ".bin")
+    looks_like_path = path.suffix.lower() in weight_suffixes or "/" in text or os.sep in text or path.exists()
+    if looks_like_path:
+        if path.suffix.lower() in weight_suffixes[1:]:
+            raise D2TurbError(f"{path}: only {WEIGHTS_SUFFIX} weights written by save_pretrained are supported")
+        if not path.is_file():
+            raise D2TurbError(f"{path}: weights file not found")
+        return path
+    if not _NAME_RE.match(text):
+        raise D2TurbError(f"invalid weights name {text!r}: use a {WEIGHTS_SUFFIX} path or a name like 'd2turb-nafnet'")
+    candidates = weights_search_path(text)
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    looked = ", ".join(str(c) for c in candidates)
+    raise D2TurbError(f"weights {text!r} not found; looked in: {looked} (set D2TURB_WEIGHTS_DIR or pass a path)")
+
+
+def load_restoration_model(weights, device: str | torch.device = "cpu") -> tuple[nn.Module, str]:
+    """(model in eval mode on ``device``, display name) from a path, a name, "input" or an nn.Module."""
+    if isinstance(weights, nn.Module):
+        return weights.to(device).eval(), type(weights).__name__
+    resolved = resolve_weights(weights)
+    if resolved == IDENTITY_NAME:
+        return IdentityRestorer().to(device), IDENTITY_NAME
+    from d2turb.models import load_pretrained
+
+    model = load_pretrained(str(resolved), device=str(device))
+    return model.to(device).eval(), Path(resolved).stem
+
+
+def _check_device(device) -> torch.device:
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise D2TurbError("device 'cuda' requested but CUDA is not available; use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise D2TurbError(f"unsupported device {str(device)!r}: use cpu or cuda")
+    return device
+
+
+def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
+    """Start offsets of tiles of size ``tile`` covering [0, length) with at least ``overlap`` shared pixels."""
+    if length <= tile:
+        return [0]
+    stride = tile - overlap
+    count = math.ceil((length - tile) / stride) + 1
+    starts = [min(i * stride, length - tile) for i in range(count)]
+    return sorted(set(starts))
+
+
+def axis_window(size: int, overlap: int, taper_start: bool, taper_end: bool) -> torch.Tensor:
+    """1-D tile weight along one axis. On a tapered side (one that has a neighbouring tile) the first
+    ``overlap // 4`` pixels — the ones whose receptive field is cut by the tile edge — get the floor
+    weight, then a raised cosine rises to 1 over the next ``overlap // 2`` pixels (max slope π/overlap).
+    Two tiles sharing ``overlap`` pixels have complementary weights (sum 1); the floor keeps the window
+    > 0 everywhere, so the accumulated weight never vanishes."""
+    w = torch.ones(size, dtype=torch.float64)
+    overlap = min(overlap, size // 2)
+    guard = overlap // 4
+    ramp = overlap - 2 * guard
+    if ramp > 0:
+        t = (torch.arange(ramp, dtype=torch.float64) + 0.5) / ramp
+        rise = torch.cat([torch.zeros(guard, dtype=torch.float64), torch.sin(0.5 * math.pi * t) ** 2])
+        if taper_start:
+            w[:guard + ramp] = rise
+        if taper_end:
+            w[size - guard - ramp:] = torch.minimum(w[size - guard - ramp:], rise.flip(0))
+    return w.clamp_min(_WINDOW_FLOOR).float()
+
+
+def warp_in_strips(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """``d2turb.ops.warp(image, flow)`` (border padding, align_corners=True) computed in row strips so
+    the sampling grid of a 12-megapixel image never exists at once. Same result as the one-shot warp."""
+    b, c, h, w = image.shape
+    out = torch.empty_like(image)
+    rows = max(1, _WARP_STRIP_PIXELS // max(w, 1))
+    xs = torch.arange(w, device=flow.device, dtype=flow.dtype)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        ys = torch.arange(r0, r1, device=flow.device, dtype=flow.dtype)
+        gx = (xs[None, None, :] + flow[:, 0, r0:r1]) * (2.0 / max(w - 1, 1)) - 1.0
+        gy = (ys[None, :, None] + flow[:, 1, r0:r1]) * (2.0 / max(h - 1, 1)) - 1.0
+        grid = torch.stack((gx, gy), dim=-1).to(image.dtype)
+        out[:, :, r0:r1] = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out
+
+
+def frame_to_tensor(frame) -> torch.Tensor:
+    """A decoded video frame (H,W), (H,W,1|3|4) uint8/uint16/float array → (3,H,W) float32 in [0,1]."""
+    import numpy as np
+
+    arr = np.asarray(frame)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[2] not in (1, 3, 4):
+        raise D2TurbError(f"unsupported video frame shape {arr.shape}")
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(arr.dtype, 1.0)
+    arr = arr[..., :3].astype(np.float32) / scale  # alpha dropped
+    if arr.shape[2] == 1:
+        arr = arr.repeat(3, axis=2)
+    return torch.from_numpy(np.clip(arr, 0, 1)).permute(2, 0, 1).contiguous()
+
+
+class Restorer:
+    """Restore turbulence-degraded images of any size.
+
+    ``weights``: a .safetensors path from ``save_pretrained``, a weights name (see
+    :func:`weights_search_path`), ``"input"`` (identity baseline) or an ``nn.Module`` returning the model
+    output dict (deblurred, restored, flow). Images larger than ``tile`` are processed in overlapping
+    tiles (``overlap`` pixels shared) and blended seamlessly; CUDA runs under bf16 autocast.
+    """
+
+    def __init__(self, weights, device: str = "cpu", tile: int = 512, overlap: int = 64, progress: bool = False):
+        if not isinstance(tile, int) or tile < 16:
+            raise D2TurbError(f"tile size must be an integer >= 16, got {tile}")
+        if not isinstance(overlap, int) or overlap < 0 or overlap > tile // 2:
+            raise D2TurbError(f"overlap must be between 0 and tile/2 = {tile // 2}, got {overlap}")
+        self.device = _check_device(device)
+        self.tile, self.overlap, self.progress = tile, overlap, progress
+        self.model, self.name = load_restoration_model(weights, self.device)
+
+    # -- public API -------------------------------------------------------------------------------
+    def restore(self, image) -> torch.Tensor:
+        """Restored image, same shape as the input ((3,H,W) or (B,3,H,W), float32 in [0,1], on CPU)."""
+        return self.restore_with_details(image)["restored"]
+
+    def restore_with_details(self, image) -> dict:
+        """dict(restored, deblurred, flow): images shaped like the input, flow (…,2,H,W) in pixels."""
+        x, single = self._as_batch(image)
+        with torch.no_grad():
+            outs = [self._restore_one(x[i:i + 1]) for i in range(x.shape[0])]
+        result = {k: torch.cat([o[k] for o in outs]) for k in ("restored", "deblurred", "flow")}
+        return {k: v[0] for k, v in result.items()} if single else result
+
+    # -- internals --------------------------------------------------------------------------------
+    @staticmethod
+    def _as_batch(image) -> tuple[torch.Tensor, bool]:
+        from d2turb.io import check_image_tensor, read_image
+
+        if isinstance(image, (str, os.PathLike)):
+            image = read_image(image)
+        if not isinstance(image, torch.Tensor):
+            raise D2TurbError(f"restore: expected a tensor or an image path, got {type(image).__name__}")
+        single = image.ndim == 3
+        x = image[None] if single else image
+        check_image_tensor(x, "restore input", channels=3)
+        if x.shape[-1] < 2 or x.shape[-2] < 2:
+            raise D2TurbError(f"restore input: image is too small ({x.shape[-1]}x{x.shape[-2]})")
+        return x.float().clamp(0, 1), single
+
+    def _run_model(self, x: torch.Tensor) -> dict:
+        x = x.to(self.device)
+        with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.device.type == "cuda"):
+            out = self.model(x)
+        if not isinstance(out, dict) or ("restored" not in out and "deblurred" not in out):
+            raise D2TurbError(f"model {self.name} did not return a dict with 'restored'/'deblurred'")
+        deblurred = out.get("deblurred", out.get("restored"))
+        flow = out.get("flow")
+        result = {"deblurred": deblurred.float().cpu()}
+        if flow is not None:
+            result["flow"] = flow.float().cpu()
+        else:  # a model without a rectifier: its restored output is blended as is
+            result["restored"] = out.get("restored", deblurred).float().cpu()
+        return result
+
+    def _restore_one(self, x: torch.Tensor) -> dict:
+        """x (1,3,H,W) on CPU → dict of (1,·,H,W) CPU tensors."""
+        _, _, h, w = x.shape
+        ys, xs = tile_starts(h, self.tile, self.overlap), tile_starts(w, self.tile, self.overlap)
+        boxes = [(y0, x0, min(self.tile, h), min(self.tile, w)) for y0 in ys for x0 in xs]
+        acc: dict[str, torch.Tensor] = {}
+        weight = torch.zeros(1, 1, h, w)
+        bar = None
+        if self.progress and len(boxes) > 1:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(boxes), desc="tiles", unit="tile", leave=False)
+        for y0, x0, th, tw in boxes:
+            out = self._run_model(x[:, :, y0:y0 + th, x0:x0 + tw])
+            win = (axis_window(th, self.overlap, y0 > 0, y0 + th < h)[:, None]
+                   * axis_window(tw, self.overlap, x0 > 0, x0 + tw < w)[None, :])
+            for key, value in out.items():
+                if value.shape[-2:] != (th, tw):
+                    raise D2TurbError(f"model {self.name} returned {key} of size {tuple(value.shape[-2:])} for a {th}x{tw} tile")
+                if key not in acc:
+                    acc[key] = torch.zeros(1, value.shape[1], h, w)
+                acc[key][:, :, y0:y0 + th, x0:x0 + tw].addcmul_(value, win)
+            weight[:, :, y0:y0 + th, x0:x0 + tw] += win
+            if bar is not None:
+                bar.update()
+        if bar is not None:
+            bar.close()
+        for value in acc.values():
+            value.div_(weight)
+        deblurred = acc["deblurred"]
+        if "flow" in acc:
+            flow = acc["flow"]
+            if flow.any():  # Eq. 9, on the whole blended image (on the model's device)
+                restored = warp_in_strips(deblurred.to(self.device), flow.to(self.device)).cpu()
+            else:
+                restored = deblurred.clone()
+        else:
+            flow, restored = torch.zeros(1, 2, h, w), acc["restored"]
+        return {"restored": restored.clamp_(0, 1), "deblurred": deblurred.clamp_(0, 1), "flow": flow}

@@ -1,0 +1,157 @@
+"""Physical turbulence parameters (SI units) with validation, strength bins and depth modulation."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+
+from d2turb.errors import D2TurbError
+
+BINS = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}
+MODULATIONS = ("uniform", "linear", "linear_offset", "power", "power_offset")
+GEOMETRIES = ("path", "layer")
+MAX_DR0 = 10.0
+
+
+def _positive(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise D2TurbError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise D2TurbError(f"{name} must be positive and finite, got {value!r}")
+    return v
+
+
+def fried_r0_spherical(cn2: float, path_length_m: float, wavelength_m: float) -> float:
+    """Spherical-wave Fried parameter for constant Cn²: r0 = (0.158625 k² Cn² L)^(-3/5) (physics.md §3)."""
+    k = 2 * math.pi / wavelength_m
+    return (0.158625 * k * k * cn2 * path_length_m) ** (-3 / 5)
+
+
+@dataclass
+class TurbulenceParams:
+    """Imaging and turbulence parameters.
+
+    ``dr0`` (D/r0 at the reference wavelength) or ``cn2`` (m^-2/3, constant along the path) sets the
+    strength; with neither, D/r0 = 3. ``wavelength_m`` is one value or one per RGB channel; the
+    reference wavelength (D/r0, default ifov) is the middle one. ``ifov_rad`` defaults to Nyquist
+    sampling λ_ref/(2D). ``offset_s`` is the baseline offset s of Eq. 1 (default 0.5).
+    """
+
+    aperture_m: float = 0.1
+    wavelength_m: float | tuple = 525e-9
+    path_length_m: float = 1000.0
+    dr0: float | None = None
+    cn2: float | None = None
+    ifov_rad: float | None = None
+    n_zernike: int = 36
+    offset_s: float = 0.5
+    modulation: str = "power_offset"
+    tilt_geometry: str = "path"  # "path": constant Cn² along the path; "layer": one thin layer
+    layer_z_frac: float = 0.5  # layer distance from the aperture / L (tilt_geometry="layer")
+    psf_grid_px: int = 16  # spacing of the exact-PSF grid in pixels
+
+    def __post_init__(self):
+        self.aperture_m = _positive("aperture_m", self.aperture_m)
+        self.path_length_m = _positive("path_length_m", self.path_length_m)
+        wl = self.wavelength_m
+        wl = tuple(wl) if isinstance(wl, (list, tuple)) else (wl,)
+        if len(wl) not in (1, 3):
+            raise D2TurbError(f"wavelength_m must be one value or three (R, G, B), got {len(wl)}")
+        self.wavelength_m = tuple(_positive("wavelength_m", w) for w in wl) if len(wl) == 3 else _positive("wavelength_m", wl[0])
+        if max(self.wavelengths) >= self.aperture_m:
+            raise D2TurbError(f"wavelength {max(self.wavelengths)} m is not smaller than the aperture {self.aperture_m} m")
+        if self.cn2 is not None:
+            cn2 = _positive("cn2", self.cn2)
+            dr0_from_cn2 = self.aperture_m / fried_r0_spherical(cn2, self.path_length_m, self.reference_wavelength)
+            if self.dr0 is not None and abs(float(self.dr0) - dr0_from_cn2) > 1e-3 * dr0_from_cn2:
+                raise D2TurbError(f"give either dr0 or cn2: dr0={self.dr0} disagrees with cn2={self.cn2} (D/r0={dr0_from_cn2:.4g})")
+            self.cn2, self.dr0 = cn2, dr0_from_cn2
+        self.dr0 = 3.0 if self.dr0 is None else _positive("dr0", self.dr0)
+        if self.dr0 > MAX_DR0:
+            raise D2TurbError(f"D/r0 = {self.dr0:.3g} is beyond the supported range (0, {MAX_DR0:g}]")
+        self.ifov_rad = self.reference_wavelength / (2 * self.aperture_m) if self.ifov_rad is None else _positive("ifov_rad", self.ifov_rad)
+        if not isinstance(self.n_zernike, int) or not 4 <= self.n_zernike <= 120:
+            raise D2TurbError(f"n_zernike must be an integer in [4, 120], got {self.n_zernike!r}")
+        s = float(self.offset_s)
+        if not math.isfinite(s) or not 0.0 <= s <= 1.0:
+            raise D2TurbError(f"offset_s must be in [0, 1], got {self.offset_s!r}")
+        self.offset_s = s
+        if self.modulation not in MODULATIONS:
+            raise D2TurbError(f"unknown modulation {self.modulation!r}; choose one of {', '.join(MODULATIONS)}")
+        if self.tilt_geometry not in GEOMETRIES:
+            raise D2TurbError(f"unknown tilt_geometry {self.tilt_geometry!r}; choose 'path' or 'layer'")
+        if not 0.0 < float(self.layer_z_frac) < 1.0:
+            raise D2TurbError(f"layer_z_frac must be in (0, 1), got {self.layer_z_frac!r}")
+        if not isinstance(self.psf_grid_px, int) or self.psf_grid_px < 2:
+            raise D2TurbError(f"psf_grid_px must be an integer >= 2, got {self.psf_grid_px!r}")
+
+    @property
+    def wavelengths(self) -> tuple:
+        return self.wavelength_m if isinstance(self.wavelength_m, tuple) else (self.wavelength_m,)
+
+    @property
+    def reference_wavelength(self) -> float:
+        wl = self.wavelengths
+        return wl[len(wl) // 2]
+
+    @property
+    def r0_m(self) -> float:
+        return self.aperture_m / self.dr0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["wavelength_m"] = list(self.wavelengths) if len(self.wavelengths) == 3 else self.wavelength_m
+        d["r0_m"] = self.r0_m
+        d["reference_wavelength_m"] = self.reference_wavelength
+        return d
+
+
+def dr0_bin(x: float) -> str:
+    """Strength bin of D/r0: weak < 2.25 <= medium <= 3.75 < strong (physics.md §5)."""
+    x = float(x)
+    if not math.isfinite(x) or x <= 0:
+        raise D2TurbError(f"D/r0 must be positive and finite, got {x!r}")
+    return "weak" if x < 2.25 else ("medium" if x <= 3.75 else "strong")
+
+
+def sample_dr0(n: int, low: float, high: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """n values of D/r0 drawn uniformly in [low, high] (float32, CPU)."""
+    low, high = _positive("dr0 low", low), _positive("dr0 high", high)
+    if high < low:
+        raise D2TurbError(f"dr0 range is empty: low={low} > high={high}")
+    if high > MAX_DR0:
+        raise D2TurbError(f"dr0 high = {high} is beyond the supported range (0, {MAX_DR0:g}]")
+    return low + (high - low) * torch.rand(int(n), generator=generator, dtype=torch.float64).float()
+
+
+def depth_modulation(depth: torch.Tensor | None, strategy: str = "power_offset", offset_s: float = 0.5) -> torch.Tensor | None:
+    """Turbulence modulation M from relative depth d̃ in [0, 1] (far = 1).
+
+    power_offset: z = L((1-s)d̃ + s) (Eq. 1), M = (z/L)^(3/5) (Eq. 3, z_max = L).
+    Ablations: uniform M = 1 (P2S), linear M = d̃, linear_offset M = (1-s)d̃ + s, power M = d̃^(3/5).
+    """
+    if depth is None:
+        return None
+    if strategy not in MODULATIONS:
+        raise D2TurbError(f"unknown modulation {strategy!r}; choose one of {', '.join(MODULATIONS)}")
+    if not isinstance(depth, torch.Tensor) or not depth.is_floating_point():
+        raise D2TurbError("depth must be a floating torch.Tensor")
+    if not torch.isfinite(depth).all():
+        raise D2TurbError("depth contains NaN or infinite values")
+    if depth.numel() and (depth.min() < -1e-6 or depth.max() > 1 + 1e-6):
+        raise D2TurbError(f"depth must lie in [0, 1] (far = 1), got [{depth.min():.3g}, {depth.max():.3g}]")
+    d = depth.clamp(0, 1)
+    s = float(offset_s)
+    if strategy == "uniform":
+        return torch.ones_like(d)
+    if strategy == "linear":
+        return d
+    z_frac = (1 - s) * d + s  # Eq. 1 divided by L
+    if strategy == "linear_offset":
+        return z_frac
+    if strategy == "power":
+        return d.clamp_min(1e-12).pow(0.6) * (d > 0)
+    return z_frac.clamp_min(1e-12).pow(0.6) * (z_frac > 0)  # Eq. 3

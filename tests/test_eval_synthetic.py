@@ -1,0 +1,157 @@
+"""Synthetic evaluation: per-bin metrics against analytic / scikit-image oracles, reports, LPIPS policy."""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from skimage.metrics import structural_similarity
+from torch import nn
+
+from d2turb.errors import D2TurbError
+from d2turb.eval.synthetic import evaluate_synthetic
+
+SIZE = 40
+OFFSETS = {"weak": 2, "medium": 5, "strong": 10}  # turb = gt + k/255 exactly (gt in [0.2, 0.8]): MSE = (k/255)^2
+DR0 = {"weak": 1.5, "medium": 3.0, "strong": 4.5}
+
+
+def _gt(seed):
+    rng = np.random.default_rng(seed)
+    smooth = rng.random((SIZE // 4, SIZE // 4, 3)).repeat(4, 0).repeat(4, 1)  # some structure for SSIM
+    return np.round((0.2 + 0.6 * smooth) * 255).astype(np.uint8)
+
+
+def write_tiny_dataset(root, per_bin=(2, 1, 2)):
+    """A few-line writer of the make-dataset layout (d2turb/data/layout.py): dataset.json, meta.jsonl,
+    {turb,tilt,gt,depth}/<id>.png and flow/<id>.npy."""
+    for kind in ("turb", "tilt", "gt", "flow", "depth"):
+        (root / kind).mkdir(parents=True)
+    meta, index = [], 0
+    for bin_name, n in zip(OFFSETS, per_bin):
+        for _ in range(n):
+            sid = f"{index:07d}"
+            gt = _gt(index)
+            Image.fromarray(gt).save(root / "gt" / f"{sid}.png")
+            Image.fromarray(gt + OFFSETS[bin_name]).save(root / "turb" / f"{sid}.png")
+            Image.fromarray(gt).save(root / "tilt" / f"{sid}.png")
+            Image.fromarray(np.full((SIZE, SIZE), 30000, np.uint16)).save(root / "depth" / f"{sid}.png")
+            np.save(root / "flow" / f"{sid}.npy", np.zeros((2, SIZE, SIZE), np.float16))
+            meta.append({"id": sid, "index": index, "dr0": DR0[bin_name], "bin": bin_name, "split": "test"})
+            index += 1
+    (root / "meta.jsonl").write_text("".join(json.dumps(m) + "\n" for m in meta))
+    (root / "dataset.json").write_text(json.dumps({"version": 1, "pairs": index, "patch": SIZE, "split": "test",
+                                                   "bins": list(OFFSETS)}))
+    return root
+
+
+class MinusTwo(nn.Module):
+    """Undoes the weak bin's offset exactly (so its weak PSNR hits the 100 dB cap)."""
+
+    def forward(self, x):
+        y = x - 2 / 255
+        return {"deblurred": y, "restored": y, "flow": torch.zeros_like(x[:, :2])}
+
+
+@pytest.fixture
+def no_lpips(monkeypatch, tmp_path):
+    for var in ("D2TURB_LPIPS_WEIGHTS", "D2TURB_LPIPS_BACKBONE"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("D2TURB_CACHE_DIR", str(tmp_path / "empty-cache"))
+
+
+def test_per_bin_metrics_match_oracles(tmp_path, no_lpips):
+    data = write_tiny_dataset(tmp_path / "data")
+    res = evaluate_synthetic(["input", MinusTwo()], data, tmp_path / "out")
+    table = res["table"]
+    # input baseline: PSNR = -10 log10((k/255)^2) exactly, per bin; Avg = mean over all 5 samples
+    expected = {b: -20 * math.log10(k / 255) for b, k in OFFSETS.items()}
+    for b in OFFSETS:
+        assert table["input"]["psnr"][b] == pytest.approx(expected[b], abs=1e-3)
+    avg = (2 * expected["weak"] + expected["medium"] + 2 * expected["strong"]) / 5
+    assert table["input"]["psnr"]["avg"] == pytest.approx(avg, abs=1e-3)
+    assert table["MinusTwo"]["psnr"]["weak"] == pytest.approx(100.0)  # exact restoration, capped
+    # SSIM against scikit-image (Gaussian 1.5, population covariance, as Wang et al. 2004)
+    for s in res["per_sample"]:
+        gt = np.asarray(Image.open(data / "gt" / f"{s['id']}.png")) / 255.0
+        turb = np.asarray(Image.open(data / "turb" / f"{s['id']}.png")) / 255.0
+        ref = structural_similarity(turb, gt, channel_axis=2, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False)
+        assert s["values"]["input"]["ssim"] == pytest.approx(ref, abs=1e-4)
+    assert res["bin_counts"] == {"weak": 2, "medium": 1, "strong": 2}
+    # missing LPIPS weights with default metrics: column omitted, visible note
+    assert res["metrics"] == ["psnr", "ssim"] and "LPIPS column omitted" in res["notes"][0]
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "LPIPS column omitted" in md and "LPIPS↓" not in md
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["table"] == json.loads(json.dumps(table))
+
+
+def test_report_table_and_grids(tmp_path, no_lpips):
+    from d2turb.eval.report import grid_cell_origin
+
+    data = write_tiny_dataset(tmp_path / "data")
+    evaluate_synthetic(["input", MinusTwo()], data, tmp_path / "out", max_samples=4, grid_per_bin=1)
+    md = (tmp_path / "out" / "results.md").read_text().splitlines()
+    header = next(line for line in md if line.startswith("| Method"))
+    assert header.split(" | ")[1:5] == ["PSNR↑ weak", "medium", "strong", "**Avg**"]
+    rows = {line.split(" | ")[0][2:]: line for line in md if line.startswith("| input") or line.startswith("| MinusTwo")}
+    assert "**100.000**" in rows["MinusTwo"] and "<u>42.110</u>" in rows["input"]  # best bold, second underlined
+    tex = (tmp_path / "out" / "results.tex").read_text()
+    assert r"\multicolumn{4}{c}{PSNR$\uparrow$}" in tex and r"\textbf{100.000}" in tex
+    # grids: one per bin present in the first 4 samples; columns input | GT | MinusTwo (the "input" model
+    # would duplicate column 1 and is left out); the GT cell holds the GT image
+    grids = sorted(p.name for p in (tmp_path / "out" / "grids").iterdir())
+    assert grids == ["medium.png", "strong.png", "weak.png"]
+    grid = np.asarray(Image.open(tmp_path / "out" / "grids" / "weak.png"))
+    label = "weak: 0000000  D/r0=1.50"
+    y, x = grid_cell_origin(0, 1, [label], cell=SIZE)  # cells shrink to the 40 px images
+    np.testing.assert_array_equal(grid[y:y + SIZE, x:x + SIZE], _gt(0))
+    y, x = grid_cell_origin(0, 2, [label], cell=SIZE)
+    np.testing.assert_array_equal(grid[y:y + SIZE, x:x + SIZE], _gt(0))  # MinusTwo restores weak exactly
+    assert grid.shape[1] == x + SIZE + 4  # exactly three columns
+
+
+def _random_lpips_files(tmp_path):
+    from safetensors.torch import save_file
+
+    from d2turb.eval.vgg import CHANNELS, FeatureExtractor
+
+    torch.manual_seed(0)
+    save_file(FeatureExtractor("alex").state_dict(), str(tmp_path / "alex_backbone.safetensors"))
+    save_file({f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(CHANNELS["alex"])},
+              str(tmp_path / "alex_lin.safetensors"))
+    return tmp_path / "alex_lin.safetensors", tmp_path / "alex_backbone.safetensors"
+
+
+def test_lpips_column_with_local_weights(tmp_path, no_lpips):
+    from d2turb.eval.lpips import LPIPS
+
+    data = write_tiny_dataset(tmp_path / "data", per_bin=(1, 1, 1))
+    lin, backbone = _random_lpips_files(tmp_path)
+    res = evaluate_synthetic(["input"], data, tmp_path / "out", lpips_weights=lin, lpips_backbone=backbone)
+    assert res["metrics"] == ["psnr", "ssim", "lpips"] and not res["notes"]
+    model = LPIPS("alex", weights=lin, backbone=backbone)
+    for s in res["per_sample"]:
+        gt = torch.from_numpy(np.asarray(Image.open(data / "gt" / f"{s['id']}.png")) / 255.0).permute(2, 0, 1).float()
+        turb = torch.from_numpy(np.asarray(Image.open(data / "turb" / f"{s['id']}.png")) / 255.0).permute(2, 0, 1).float()
+        assert s["values"]["input"]["lpips"] == pytest.approx(float(model(turb[None], gt[None])[0]), rel=1e-5)
+    assert "LPIPS↓ weak" in (tmp_path / "out" / "results.md").read_text()
+
+
+def test_explicit_lpips_without_weights_is_an_error(tmp_path, no_lpips, monkeypatch):
+    data = write_tiny_dataset(tmp_path / "data", per_bin=(1, 0, 0))
+    with pytest.raises(D2TurbError, match="LPIPS needs"):
+        evaluate_synthetic(["input"], data, tmp_path / "out", metrics=("psnr", "lpips"))
+    res = evaluate_synthetic(["input"], data, tmp_path / "ok", metrics=("psnr", "ssim", "lpips"))  # the default set
+    assert res["metrics"] == ["psnr", "ssim"] and res["notes"]
+    monkeypatch.setenv("D2TURB_LPIPS_WEIGHTS", str(tmp_path / "missing.pth"))  # pointed to → must exist
+    with pytest.raises(D2TurbError, match="LPIPS"):
+        evaluate_synthetic(["input"], data, tmp_path / "out")
+    with pytest.raises(D2TurbError, match="unknown metric 'fid'"):
+        evaluate_synthetic(["input"], data, tmp_path / "out", metrics=("fid",))
+    with pytest.raises(D2TurbError, match="at least one model"):
+        evaluate_synthetic([], data, tmp_path / "out")
+    with pytest.raises(D2TurbError, match="not a d2turb dataset"):
+        evaluate_synthetic(["input"], tmp_path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()  # nothing half-written on failure

@@ -1,0 +1,129 @@
+"""`d2turb evaluate --real`: per-image no-reference metrics, models, grids, errors; --data dispatch."""
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from d2turb.cli import main
+from d2turb.errors import D2TurbError
+from d2turb.eval.niqe import niqe
+from d2turb.eval.piqe import piqe
+from d2turb.eval.real import evaluate_real
+from d2turb.io import read_image, write_image
+
+NIQE_MATLAB = {"I03.png": 15.7536, "I04.png": 3.6549, "I06.png": 3.2355, "I08.png": 3.1840, "I19.png": 8.6352}
+
+
+@pytest.fixture
+def real_dir(tmp_path, astronaut):
+    folder = tmp_path / "real"
+    write_image(folder / "a.png", astronaut[0, :, :192, :160])
+    write_image(folder / "b.png", astronaut[0, :, 40:, 30:].flip(-1))
+    return folder
+
+
+def _blur_factory(calls):
+    def factory(weights, device):
+        calls.append((weights, device))
+        return lambda img: torch.nn.functional.avg_pool2d(img[None], 5, 1, 2, count_include_pad=False)[0]
+    return factory
+
+
+def test_acceptance_command_on_calibration_images(shared_data, tmp_path, capsys):
+    dist = shared_data / "iqa_calibration" / "dist"
+    out = tmp_path / "out"
+    assert main(["evaluate", "--real", str(dist), "--metrics", "niqe", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    per_image = results["niqe"]["per_image"]
+    assert set(per_image) == set(NIQE_MATLAB)
+    for name, expected in NIQE_MATLAB.items():
+        assert per_image[name] == pytest.approx(expected, abs=0.05)
+    assert results["niqe"]["mean"] == pytest.approx(np.mean(list(per_image.values())), abs=1e-12)
+    assert results["models"]["input"]["niqe"] == results["niqe"]
+    md = (out / "results.md").read_text()
+    assert "| input |" in md and "I19.png" in md
+    assert "input: niqe" in capsys.readouterr().out
+
+
+def test_models_rows_values_and_grids(real_dir, tmp_path):
+    calls = []
+    out = tmp_path / "out"
+    results = evaluate_real(real_dir, "niqe,piqe", out, weights=["input", "runs/blur.safetensors"],
+                            restorer_factory=_blur_factory(calls))
+    assert calls == [("runs/blur.safetensors", "cpu")]
+    assert list(results["models"]) == ["input", "blur"]
+    a = read_image(real_dir / "a.png")
+    blurred = torch.nn.functional.avg_pool2d(a[None], 5, 1, 2, count_include_pad=False)[0]
+    assert results["models"]["input"]["niqe"]["per_image"]["a.png"] == pytest.approx(niqe(a).item(), abs=1e-12)
+    assert results["models"]["blur"]["piqe"]["per_image"]["a.png"] == pytest.approx(piqe(blurred).item(), abs=1e-12)
+    for model in ("input", "blur"):
+        for m in ("niqe", "piqe"):
+            vals = results["models"][model][m]["per_image"]
+            assert results["models"][model][m]["mean"] == pytest.approx((vals["a.png"] + vals["b.png"]) / 2)
+    on_disk = json.loads((out / "results.json").read_text())
+    assert on_disk["models"]["blur"]["niqe"]["per_image"] == results["models"]["blur"]["niqe"]["per_image"]
+    grid = np.asarray(Image.open(out / "grids" / "a.png"))
+    assert grid.shape == (192, 2 * 160 + 4, 3)
+    np.testing.assert_array_equal(grid[:, :160], np.asarray(Image.open(real_dir / "a.png")))
+    md = (out / "results.md").read_text()
+    assert "| blur |" in md and "PIQE" in md
+
+
+def test_interrupted_run_leaves_no_results(real_dir, tmp_path):
+    def factory(weights, device):
+        def restore(img):
+            raise KeyboardInterrupt
+        return restore
+
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        evaluate_real(real_dir, ["niqe"], out, weights=["input", "m.safetensors"], restorer_factory=factory)
+    assert not (out / "results.json").exists() and not (out / "results.md").exists()
+    assert not out.exists() or not list(out.rglob("*.tmp*"))
+
+
+@pytest.mark.parametrize("metrics, message", [
+    ("musiq", "MUSIQ is not implemented"),
+    ("psnr", "psnr needs ground truth"),
+    ("nope", "unknown metric 'nope'"),
+])
+def test_cli_metric_errors_are_one_line_and_write_nothing(real_dir, tmp_path, capsys, metrics, message):
+    out = tmp_path / "out"
+    assert main(["evaluate", "--real", str(real_dir), "--metrics", metrics, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_cli_input_errors(tmp_path, capsys):
+    assert main(["evaluate", "--real", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    small = tmp_path / "small"
+    write_image(small / "tiny.png", torch.rand(3, 40, 40))
+    assert main(["evaluate", "--real", str(small), "--metrics", "niqe", "--out", str(tmp_path / "o")]) == 2
+    assert "tiny.png" in capsys.readouterr().err
+    assert main(["evaluate", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "--data needs --weights" in capsys.readouterr().err
+    with pytest.raises(D2TurbError, match="no images"):
+        (tmp_path / "empty").mkdir()
+        evaluate_real(tmp_path / "empty", ["niqe"], tmp_path / "o")
+
+
+def test_cli_data_dispatches_to_synthetic_evaluator(tmp_path, monkeypatch):
+    calls = []
+    fake = types.ModuleType("d2turb.eval.synthetic")
+    fake.evaluate_synthetic = lambda *a, **k: calls.append((a, k)) or {}
+    monkeypatch.setitem(sys.modules, "d2turb.eval.synthetic", fake)
+    rc = main(["evaluate", "--data", "ds", "--weights", "input", "m.safetensors", "--out", str(tmp_path),
+               "--max-samples", "3", "--lpips-weights", "lin.pth", "--lpips-backbone", "alexnet.pth"])
+    assert rc == 0
+    assert calls[-1] == ((["input", "m.safetensors"], "ds", str(tmp_path)),
+                         {"device": "cpu", "metrics": None, "max_samples": 3, "lpips_weights": "lin.pth",
+                          "lpips_backbone": "alexnet.pth"})
+    assert main(["evaluate", "--data", "ds", "--weights", "input", "--metrics", "PSNR, ssim",
+                 "--out", str(tmp_path)]) == 0
+    assert calls[-1][1]["metrics"] == ("psnr", "ssim") and calls[-1][1]["lpips_weights"] is None

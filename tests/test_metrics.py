@@ -1,0 +1,88 @@
+"""PSNR / SSIM against scikit-image, accumulator semantics and DDP (2 gloo processes) equivalence."""
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from d2turb.errors import D2TurbError
+from d2turb.eval.metrics import PSNR, SSIM, psnr, ssim
+
+
+from test_metrics_ddp import _pairs
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Small tensors: one thread avoids OpenMP stalls when the shared 2-core machine is oversubscribed."""
+    torch.set_num_threads(1)
+
+
+def _hwc(x):
+    return x.permute(1, 2, 0).double().numpy()
+
+
+@pytest.fixture
+def noisy_astronaut(astronaut):
+    g = torch.Generator().manual_seed(1)
+    noisy = (astronaut + 0.08 * torch.randn(astronaut.shape, generator=g)).clamp(0, 1)
+    blurred = torch.nn.functional.avg_pool2d(astronaut, 5, 1, 2, count_include_pad=False)
+    return torch.cat([noisy, blurred]), torch.cat([astronaut, astronaut])
+
+
+def test_psnr_matches_skimage_per_image(noisy_astronaut):
+    pred, target = noisy_astronaut
+    ours = psnr(pred, target)
+    assert ours.shape == (2,)
+    for i in range(2):
+        ref = peak_signal_noise_ratio(_hwc(target[i]), _hwc(pred[i]), data_range=1.0)
+        assert ours[i].item() == pytest.approx(ref, abs=1e-6)
+
+
+def test_psnr_identical_images_is_capped_not_inf(astronaut):
+    assert psnr(astronaut, astronaut).item() == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("gaussian", [True, False])
+def test_ssim_matches_skimage(noisy_astronaut, gaussian):
+    pred, target = noisy_astronaut
+    ours = ssim(pred, target, gaussian=gaussian)
+    for i in range(2):
+        if gaussian:  # Wang et al. setting
+            ref = structural_similarity(_hwc(pred[i]), _hwc(target[i]), channel_axis=-1, data_range=1.0,
+                                        gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+        else:  # skimage default: 7x7 uniform window, sample covariance
+            ref = structural_similarity(_hwc(pred[i]), _hwc(target[i]), channel_axis=-1, data_range=1.0)
+        assert ours[i].item() == pytest.approx(ref, abs=1e-3)  # the requirement
+        assert ours[i].item() == pytest.approx(ref, abs=1e-4)  # float32 filtering is in fact ~1e-6 away
+        f64 = ssim(pred[i:i + 1].double(), target[i:i + 1].double(), gaussian=gaussian)
+        assert f64.item() == pytest.approx(ref, abs=1e-8)  # float64 input: equal to float64 precision
+
+
+def test_ssim_properties(astronaut):
+    assert ssim(astronaut, astronaut).item() == pytest.approx(1.0, abs=1e-9)
+    levels = [ssim((astronaut + s * torch.randn_like(astronaut)).clamp(0, 1), astronaut).item() for s in (0.02, 0.1, 0.3)]
+    assert levels[0] > levels[1] > levels[2]
+
+
+def test_single_image_and_bad_inputs(astronaut):
+    assert psnr(astronaut[0], astronaut[0] * 0.9).shape == (1,)
+    with pytest.raises(D2TurbError, match="shapes differ"):
+        psnr(astronaut, astronaut[..., :100])
+    with pytest.raises(D2TurbError, match="NaN"):
+        ssim(astronaut * float("nan"), astronaut)
+    with pytest.raises(D2TurbError, match="smaller than"):
+        ssim(astronaut[..., :8, :8], astronaut[..., :8, :8])
+
+
+def test_accumulator_mean_of_per_image_values_and_reset():
+    pred, target = _pairs()
+    metric = PSNR()
+    metric.update(pred[:2], target[:2])
+    metric.update(pred[2:], target[2:])
+    assert metric.compute() == pytest.approx(psnr(pred, target).mean().item(), abs=1e-9)
+    metric.reset()
+    assert np.isnan(metric.compute())
+    s = SSIM()
+    s.update(pred[:1], target[:1])
+    s.update(pred[1:], target[1:])
+    assert s.compute() == pytest.approx(ssim(pred, target).mean().item(), abs=1e-9)

@@ -1,0 +1,45 @@
+"""Metric accumulators under torch.distributed: 2 gloo processes on CPU give the single-process result.
+
+Kept apart from the other metric tests so the spawned workers import only torch and d2turb.
+"""
+import json
+
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from d2turb.eval.metrics import PSNR, SSIM, psnr, ssim
+
+
+def _pairs(n=5, h=48, w=40, seed=0):
+    """n (pred, target) pairs in [0, 1] with different noise levels."""
+    g = torch.Generator().manual_seed(seed)
+    target = torch.nn.functional.avg_pool2d(torch.rand(n, 3, h, w, generator=g), 3, 1, 1)  # some structure
+    noise = torch.randn(n, 3, h, w, generator=g) * torch.linspace(0.02, 0.3, n).view(n, 1, 1, 1)
+    return (target + noise).clamp(0, 1), target
+
+
+def _ddp_worker(rank, world_size, init_file, out_file):
+    torch.set_num_threads(1)
+    torch.distributed.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size)
+    pred, target = _pairs()
+    metrics = {"psnr": PSNR(), "ssim": SSIM(), "ssim_uniform": SSIM(gaussian=False)}
+    for i in range(rank, len(pred), world_size):  # rank 0: images 0, 2, 4; rank 1: 1, 3 (unequal shares)
+        for m in metrics.values():
+            m.update(pred[i:i + 1], target[i:i + 1])
+    result = {k: m.compute() for k, m in metrics.items()}
+    with open(f"{out_file}.{rank}", "w") as f:
+        json.dump(result, f)
+    torch.distributed.destroy_process_group()
+
+
+def test_ddp_all_reduce_equals_single_process(tmp_path):
+    out = tmp_path / "result"
+    mp.spawn(_ddp_worker, args=(2, str(tmp_path / "init"), str(out)), nprocs=2, join=True)
+    pred, target = _pairs()
+    expected = {"psnr": psnr(pred, target).mean().item(), "ssim": ssim(pred, target).mean().item(),
+                "ssim_uniform": ssim(pred, target, gaussian=False).mean().item()}
+    for rank in range(2):
+        got = json.loads((tmp_path / f"result.{rank}").read_text())
+        for k, v in expected.items():
+            assert got[k] == pytest.approx(v, abs=1e-9), (rank, k)

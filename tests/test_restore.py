@@ -1,0 +1,154 @@
+"""Tiled restoration (d2turb.restore): equality with untiled inference, absence of seams, weights lookup."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from d2turb.errors import D2TurbError
+from d2turb.ops import warp
+from d2turb.restore import Restorer, axis_window, resolve_weights, tile_starts, warp_in_strips, weights_search_path
+
+
+class LocalModel(nn.Module):
+    """Fully convolutional stand-in with a small receptive field (two 3x3 convs: radius 2 px), a
+    nonzero flow head (|flow| up to 3 px) and restored = warp(deblurred, flow), as in Eq. 9."""
+
+    def __init__(self, seed=0):
+        super().__init__()
+        g = torch.Generator().manual_seed(seed)
+        self.a = nn.Conv2d(3, 8, 3, padding=1)
+        self.b = nn.Conv2d(8, 5, 3, padding=1)
+        for p in self.parameters():
+            p.data = torch.randn(p.shape, generator=g) * 0.3
+
+    def forward(self, x):
+        h = self.b(torch.tanh(self.a(x)))
+        deblurred = (x + 0.1 * torch.tanh(h[:, :3])).clamp(0, 1)
+        flow = 3.0 * torch.tanh(h[:, 3:])
+        return {"deblurred": deblurred, "restored": warp(deblurred, flow), "flow": flow, "guide": None}
+
+
+class PerTileOffset(nn.Module):
+    """A maximally non-local model: adds a constant that depends on the tile's mean, so neighbouring tiles
+    disagree by a known jump. Hard stitching would show that jump as a seam; blending must not."""
+
+    def forward(self, x):
+        y = x * 0 + 0.5 + 0.3 * torch.tanh(20 * (x.mean() - 0.5))
+        return {"deblurred": y, "restored": y, "flow": torch.zeros_like(x[:, :2]) + 2.0 * y[:, :2], "guide": None}
+
+
+@pytest.fixture
+def photo(astronaut):
+    # 256x256 sample tiled to a non-square 300x420 image with natural content everywhere
+    wide = torch.cat([astronaut, astronaut.flip(-1)], dim=3)
+    return torch.cat([wide, wide.flip(-2)], dim=2)[0, :, 20:320, :420].contiguous()
+
+
+def test_tile_layout_covers_image_with_overlap():
+    for length, tile, overlap in [(1000, 256, 32), (257, 256, 32), (256, 256, 32), (100, 256, 32), (700, 128, 64)]:
+        starts = tile_starts(length, tile, overlap)
+        size = min(tile, length)
+        assert starts[0] == 0 and starts[-1] + size == length
+        assert all(b - a <= tile - overlap for a, b in zip(starts, starts[1:]))  # shared >= overlap
+    w = axis_window(64, 16, True, True)
+    assert w.min() > 0 and w.max() == 1 and torch.allclose(w, w.flip(0))
+    assert w[:4].max() < 1e-5 and w[:4].min() > 0  # guard band at the tile edge: tiny but positive weight
+    # complementary ramps: two tiles overlapping by exactly `overlap` sum to 1 (partition of unity)
+    a, b = axis_window(64, 16, False, True), axis_window(64, 16, True, False)
+    torch.testing.assert_close(a[-16:] + b[:16], torch.ones(16), atol=1e-5, rtol=0)
+
+
+def test_strip_warp_equals_one_shot_warp(monkeypatch):
+    import d2turb.restore as r
+
+    monkeypatch.setattr(r, "_WARP_STRIP_PIXELS", 7 * 50)  # force many 7-row strips
+    g = torch.Generator().manual_seed(1)
+    img, flow = torch.rand(1, 3, 40, 50, generator=g), 6 * torch.randn(1, 2, 40, 50, generator=g)
+    torch.testing.assert_close(warp_in_strips(img, flow), warp(img, flow), atol=1e-6, rtol=0)
+
+
+def test_untiled_equals_model(photo):
+    model = LocalModel()
+    got = Restorer(model, tile=1024).restore_with_details(photo)
+    ref = model(photo[None])
+    torch.testing.assert_close(got["restored"], ref["restored"][0].clamp(0, 1), atol=1e-5, rtol=0)
+    torch.testing.assert_close(got["flow"], ref["flow"][0], atol=1e-6, rtol=0)
+
+
+def _boundary_columns(length, tile, overlap):
+    """Tile edge positions along an axis (where a tile starts or ends inside the image)."""
+    edges = set()
+    for s in tile_starts(length, tile, overlap):
+        edges.update(e for e in (s, s + tile) if 0 < e < length)
+    return sorted(edges)
+
+
+def test_tiled_equals_untiled_and_has_no_seam(photo):
+    model, tile, overlap = LocalModel(), 128, 32
+    full = Restorer(model, tile=1024).restore_with_details(photo)
+    tiled = Restorer(model, tile=tile, overlap=overlap).restore_with_details(photo)
+    for key in ("restored", "deblurred", "flow"):
+        diff = (tiled[key] - full[key]).abs()
+        # the receptive field (2 px) is far inside the overlap, so tiles agree with the untiled model everywhere
+        assert diff.mean() < 1e-4, key
+        assert diff.max() < 1e-3, key
+    # no seam: the difference map has no structure at tile edges (its energy there is no larger than elsewhere)
+    d = (tiled["restored"] - full["restored"]).abs().mean(0)
+    cols = _boundary_columns(photo.shape[2], tile, overlap)
+    assert d[:, cols].mean() <= d.mean() + 1e-5
+
+
+def test_blending_hides_tile_disagreement(astronaut):
+    """Tiles whose outputs jump by Δ are blended with the raised-cosine ramp: the largest step between
+    neighbouring pixels is ≤ Δ·π/overlap (the ramp's maximum slope), never the hard-stitch jump Δ."""
+    img = torch.cat([astronaut[0], astronaut[0].flip(-1)], dim=2)  # 256x512: tiles with different means
+    tile, overlap = 128, 32
+    out = Restorer(PerTileOffset(), tile=tile, overlap=overlap).restore_with_details(img)
+    deb = out["deblurred"][0]
+    # per-tile constants, measured by running the model on each tile alone
+    consts = [float(PerTileOffset()(img[None, :, y:y + tile, x:x + tile])["deblurred"].mean())
+              for y in tile_starts(256, tile, overlap) for x in tile_starts(512, tile, overlap)]
+    jump = max(consts) - min(consts)
+    assert jump > 0.1  # the tiles really disagree
+    steps = max(deb.diff(dim=0).abs().max(), deb.diff(dim=1).abs().max())
+    assert steps <= jump * math.pi / overlap * 1.05 + 1e-4
+    assert out["flow"].isfinite().all() and out["restored"].isfinite().all()
+
+
+def test_shapes_batch_and_path(tmp_path, photo):
+    from d2turb.io import write_image
+
+    r = Restorer("input")
+    assert torch.equal(r.restore(photo), photo)  # identity baseline returns its input exactly
+    batch = torch.stack([photo, photo.flip(-1)])
+    out = Restorer(LocalModel(), tile=128, overlap=32).restore_with_details(batch)
+    assert out["restored"].shape == batch.shape and out["flow"].shape == (2, 2, 300, 420)
+    write_image(tmp_path / "p.png", photo)
+    assert r.restore(tmp_path / "p.png").shape == (3, 300, 420)
+
+
+def test_bad_arguments_raise_one_line_errors(tmp_path, monkeypatch):
+    monkeypatch.setenv("D2TURB_WEIGHTS_DIR", str(tmp_path))
+    with pytest.raises(D2TurbError, match="not found; looked in: .*" + str(tmp_path).replace("\\", "\\\\")):
+        resolve_weights("no-such-model")
+    with pytest.raises(D2TurbError, match="weights file not found"):
+        resolve_weights(str(tmp_path / "missing.safetensors"))
+    (tmp_path / "old.pth").write_bytes(b"x")
+    with pytest.raises(D2TurbError, match="only .safetensors"):
+        resolve_weights(str(tmp_path / "old.pth"))
+    (tmp_path / "mine.safetensors").write_bytes(b"x")
+    assert resolve_weights("mine") == tmp_path / "mine.safetensors"
+    assert weights_search_path("mine")[0] == tmp_path / "mine.safetensors"
+    (tmp_path / "v1.2.safetensors").write_bytes(b"x")
+    assert resolve_weights("v1.2") == tmp_path / "v1.2.safetensors"  # dotted names are names, not paths
+    with pytest.raises(D2TurbError, match="overlap"):
+        Restorer("input", tile=64, overlap=40)
+    with pytest.raises(D2TurbError, match="expected 3 channels"):
+        Restorer("input").restore(torch.rand(1, 4, 8, 8))
+    with pytest.raises(D2TurbError, match="NaN"):
+        Restorer("input").restore(torch.full((3, 8, 8), float("nan")))
+    if not torch.cuda.is_available():
+        with pytest.raises(D2TurbError, match="CUDA is not available"):
+            Restorer("input", device="cuda")

@@ -1,0 +1,77 @@
+"""`d2turb restore` end to end: outputs, odd inputs (16-bit grey, alpha, EXIF), videos, errors."""
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from d2turb.cli import main
+from d2turb.io import read_image
+
+
+def _rgb(h=24, w=40, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+def test_restore_identity_writes_all_outputs(tmp_path, capsys):
+    src = tmp_path / "in"
+    src.mkdir()
+    Image.fromarray(_rgb()).save(src / "a.png")
+    Image.fromarray(_rgb(seed=1)).convert("RGBA").save(src / "b.png")
+    grey16 = (np.random.default_rng(2).integers(0, 65536, (30, 20))).astype(np.uint16)
+    Image.fromarray(grey16).save(src / "c.png")
+    out = tmp_path / "out"
+    rc = main(["restore", str(src), "--weights", "input", "--out", str(out), "--save-flow", "--save-intermediate"])
+    assert rc == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(f"{s}_{k}" for s in "abc" for k in ("restored.png", "flow.npy", "deblurred.png"))
+    # identity restorer: the output is the input, up to 8-bit quantisation of the 16-bit grey
+    np.testing.assert_array_equal(np.asarray(Image.open(out / "a_restored.png")), _rgb())
+    c = read_image(out / "c_restored.png")
+    assert c.shape == (3, 30, 20)
+    assert (c[0] - torch.from_numpy(grey16 / 65535.0).float()).abs().max() <= 0.5 / 255 + 1e-6
+    flow = np.load(out / "b_flow.npy")
+    assert flow.dtype == np.float32 and flow.shape == (2, 24, 40) and not flow.any()
+    assert "restored 3 image(s)" in capsys.readouterr().out
+
+
+def test_exif_orientation_is_respected(tmp_path):
+    img = Image.fromarray(_rgb(20, 40))
+    exif = img.getexif()
+    exif[0x0112] = 6  # displayed rotated 90° clockwise → 40 rows x 20 columns
+    img.save(tmp_path / "r.jpg", exif=exif, quality=95)
+    assert main(["restore", str(tmp_path / "r.jpg"), "--weights", "input", "--out", str(tmp_path / "o")]) == 0
+    assert Image.open(tmp_path / "o" / "r_restored.png").size == (20, 40)
+
+
+def test_animated_gif_video_to_frames(tmp_path):
+    frames = [Image.fromarray(_rgb(16, 16, seed=i)) for i in range(3)]
+    frames[0].save(tmp_path / "clip.gif", save_all=True, append_images=frames[1:], duration=50, loop=0)
+    pytest.importorskip("imageio")
+    assert main(["restore", str(tmp_path / "clip.gif"), "--weights", "input", "--out", str(tmp_path / "o")]) == 0
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [f"clip_{i:06d}_restored.png" for i in range(3)]
+
+
+def test_unreadable_video_names_the_extra(tmp_path, capsys):
+    (tmp_path / "v.mp4").write_bytes(b"\x00" * 64)
+    assert main(["restore", str(tmp_path / "v.mp4"), "--weights", "input", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # earlier lines: the progress bar
+    assert err.startswith("error: ") and "d2turb[video]" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--weights", "nonexistent-name"], "not found; looked in:"),
+    (["--weights", "input", "--tile", "64", "--overlap", "60"], "overlap must be between"),
+])
+def test_errors_are_one_line(tmp_path, capsys, argv, message):
+    Image.fromarray(_rgb()).save(tmp_path / "a.png")
+    rc = main(["restore", str(tmp_path / "a.png"), "--out", str(tmp_path / "o"), *argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("error: ") and message in err and "\n" not in err
+
+
+def test_duplicate_output_names_rejected(tmp_path, capsys):
+    for d in ("x", "y"):
+        (tmp_path / d).mkdir()
+        Image.fromarray(_rgb()).save(tmp_path / d / "same.png")
+    rc = main(["restore", str(tmp_path / "x"), str(tmp_path / "y"), "--weights", "input", "--out", str(tmp_path / "o")])
+    assert rc == 2 and "same" in capsys.readouterr().err
