@@ -29,6 +29,8 @@ def register(sub):
                    help="train: D/r0 uniform over the bins' union; test: balanced, bin = bins[i %% n_bins]")
     p.add_argument("--bins", default="weak,medium,strong", help="comma-separated D/r0 bins (default all three)")
     p.add_argument("--depth", default="prior", metavar="SPEC", help="none | prior | DIR | anything:PATH (default prior)")
+    p.add_argument("--depth-is-disparity", dest="disparity", action="store_true",
+                   help="maps in a --depth DIR hold disparity (inverse depth, near = large)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     p.add_argument("--batch", type=int, default=8, help="samples per simulator call (part of the seed; default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (default auto)")
@@ -46,7 +48,7 @@ def run(args):
         raise D2TurbError(f"--param expects KEY=VALUE, got {exc.args[0]!r}") from None
     cfg = DatasetConfig(
         clean=args.clean, out=args.out, pairs=args.pairs, patch=args.patch, split=args.split,
-        bins=tuple(b.strip() for b in args.bins.split(",") if b.strip()), depth=args.depth, seed=args.seed,
+        bins=tuple(b.strip() for b in args.bins.split(",") if b.strip()), depth=args.depth, depth_is_disparity=args.disparity, seed=args.seed,
         batch=args.batch, device=args.device, params=params)
     stats = generate_dataset(cfg, progress=not args.no_progress)
     if stats["rank"] == 0:

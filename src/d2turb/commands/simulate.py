@@ -26,8 +26,11 @@ def register(sub):
     strength.add_argument("--dr0", type=float, default=None, metavar="X", help="turbulence strength D/r0 (default 3)")
     strength.add_argument("--dr0-range", type=float, nargs=2, default=None, metavar=("A", "B"), help="D/r0 drawn uniformly per image")
     strength.add_argument("--cn2", type=float, default=None, metavar="CN2", help="refractive-index structure constant (m^-2/3), constant along the path")
-    p.add_argument("--depth", default="none", metavar="none|prior|FILE|DIR", help="relative depth (far = 1): none, prior, a map, or a folder of maps by image stem")
-    p.add_argument("--disparity", action="store_true", help="depth maps hold disparity (inverse depth)")
+    p.add_argument("--depth", default="none", metavar="none|prior|FILE|DIR|anything:PATH",
+                   help="relative depth (far = 1): none, the weight-free prior, a map, a folder of maps by image stem, "
+                        "or Depth Anything V2 from a local model folder")
+    p.add_argument("--depth-is-disparity", "--disparity", dest="disparity", action="store_true",
+                   help="depth maps hold disparity (inverse depth, near = large)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--save-flow", action="store_true", help="also write NAME_flow.npy: float32 (2,H,W) forward displacement px, x then y")
     add_physics_args(p)
@@ -65,7 +68,7 @@ def run(args):
         strengths = [params.dr0] * len(paths)
     for path, dr0 in zip(paths, strengths):
         image = read_image(path)
-        depth = depth_for_image(args.depth, path, image, is_disparity=args.disparity)
+        depth = depth_for_image(args.depth, path, image, is_disparity=args.disparity, device=args.device)
         res = sim(image[None], depth=None if depth is None else depth[None], dr0=dr0, generator=gen)
         name = path.stem
         write_image(out / f"{name}_turb.png", res.turb[0])

@@ -41,6 +41,7 @@ class DatasetConfig:
     split: str = "train"
     bins: tuple[str, ...] = ("weak", "medium", "strong")
     depth: str = "prior"
+    depth_is_disparity: bool = False
     seed: int = 0
     batch: int = 8
     device: str = "auto"
@@ -132,19 +133,16 @@ def crop_box(plan: SamplePlan, height: int, width: int, patch: int) -> tuple[int
     return x0, y0, x0 + patch, y0 + patch
 
 
-def make_depth_fn(spec: str, device=None):
+def make_depth_fn(spec: str, device=None, is_disparity: bool = False):
     """spec → f(image (3,H,W), path) -> depth (1,H,W) in [0,1] (far = 1), or None for ``none``."""
     if spec == "none":
         return None
-    try:
-        from d2turb.depth import depth_for_image
-    except ImportError:
-        from d2turb.depth.io import depth_for_image
+    from d2turb.depth import depth_for_image
 
     def depth_fn(image: torch.Tensor, path) -> torch.Tensor:
         if spec == "prior" and device is not None:
             image = image.to(device)  # the weight-free prior is plain torch: run it where the simulator runs
-        return depth_for_image(spec, path, image, device=device).float().cpu()
+        return depth_for_image(spec, path, image, is_disparity=is_disparity, device=device).float().cpu()
 
     return depth_fn
 
@@ -259,8 +257,8 @@ def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: 
     return {
         "version": FORMAT_VERSION, "pairs": cfg.pairs, "patch": cfg.patch, "split": cfg.split,
         "bins": list(cfg.bins), "bin_ranges": {b: list(bin_ranges()[b]) for b in cfg.bins},
-        "seed": cfg.seed, "batch": cfg.batch, "depth": cfg.depth, "params": params_full,
-        "clean": [str(c) for c in cfg.clean], "sources": len(sources),
+        "seed": cfg.seed, "batch": cfg.batch, "depth": cfg.depth,
+        "depth_is_disparity": cfg.depth_is_disparity, "params": params_full, "clean": [str(c) for c in cfg.clean], "sources": len(sources),
         "files": {k: f"{k}/<id>{s}" for k, s in FILES.items()},
         "flow": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, flow) ~ gt",
         "depth_encoding": "16-bit PNG, depth = value / 65535, far = 1",
@@ -352,7 +350,7 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
     for kind in FILES:
         (root / kind).mkdir(parents=True, exist_ok=True)
     sim = Simulator(params, device=str(device))
-    cache = SourceCache(sources, cfg.patch, make_depth_fn(cfg.depth, device))
+    cache = SourceCache(sources, cfg.patch, make_depth_fn(cfg.depth, device, cfg.depth_is_disparity))
     bar = None
     if progress and info.rank == 0:
         from tqdm import tqdm

@@ -21,24 +21,19 @@ from PIL import Image
 
 from d2turb.errors import D2TurbError
 from d2turb.io import atomic_path
+from d2turb.sim import BINS
 
 FORMAT_VERSION = 1
 FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "flow": ".npy", "depth": ".png"}
 META_NAME = "meta.jsonl"
 CONFIG_NAME = "dataset.json"
 SHARD_DIR = ".meta"
-# Eq. D/r0 bins of the benchmark (physics.md §5); the lower/upper ends are the sampling range 1–5.
-BIN_RANGES = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}
+BIN_RANGES = dict(BINS)  # D/r0 bins of the benchmark (physics.md §5), from the simulator
 BIN_NAMES = tuple(BIN_RANGES)
 
 
 def bin_ranges() -> dict[str, tuple[float, float]]:
-    """The simulator's bins when available (``d2turb.sim.BINS``), else the documented defaults."""
-    try:
-        from d2turb.sim import BINS
-    except ImportError:
-        return dict(BIN_RANGES)
-    return {name: (float(lo), float(hi)) for name, (lo, hi) in BINS.items()}
+    return {name: (float(lo), float(hi)) for name, (lo, hi) in BIN_RANGES.items()}
 
 
 def bin_of(dr0: float, ranges: dict[str, tuple[float, float]] | None = None) -> str | None:

@@ -1,0 +1,116 @@
+"""Multi-stage objective of Sec. 3.3: L_total = L_deblur + λ_flow·L_flow + L_detilt (Eq. 11–14).
+
+* L_deblur = the backbone's native loss between Î_tilt and I_tilt (Eq. 11); Restormer and NAFNet: L1
+  (``NATIVE_LOSS``; NAFNet's paper loss, PSNR-loss, is available as ``native: psnr``).
+* L_flow = ‖V̂ − V_bwd‖₁ (Eq. 12), mean absolute error in pixels.
+* L_detilt = λ_photo‖Î_clean − I_gt‖₁ + λ_vgg‖φ(Î_clean) − φ(I_gt)‖²₂ (Eq. 13); φ = VGG16 relu1_2…relu5_3 on
+  ImageNet-normalised input, the squared norm taken as the mean squared difference per layer, summed over layers.
+* Plain backbones (flow None, Table 1 baselines): λ_photo·L1(restored, I_gt) (+ λ_vgg·VGG term).
+All norms are means over elements, so a batch split across processes averages to the full-batch loss.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from d2turb.errors import D2TurbError
+
+
+def l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return (pred - target).abs().mean()
+
+
+def psnr_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """NAFNet's PSNR loss: mean over images of 10·log10(MSE + eps), i.e. −PSNR in dB for data range 1."""
+    mse = (pred - target).pow(2).flatten(1).mean(1)
+    return (10.0 / math.log(10.0)) * torch.log(mse + eps).mean()
+
+
+NATIVE_LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {"l1": l1_loss, "psnr": psnr_loss}
+# Per-backbone native objective (Eq. 11). A backbone class may also declare ``native_loss = "..."``.
+NATIVE_LOSS: dict[str, str] = {"restormer": "l1", "nafnet": "l1"}
+
+
+def native_loss_name(model: nn.Module, override: str | None = None) -> str:
+    """The name of the native deblurring loss of ``model``'s backbone (``override`` wins; default l1)."""
+    if override is not None:
+        name = override
+    else:
+        backbone = getattr(model, "backbone", None)
+        config = getattr(backbone, "config", {}) or {}
+        name = getattr(backbone, "native_loss", None) or NATIVE_LOSS.get(config.get("name"), "l1")
+    if name not in NATIVE_LOSSES:
+        raise D2TurbError(f"unknown native loss {name!r}; choose from {', '.join(NATIVE_LOSSES)}")
+    return name
+
+
+class PerceptualLoss(nn.Module):
+    """Σ_layers mean((φ_l(a) − φ_l(b))²) with φ = VGG16 features (frozen) on ImageNet-normalised input."""
+
+    def __init__(self, extractor: nn.Module):
+        super().__init__()
+        self.extractor = extractor.eval().requires_grad_(False)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> "PerceptualLoss":
+        from d2turb.eval.vgg import FeatureExtractor, load_backbone
+
+        return cls(load_backbone(FeatureExtractor("vgg", device="meta"), path))
+
+    def train(self, mode: bool = True):  # the extractor always stays in eval mode
+        super().train(mode)
+        self.extractor.eval()
+        return self
+
+    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        from d2turb.eval.vgg import imagenet_normalize
+
+        feats = self.extractor(imagenet_normalize(torch.cat([pred, target])))
+        return sum(F.mse_loss(*f.float().chunk(2)) for f in feats)
+
+
+class MultiStageLoss(nn.Module):
+    """``forward(outputs, batch) -> (total, terms)``; ``terms`` maps each term name to its unweighted value."""
+
+    def __init__(self, deblur: float = 1.0, flow: float = 5.0, photo: float = 1.0, vgg: float = 0.02,
+                 perceptual: nn.Module | None = None, native: str = "l1"):
+        super().__init__()
+        if native not in NATIVE_LOSSES:
+            raise D2TurbError(f"unknown native loss {native!r}; choose from {', '.join(NATIVE_LOSSES)}")
+        self.w_deblur, self.w_flow, self.w_photo = float(deblur), float(flow), float(photo)
+        self.w_vgg = float(vgg) if perceptual is not None else 0.0
+        self.perceptual, self.native = perceptual, native
+
+    def forward(self, out: dict, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        restored, gt = out["restored"].float(), batch["gt"]
+        terms: dict[str, torch.Tensor] = {"photo": l1_loss(restored, gt)}  # Eq. 13, first term
+        total = self.w_photo * terms["photo"]
+        if self.w_vgg > 0:
+            terms["vgg"] = self.perceptual(restored, gt)  # Eq. 13, second term
+            total = total + self.w_vgg * terms["vgg"]
+        if out.get("flow") is not None:  # two-stage model; plain baselines train on the clean target only
+            terms["deblur"] = NATIVE_LOSSES[self.native](out["deblurred"].float(), batch["tilt"])  # Eq. 11
+            terms["flow"] = l1_loss(out["flow"].float(), batch["flow"])  # Eq. 12
+            total = total + self.w_deblur * terms["deblur"] + self.w_flow * terms["flow"]  # Eq. 14
+        return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True) -> MultiStageLoss:
+    """The loss of a config's ``loss`` section. No ``vgg_weights``: the perceptual term is disabled with one
+    warning line on stderr (``warn``); a given path that does not exist is an error. Never downloads."""
+    perceptual = None
+    if loss_cfg.get("vgg", 0) > 0:
+        path = loss_cfg.get("vgg_weights")
+        if path:
+            perceptual = PerceptualLoss.from_file(path).to(device)
+        elif warn:
+            print("warning: loss.vgg_weights not set; the VGG perceptual term (λ_vgg) is disabled", file=sys.stderr)
+    return MultiStageLoss(deblur=loss_cfg.get("deblur", 1.0), flow=loss_cfg.get("flow", 5.0),
+                          photo=loss_cfg.get("photo", 1.0), vgg=loss_cfg.get("vgg", 0.02), perceptual=perceptual,
+                          native=native_loss_name(model, loss_cfg.get("native")))
