@@ -87,11 +87,13 @@ def test_interrupted_run_leaves_no_results(real_dir, tmp_path):
 
 
 @pytest.mark.parametrize("metrics, message", [
-    ("musiq", "MUSIQ is not implemented"),
+    ("musiq", "MUSIQ weights not found"),
     ("psnr", "psnr needs ground truth"),
     ("nope", "unknown metric 'nope'"),
 ])
-def test_cli_metric_errors_are_one_line_and_write_nothing(real_dir, tmp_path, capsys, metrics, message):
+def test_cli_metric_errors_are_one_line_and_write_nothing(real_dir, tmp_path, capsys, monkeypatch, metrics, message):
+    monkeypatch.delenv("D2TURB_MUSIQ_WEIGHTS", raising=False)
+    monkeypatch.setenv("D2TURB_CACHE_DIR", str(tmp_path / "empty_cache"))  # a user's cached weights must not matter
     out = tmp_path / "out"
     assert main(["evaluate", "--real", str(real_dir), "--metrics", metrics, "--out", str(out)]) == 2
     err = capsys.readouterr().err

@@ -28,6 +28,8 @@ def register(sub):
                                                           "else $D2TURB_LPIPS_WEIGHTS or ~/.cache/d2turb/lpips/")
     p.add_argument("--lpips-backbone", metavar="FILE", help="torchvision AlexNet/VGG16 weights; else "
                                                             "$D2TURB_LPIPS_BACKBONE or ~/.cache/d2turb/")
+    p.add_argument("--musiq-weights", metavar="FILE", help="MUSIQ checkpoint (IQA-PyTorch .pth or .safetensors); else "
+                                                           "$D2TURB_MUSIQ_WEIGHTS or ~/.cache/d2turb/musiq/")
     p.set_defaults(func=run)
 
 
@@ -38,7 +40,8 @@ def run(args):
         from d2turb.eval.real import evaluate_real, parse_metrics
 
         results = evaluate_real(args.real, parse_metrics(args.metrics or "niqe,piqe"), args.out,
-                                weights=args.weights, device=args.device, max_samples=args.max_samples)
+                                weights=args.weights, device=args.device, max_samples=args.max_samples,
+                                musiq_weights=args.musiq_weights)
         for model, scores in results["models"].items():
             print(model + ": " + ", ".join(f"{m} {v['mean']:.4f}" for m, v in scores.items()))
     else:

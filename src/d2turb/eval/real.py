@@ -17,12 +17,13 @@ from d2turb.errors import D2TurbError
 from d2turb.io import list_images, read_image, write_image, write_json, write_text
 
 IDENTITY = "input"
-NO_REFERENCE = ("niqe", "piqe")
+NO_REFERENCE = ("niqe", "piqe", "musiq")
+HIGHER_IS_BETTER = ("musiq",)
 FULL_REFERENCE = ("psnr", "ssim", "lpips")
 
 
-def no_reference_metric(name: str) -> Callable[[torch.Tensor], float]:
-    """(3, H, W) image in [0, 1] → float, for "niqe" or "piqe" (lower is better for both)."""
+def no_reference_metric(name: str, device: str = "cpu", musiq_weights: str | None = None) -> Callable[[torch.Tensor], float]:
+    """(3, H, W) image in [0, 1] → float, for "niqe", "piqe" (lower is better) or "musiq" (higher is better)."""
     if name == "niqe":
         from d2turb.eval.niqe import niqe
 
@@ -31,8 +32,11 @@ def no_reference_metric(name: str) -> Callable[[torch.Tensor], float]:
         from d2turb.eval.piqe import piqe
 
         return lambda img: float(piqe(img))
-    if name == "musiq":
-        raise D2TurbError("MUSIQ is not implemented in d2turb (no MUSIQ model or weights support); use --metrics niqe,piqe")
+    if name == "musiq":  # weights: the argument, $D2TURB_MUSIQ_WEIGHTS or the cache folder (d2turb.eval.musiq)
+        from d2turb.eval.musiq import MUSIQ
+
+        model = MUSIQ(weights=musiq_weights, device=device)
+        return lambda img: float(model(img)[0])
     if name in FULL_REFERENCE:
         raise D2TurbError(f"{name} needs ground truth; real images have none (use --data DATASET_DIR for {name})")
     raise D2TurbError(f"unknown metric {name!r} for real images; available: {', '.join(NO_REFERENCE)}")
@@ -72,8 +76,9 @@ def _fmt(v: float) -> str:
 def _markdown(results: dict) -> str:
     metrics, models = results["metrics"], list(results["models"])
     lines = [f"# No-reference evaluation of `{results['data']}` ({len(results['images'])} images)", "",
-             "Lower is better for NIQE and PIQE.", "",
-             "| model | " + " | ".join(f"{m.upper()} ↓" for m in metrics) + " |",
+             "Lower is better for NIQE and PIQE, higher for MUSIQ.", "",
+             "| model | " + " | ".join(f"{m.upper()} {'↑' if m in HIGHER_IS_BETTER else '↓'}" for m in metrics)
+             + " |",
              "|---|" + "---:|" * len(metrics)]
     for model in models:
         lines.append(f"| {model} | " + " | ".join(_fmt(results["models"][model][m]["mean"]) for m in metrics) + " |")
@@ -87,7 +92,8 @@ def _markdown(results: dict) -> str:
 
 def evaluate_real(real_dir: str | os.PathLike, metrics=("niqe", "piqe"), out_dir: str | os.PathLike = "eval_real",
                   weights: list[str] | None = None, device: str = "cpu", max_samples: int | None = None,
-                  restorer_factory: Callable[[str, str], Callable[[torch.Tensor], torch.Tensor]] | None = None) -> dict:
+                  restorer_factory: Callable[[str, str], Callable[[torch.Tensor], torch.Tensor]] | None = None,
+                  musiq_weights: str | None = None) -> dict:
     """Score the images of ``real_dir``; returns the dict written to ``out_dir/results.json``.
 
     ``results["models"][model][metric] = {"per_image": {file name: value}, "mean": value}`` with one
@@ -96,7 +102,7 @@ def evaluate_real(real_dir: str | os.PathLike, metrics=("niqe", "piqe"), out_dir
     (default: ``d2turb.restore.Restorer(weights, device=device).restore``).
     """
     metric_names = parse_metrics(metrics)
-    scorers = {m: no_reference_metric(m) for m in metric_names}
+    scorers = {m: no_reference_metric(m, device, musiq_weights) for m in metric_names}
     paths = list_images(real_dir)
     if max_samples is not None:
         paths = paths[:max_samples]

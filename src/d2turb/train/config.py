@@ -31,7 +31,7 @@ DEFAULTS: dict = {
         "betas": [0.9, 0.999],
         "weight_decay": 0.0,
         "grad_clip": None,  # max global gradient norm, or null
-        "amp": None,  # "bf16" (CUDA only) or null
+        "amp": None,  # "bf16" (autocast of the forward pass; meant for CUDA, works on CPU) or null
         "seed": 0,
         "device": "auto",  # auto | cpu | cuda
     },
@@ -77,7 +77,17 @@ def parse_override(item: str) -> tuple[list[str], object]:
         value = yaml.safe_load(text) if text else None
     except yaml.YAMLError:
         value = text
-    return key.split("."), value
+    return key.split("."), _number(value)
+
+
+def _number(value):
+    """YAML 1.1 reads ``1e-4`` (no dot) as a string; turn such strings into floats."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
 
 
 def _nest(path: list[str], value) -> dict:
@@ -125,6 +135,10 @@ def validate(cfg: dict) -> None:
         value = train[key]
         if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
             raise D2TurbError(f"config: train.{key} must be a positive integer, got {value!r}")
+    for key in ("lr", "lr_min", "grad_clip"):
+        train[key] = _number(train[key])
+    for key in ("deblur", "flow", "photo", "vgg"):
+        loss[key] = _number(loss[key])
     for key in ("lr", "lr_min"):
         if not isinstance(train[key], (int, float)) or train[key] < 0:
             raise D2TurbError(f"config: train.{key} must be a non-negative number, got {train[key]!r}")

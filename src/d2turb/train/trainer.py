@@ -83,14 +83,16 @@ class Trainer:
         from d2turb.models import create_model
 
         self.cfg, self.run_dir = cfg, Path(run_dir)
+        if resume and not (self.run_dir / CHECKPOINT).is_file():
+            raise D2TurbError(f"--resume: no checkpoint {self.run_dir / CHECKPOINT}")
         tcfg = cfg["train"]
         self.rank, self.world, self.device = init_distributed(tcfg["device"])
         self.is_main = self.rank == 0
         if tcfg["batch"] % self.world:
             raise D2TurbError(f"train.batch {tcfg['batch']} is not divisible by the {self.world} processes")
         self.per_rank_batch = tcfg["batch"] // self.world
-        if tcfg["amp"] == "bf16" and self.device.type != "cuda":
-            raise D2TurbError("train.amp bf16 needs a CUDA device")
+        if tcfg["amp"] == "bf16" and self.device.type not in ("cuda", "cpu"):
+            raise D2TurbError(f"train.amp bf16 is not supported on {self.device.type}")
         self.progress = cfg["log"]["progress"] if progress is None else progress
 
         torch.manual_seed(tcfg["seed"])  # identical initial weights on every rank
@@ -123,8 +125,6 @@ class Trainer:
         ckpt = self.run_dir / CHECKPOINT
         if ckpt.is_file():
             self.load_checkpoint(ckpt)
-        elif resume:
-            raise D2TurbError(f"--resume: no checkpoint {ckpt}")
 
     # ---------------------------------------------------------------- data
     def _build_data(self):
@@ -223,7 +223,7 @@ class Trainer:
 
     # ---------------------------------------------------------------- steps
     def train_step(self, batch: dict) -> tuple[float, dict]:
-        amp = torch.autocast("cuda", dtype=torch.bfloat16) if self.cfg["train"]["amp"] == "bf16" else nullcontext()
+        amp = torch.autocast(self.device.type, dtype=torch.bfloat16) if self.cfg["train"]["amp"] == "bf16" else nullcontext()
         with amp:
             out = self.ddp(batch["turb"])
         loss, terms = self.loss(out, batch)
