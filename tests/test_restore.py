@@ -1,7 +1,6 @@
 """Tiled restoration (d2turb.restore): equality with untiled inference, absence of seams, weights lookup."""
 import math
 
-import numpy as np
 import pytest
 import torch
 from torch import nn

@@ -17,6 +17,11 @@ from d2turb.errors import D2TurbError
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
 
 
+def cache_dir(*parts: str) -> Path:
+    """The user's folder of local weights: ``$D2TURB_CACHE_DIR`` (default ``~/.cache/d2turb``) / parts."""
+    return Path(os.environ.get("D2TURB_CACHE_DIR", Path.home() / ".cache" / "d2turb")).expanduser().joinpath(*parts)
+
+
 def list_images(folder: str | os.PathLike) -> list[Path]:
     """Image files directly inside ``folder``, sorted by name."""
     folder = Path(folder)

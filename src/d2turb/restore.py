@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.io import cache_dir
 
 IDENTITY_NAME = "input"
 WEIGHTS_SUFFIX = ".safetensors"
@@ -39,9 +40,9 @@ class IdentityRestorer(nn.Module):
 
 def weights_search_path(name: str) -> list[Path]:
     """Where a weights *name* is looked for, in order: each folder of $D2TURB_WEIGHTS_DIR (os.pathsep
-    separated), ~/.cache/d2turb/weights, then the package's resources/weights."""
+    separated), $D2TURB_CACHE_DIR/weights (default ~/.cache/d2turb/weights), then the package's resources/weights."""
     folders = [Path(p).expanduser() for p in os.environ.get("D2TURB_WEIGHTS_DIR", "").split(os.pathsep) if p]
-    folders.append(Path.home() / ".cache" / "d2turb" / "weights")
+    folders.append(cache_dir("weights"))
     folders.append(Path(str(resources.files("d2turb"))) / "resources" / "weights")
     return [folder / f"{name}{WEIGHTS_SUFFIX}" for folder in folders]
 

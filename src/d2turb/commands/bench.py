@@ -44,8 +44,6 @@ def _config(args) -> dict:
 
 
 def run(args):
-    import json
-
     import torch
 
     from d2turb.io import write_json, write_text

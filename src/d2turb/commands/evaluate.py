@@ -25,7 +25,7 @@ def register(sub):
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument("--max-samples", type=int, default=None, help="evaluate at most this many images")
     p.add_argument("--lpips-weights", metavar="FILE", help="LPIPS v0.1 linear-layer weights (alex.pth / vgg.pth); "
-                                                          "else $D2TURB_LPIPS_WEIGHTS or ~/.cache/d2turb/lpips/")
+                                                          "else $D2TURB_LPIPS_WEIGHTS or $D2TURB_CACHE_DIR (~/.cache/d2turb/)")
     p.add_argument("--lpips-backbone", metavar="FILE", help="torchvision AlexNet/VGG16 weights; else "
                                                             "$D2TURB_LPIPS_BACKBONE or ~/.cache/d2turb/")
     p.add_argument("--musiq-weights", metavar="FILE", help="MUSIQ checkpoint (IQA-PyTorch .pth or .safetensors); else "

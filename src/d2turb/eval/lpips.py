@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.io import cache_dir
 from d2turb.eval.vgg import CHANNELS, FeatureExtractor, load_backbone, load_state_dict_file
 
 BACKBONE_NAMES = {"alex": ["alexnet.safetensors", "alexnet.pth", "alexnet-owt-7be5be79.pth"],
@@ -30,8 +31,6 @@ _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 
 
-def cache_dir() -> Path:
-    return Path(os.environ.get("D2TURB_CACHE_DIR", Path.home() / ".cache" / "d2turb")).expanduser()
 
 
 def _find(explicit: str | os.PathLike | None, env: str, names: list[str], what: str, option: str) -> Path:

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.io import cache_dir
 
 ENV_VAR = "D2TURB_MUSIQ_WEIGHTS"
 # Searched (in this order) in a folder given by D2TURB_MUSIQ_WEIGHTS and in $D2TURB_CACHE_DIR/musiq/.
@@ -60,8 +61,6 @@ class MUSIQConfig:
         return len(self.longer_side_lengths) + int(self.use_original_resolution)
 
 
-def cache_dir() -> Path:
-    return Path(os.environ.get("D2TURB_CACHE_DIR", Path.home() / ".cache" / "d2turb")).expanduser() / "musiq"
 
 
 # ----------------------------------------------------------------------------- preprocessing
@@ -320,7 +319,7 @@ def find_weights(weights: str | os.PathLike | None = None) -> Path:
             raise D2TurbError(f"MUSIQ weights file not found: {path} (pass an existing pyiqa musiq_*_ckpt-*.pth; "
                               f"nothing is downloaded)")
         return path
-    folders = [cache_dir()]
+    folders = [cache_dir("musiq")]
     if os.environ.get(ENV_VAR):
         given = Path(os.environ[ENV_VAR]).expanduser()
         if given.is_file():
@@ -334,7 +333,7 @@ def find_weights(weights: str | os.PathLike | None = None) -> Path:
             if path.is_file():
                 return path
     raise D2TurbError(f"MUSIQ weights not found: pass weights=FILE, set {ENV_VAR}=FILE, or put "
-                      f"musiq_koniq_ckpt-e95806b9.pth (IQA-PyTorch release) in {cache_dir()} (nothing is downloaded)")
+                      f"musiq_koniq_ckpt-e95806b9.pth (IQA-PyTorch release) in {cache_dir('musiq')} (nothing is downloaded)")
 
 
 _MODELS: dict[tuple[str, str], MUSIQ] = {}

@@ -164,7 +164,7 @@ def evaluate_synthetic(weights: Sequence, data_dir: str | os.PathLike, out_dir: 
     }
     write_json(out / "results.json", results)
     bins_line = ", ".join(f"{b}: {counts[b]}" for b in BIN_NAMES)
-    md = [f"# Synthetic evaluation\n", f"Dataset `{data_dir}` — {count} samples ({bins_line}); "
+    md = ["# Synthetic evaluation\n", f"Dataset `{data_dir}` — {count} samples ({bins_line}); "
           "bins: weak D/r0 < 2.25 ≤ medium ≤ 3.75 < strong. Avg = mean over all samples.\n",
           markdown_table(table, metrics)]
     md += [f"\n> **Note:** {n}\n" for n in notes]
