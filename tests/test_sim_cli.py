@@ -77,7 +77,7 @@ def test_demo_writes_grid(tmp_path):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out)]) == 0
     grid = Image.open(out / "demo.png")
-    assert grid.size == (5 * 256, 3 * 192)  # columns clean|weak|medium|strong|depth, rows = images
+    assert grid.size == (5 * 256, 4 * 192)  # columns clean|weak|medium|strong|depth, rows = 3 photos + a chart
     assert (out / "astronaut_strong_turb.png").is_file() and (out / "coffee_depth.png").is_file()
     meta = json.loads((out / "demo_meta.json").read_text())
     assert meta["levels"] == {"weak": 1.5, "medium": 3.0, "strong": 4.5}

@@ -17,8 +17,20 @@ def register(sub):
     p.set_defaults(func=run)
 
 
+def line_chart() -> "torch.Tensor":
+    """A generated chart of straight lines (3, H, W): turbulence tilt shows as wavy lines."""
+    import torch
+
+    h, w = SIZE
+    ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    lines = ((ys % 16) < 2) | ((xs % 16) < 2)
+    chart = torch.where(lines, 0.1, 0.9).float()
+    return chart.expand(3, h, w).contiguous()
+
+
 def sample_images() -> dict:
-    """Three skimage samples, centre-cropped to 4:3 and resized to SIZE, as (3, H, W) tensors."""
+    """Three skimage samples, centre-cropped to 4:3 and resized to SIZE, plus a generated line chart,
+    as (3, H, W) tensors."""
     import numpy as np
     import torch
     from skimage import data, transform
@@ -31,6 +43,7 @@ def sample_images() -> dict:
         y0, x0 = (h - ch) // 2, (w - cw) // 2
         img = transform.resize(img[y0:y0 + ch, x0:x0 + cw], SIZE, anti_aliasing=True)
         out[name] = torch.from_numpy(np.asarray(img, dtype=np.float32)).permute(2, 0, 1).contiguous()
+    out["chart"] = line_chart()
     return out
 
 
