@@ -18,11 +18,11 @@ from importlib import resources
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
 from d2turb.io import cache_dir
+from d2turb.ops.warp import base_grid, sample_at
 
 IDENTITY_NAME = "input"
 WEIGHTS_SUFFIX = ".safetensors"
@@ -126,17 +126,14 @@ def axis_window(size: int, overlap: int, taper_start: bool, taper_end: bool) -> 
 def warp_in_strips(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """``d2turb.ops.warp(image, flow)`` (border padding, align_corners=True) computed in row strips so
     the sampling grid of a 12-megapixel image never exists at once. Same result as the one-shot warp."""
-    b, c, h, w = image.shape
+    _, _, h, w = image.shape
     out = torch.empty_like(image)
     rows = max(1, _WARP_STRIP_PIXELS // max(w, 1))
-    xs = torch.arange(w, device=flow.device, dtype=flow.dtype)
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        ys = torch.arange(r0, r1, device=flow.device, dtype=flow.dtype)
-        gx = (xs[None, None, :] + flow[:, 0, r0:r1]) * (2.0 / max(w - 1, 1)) - 1.0
-        gy = (ys[None, :, None] + flow[:, 1, r0:r1]) * (2.0 / max(h - 1, 1)) - 1.0
-        grid = torch.stack((gx, gy), dim=-1).to(image.dtype)
-        out[:, :, r0:r1] = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        grid = base_grid(r1 - r0, w, flow.device, flow.dtype)
+        grid[:, 1] += r0  # absolute rows, exact in floating point
+        out[:, :, r0:r1] = sample_at(image, grid + flow[:, :, r0:r1])
     return out
 
 

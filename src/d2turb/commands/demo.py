@@ -17,7 +17,7 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def line_chart() -> "torch.Tensor":
+def line_chart():
     """A generated chart of straight lines (3, H, W): turbulence tilt shows as wavy lines."""
     import torch
 

@@ -1,4 +1,4 @@
 from d2turb.ops.splat import BackwardFlow, backward_flow, splat
-from d2turb.ops.warp import Warp, warp
+from d2turb.ops.warp import Warp, sample_at, warp
 
-__all__ = ["BackwardFlow", "Warp", "backward_flow", "splat", "warp"]
+__all__ = ["BackwardFlow", "Warp", "backward_flow", "sample_at", "splat", "warp"]

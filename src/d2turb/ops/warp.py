@@ -18,6 +18,19 @@ def base_grid(height: int, width: int, device=None, dtype=torch.float32) -> torc
     return torch.stack((xs, ys))[None]
 
 
+def sample_at(image: torch.Tensor, coords: torch.Tensor, padding_mode: str = "border", mode: str = "bilinear") -> torch.Tensor:
+    """Sample ``image`` (B, C, H, W) at absolute pixel coordinates ``coords`` (B, 2, h, w), x then y.
+
+    The output is (B, C, h, w); h, w need not equal H, W (e.g. a strip of rows of a large image).
+    """
+    _, _, h, w = image.shape
+    # align_corners=True: -1 and +1 are the centres of the first and last pixels
+    gx = coords[:, 0] * (2.0 / max(w - 1, 1)) - 1.0
+    gy = coords[:, 1] * (2.0 / max(h - 1, 1)) - 1.0
+    grid = torch.stack((gx, gy), dim=-1).to(image.dtype)
+    return F.grid_sample(image, grid, mode=mode, padding_mode=padding_mode, align_corners=True)
+
+
 def warp(image: torch.Tensor, flow: torch.Tensor, padding_mode: str = "border", mode: str = "bilinear") -> torch.Tensor:
     """Sample ``image`` at ``x + flow(x)``: out(x) = image(x + flow(x)).
 
@@ -29,12 +42,7 @@ def warp(image: torch.Tensor, flow: torch.Tensor, padding_mode: str = "border", 
     if image.shape[0] != flow.shape[0] or image.shape[-2:] != flow.shape[-2:]:
         raise D2TurbError(f"warp: image {tuple(image.shape)} and flow {tuple(flow.shape)} do not match")
     _, _, h, w = image.shape
-    coords = base_grid(h, w, flow.device, flow.dtype) + flow
-    # align_corners=True: -1 and +1 are the centres of the first and last pixels
-    gx = coords[:, 0] * (2.0 / max(w - 1, 1)) - 1.0
-    gy = coords[:, 1] * (2.0 / max(h - 1, 1)) - 1.0
-    grid = torch.stack((gx, gy), dim=-1).to(image.dtype)
-    return F.grid_sample(image, grid, mode=mode, padding_mode=padding_mode, align_corners=True)
+    return sample_at(image, base_grid(h, w, flow.device, flow.dtype) + flow, padding_mode, mode)
 
 
 class Warp(nn.Module):
