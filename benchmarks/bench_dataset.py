@@ -4,6 +4,7 @@
 
 Without --clean it writes a few built-in scikit-image samples (upscaled to 512 px) to a temp folder.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,16 +43,34 @@ def main(argv=None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         clean = args.clean or sample_images(Path(tmp))
-        cfg = DatasetConfig(clean=clean, out=str(Path(tmp) / "ds"), pairs=args.pairs, patch=args.patch, split="train",
-                            depth=args.depth, seed=0, batch=args.batch, device=args.device)
+        cfg = DatasetConfig(
+            clean=clean,
+            out=str(Path(tmp) / "ds"),
+            pairs=args.pairs,
+            patch=args.patch,
+            split="train",
+            depth=args.depth,
+            seed=0,
+            batch=args.batch,
+            device=args.device,
+        )
         start = time.perf_counter()
         stats = generate_dataset(cfg, progress=False)
         total = time.perf_counter() - start
     result = {
-        "benchmark": "make-dataset", "pairs": args.pairs, "patch": args.patch, "batch": args.batch, "depth": args.depth,
-        "device": stats["device"], "threads": torch.get_num_threads(), "seconds": round(total, 3),
-        "pairs_per_s": round(args.pairs / total, 3), "generation_pairs_per_s": round(stats["pairs_per_s"], 3),
-        "torch": torch.__version__, "python": platform.python_version(), "date": time.strftime("%Y-%m-%d"),
+        "benchmark": "make-dataset",
+        "pairs": args.pairs,
+        "patch": args.patch,
+        "batch": args.batch,
+        "depth": args.depth,
+        "device": stats["device"],
+        "threads": torch.get_num_threads(),
+        "seconds": round(total, 3),
+        "pairs_per_s": round(args.pairs / total, 3),
+        "generation_pairs_per_s": round(stats["pairs_per_s"], 3),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "date": time.strftime("%Y-%m-%d"),
     }
     if args.device.startswith("cuda") or (args.device == "auto" and torch.cuda.is_available()):
         result["gpu"] = torch.cuda.get_device_name(0)

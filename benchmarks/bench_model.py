@@ -1,8 +1,9 @@
 """Benchmark D²Turb models: params, FLOPs/MACs (FlopCounterMode) and forward latency, printed as JSON.
 
-    python benchmarks/bench_model.py --all --size 256 --device cpu
-    python benchmarks/bench_model.py d2turb --config '{"backbone": "nafnet"}' --device cuda
+python benchmarks/bench_model.py --all --size 256 --device cpu
+python benchmarks/bench_model.py d2turb --config '{"backbone": "nafnet"}' --device cuda
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,13 +32,19 @@ def main() -> None:
     if args.device.startswith("cuda"):
         machine = torch.cuda.get_device_name()
     else:
-        machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {torch.get_num_threads()} threads"
+        machine = (
+            f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {torch.get_num_threads()} threads"
+        )
     for name, cfg in entries:
         load_before = os.getloadavg()[0]
         r = benchmark(name, cfg, args.size, args.device, args.warmup, args.repeats, dtype=getattr(torch, args.dtype))
         # the load average shows how contended the CPU was (a shared 2-core machine inflates latency)
-        r.update(load_avg=[load_before, os.getloadavg()[0]], machine=machine, torch=torch.__version__,
-                 date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+        r.update(
+            load_avg=[load_before, os.getloadavg()[0]],
+            machine=machine,
+            torch=torch.__version__,
+            date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        )
         print(json.dumps(r), flush=True)
 
 

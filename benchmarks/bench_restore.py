@@ -8,6 +8,7 @@ then runs `python -m d2turb restore` in a child process and reports the child's 
     python3 benchmarks/bench_restore.py --width 4000 --height 3000 --threads 2
     python3 benchmarks/bench_restore.py --compare-untiled /path/to/photo.png   # tiled vs untiled accuracy
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,7 +51,9 @@ def make_weights(path: Path, name: str, cfg: dict) -> int:
     return count_parameters(model)
 
 
-def compare_untiled(image_path: str | None, width: int, height: int, name: str, cfg: dict, tile: int, overlap: int) -> dict:
+def compare_untiled(
+    image_path: str | None, width: int, height: int, name: str, cfg: dict, tile: int, overlap: int
+) -> dict:
     """Tiled vs untiled restoration of one image (in-process): mean/max |difference| and the gradient energy
     across tile edges relative to the untiled output (1.0 = no seam)."""
     import torch
@@ -75,15 +78,28 @@ def compare_untiled(image_path: str | None, width: int, height: int, name: str, 
     def edges(length):
         return sorted({e for s in tile_starts(length, tile, overlap) for e in (s, s + tile) if 0 < e < length})
 
-    out = {"image": image_path or f"astronaut {width}x{height}", "size": f"{w}x{h}", "tile": tile, "overlap": overlap,
-           "flow_abs_mean_px": round(float(untiled["flow"].abs().mean()), 3)}
+    out = {
+        "image": image_path or f"astronaut {width}x{height}",
+        "size": f"{w}x{h}",
+        "tile": tile,
+        "overlap": overlap,
+        "flow_abs_mean_px": round(float(untiled["flow"].abs().mean()), 3),
+    }
     for key in ("restored", "flow"):
         d = (tiled[key] - untiled[key]).abs()
         cols, rows = [c - 1 for c in edges(w)], [r - 1 for r in edges(h)]
-        ratio_x = float(tiled[key].diff(dim=-1).abs()[..., cols].mean() / untiled[key].diff(dim=-1).abs()[..., cols].mean())
-        ratio_y = float(tiled[key].diff(dim=-2).abs()[..., rows, :].mean() / untiled[key].diff(dim=-2).abs()[..., rows, :].mean())
-        out[key] = {"mad": float(d.mean()), "max": float(d.max()), "edge_gradient_ratio_x": round(ratio_x, 4),
-                    "edge_gradient_ratio_y": round(ratio_y, 4)}
+        ratio_x = float(
+            tiled[key].diff(dim=-1).abs()[..., cols].mean() / untiled[key].diff(dim=-1).abs()[..., cols].mean()
+        )
+        ratio_y = float(
+            tiled[key].diff(dim=-2).abs()[..., rows, :].mean() / untiled[key].diff(dim=-2).abs()[..., rows, :].mean()
+        )
+        out[key] = {
+            "mad": float(d.mean()),
+            "max": float(d.max()),
+            "edge_gradient_ratio_x": round(ratio_x, 4),
+            "edge_gradient_ratio_y": round(ratio_y, 4),
+        }
     return out
 
 
@@ -97,13 +113,25 @@ def main() -> None:
     p.add_argument("--overlap", type=int, default=64)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--compare-untiled", nargs="?", const="", metavar="IMAGE",
-                   help="instead: compare tiled with untiled restoration on IMAGE (default: the test photo)")
+    p.add_argument(
+        "--compare-untiled",
+        nargs="?",
+        const="",
+        metavar="IMAGE",
+        help="instead: compare tiled with untiled restoration on IMAGE (default: the test photo)",
+    )
     args = p.parse_args()
     torch_threads(args.threads)
     if args.compare_untiled is not None:
-        r = compare_untiled(args.compare_untiled or None, args.width, args.height, args.model, json.loads(args.config),
-                            args.tile, args.overlap)
+        r = compare_untiled(
+            args.compare_untiled or None,
+            args.width,
+            args.height,
+            args.model,
+            json.loads(args.config),
+            args.tile,
+            args.overlap,
+        )
         r["date"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
         print(json.dumps(r))
         return
@@ -113,21 +141,49 @@ def main() -> None:
         make_photo(photo, args.width, args.height)
         params = make_weights(weights, args.model, json.loads(args.config))
         env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
-        cmd = [sys.executable, "-m", "d2turb", "restore", str(photo), "--weights", str(weights), "--out",
-               str(tmp / "out"), "--tile", str(args.tile), "--overlap", str(args.overlap), "--device", args.device,
-               "--save-flow", "--save-intermediate"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "d2turb",
+            "restore",
+            str(photo),
+            "--weights",
+            str(weights),
+            "--out",
+            str(tmp / "out"),
+            "--tile",
+            str(args.tile),
+            "--overlap",
+            str(args.overlap),
+            "--device",
+            args.device,
+            "--save-flow",
+            "--save-intermediate",
+        ]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, env=env)
         wall = time.perf_counter() - t0
         peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # KiB on Linux
         outputs = sorted(f.name for f in (tmp / "out").iterdir())
-    print(json.dumps({
-        "image": f"{args.width}x{args.height}", "model": args.model, "config": json.loads(args.config),
-        "parameters": params, "tile": args.tile, "overlap": args.overlap, "device": args.device,
-        "threads": args.threads, "wall_s": round(wall, 1), "peak_rss_gib": round(peak_kib / 2**20, 3),
-        "outputs": outputs, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-    }))
+    print(
+        json.dumps(
+            {
+                "image": f"{args.width}x{args.height}",
+                "model": args.model,
+                "config": json.loads(args.config),
+                "parameters": params,
+                "tile": args.tile,
+                "overlap": args.overlap,
+                "device": args.device,
+                "threads": args.threads,
+                "wall_s": round(wall, 1),
+                "peak_rss_gib": round(peak_kib / 2**20, 3),
+                "outputs": outputs,
+                "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+                "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@
 
 Prints one JSON object to stdout (and writes it to --json FILE).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,8 +36,15 @@ def bench(device: str, size: int, repeats: int, dr0: float) -> dict:
         torch.cuda.synchronize()
     elapsed = time.perf_counter() - start
     n = batch * repeats
-    return {"device": device, "size": size, "batch": batch, "images": n, "seconds": round(elapsed, 4),
-            "images_per_s": round(n / elapsed, 2), "ms_per_image": round(1000 * elapsed / n, 2)}
+    return {
+        "device": device,
+        "size": size,
+        "batch": batch,
+        "images": n,
+        "seconds": round(elapsed, 4),
+        "images_per_s": round(n / elapsed, 2),
+        "ms_per_image": round(1000 * elapsed / n, 2),
+    }
 
 
 def main(argv=None) -> int:
@@ -51,10 +59,16 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() and not args.no_cuda else [])
     results = [bench(d, s, args.repeats, args.dr0) for d in devices for s in args.sizes]
-    report = {"benchmark": "sim", "dr0": args.dr0, "cpu_threads": args.threads, "torch": torch.__version__,
-              "machine": platform.processor() or platform.machine(),
-              "cuda_device": torch.cuda.get_device_name(0) if "cuda" in devices else None,
-              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "results": results}
+    report = {
+        "benchmark": "sim",
+        "dr0": args.dr0,
+        "cpu_threads": args.threads,
+        "torch": torch.__version__,
+        "machine": platform.processor() or platform.machine(),
+        "cuda_device": torch.cuda.get_device_name(0) if "cuda" in devices else None,
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "results": results,
+    }
     text = json.dumps(report, indent=2)
     print(text)
     if args.json:

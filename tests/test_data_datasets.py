@@ -1,4 +1,5 @@
 """PairDataset (augmentation keeps flow consistent), CleanCropDataset and OnTheFlySynthesis."""
+
 import json
 
 import numpy as np
@@ -27,8 +28,17 @@ def handmade(tmp_path):
     """A 2-sample dataset with an exactly known backward flow: gt = warp(tilt, flow)."""
     gen = torch.Generator().manual_seed(0)
     root = tmp_path / "train"
-    write_json(root / "dataset.json", {"version": 1, "pairs": 2, "patch": P, "split": "train", "bins": list(BIN_NAMES),
-                                       "bin_ranges": {k: list(v) for k, v in BIN_RANGES.items()}})
+    write_json(
+        root / "dataset.json",
+        {
+            "version": 1,
+            "pairs": 2,
+            "patch": P,
+            "split": "train",
+            "bins": list(BIN_NAMES),
+            "bin_ranges": {k: list(v) for k, v in BIN_RANGES.items()},
+        },
+    )
     lines = []
     for k, dr0 in enumerate([1.5, 4.2]):
         sid = f"{k:07d}"
@@ -120,8 +130,8 @@ def test_clean_crop_dataset_crops_image_and_depth_together(clean_dir):
         image = read_image(clean_dir / f"{stem}.png")
         depth = resize_up(estimate_depth_prior(image).reshape(1, *image.shape[-2:]), P)
         image = resize_up(image, P)
-        assert torch.allclose(s["gt"], image[:, y0:y0 + P, x0:x0 + P])
-        assert torch.allclose(s["depth"], depth[:, y0:y0 + P, x0:x0 + P])
+        assert torch.allclose(s["gt"], image[:, y0 : y0 + P, x0 : x0 + P])
+        assert torch.allclose(s["depth"], depth[:, y0 : y0 + P, x0 : x0 + P])
     assert CleanCropDataset([clean_dir], patch=P, depth_spec="none")[0]["depth"].eq(1).all()
 
 
@@ -146,13 +156,19 @@ def test_sample_dr0_is_uniform_over_union():
 def test_on_the_fly_synthesis(clean_dir):
     simulator = _simulator()
     torch.manual_seed(0)
-    loader = torch.utils.data.DataLoader(CleanCropDataset([clean_dir], patch=P, depth_spec="prior", length=4),
-                                         batch_size=4)
+    loader = torch.utils.data.DataLoader(
+        CleanCropDataset([clean_dir], patch=P, depth_spec="prior", length=4), batch_size=4
+    )
     batch = next(iter(loader))
     synth = OnTheFlySynthesis(simulator, bins=("strong",), device="cpu", seed=3)
     a, b = synth(batch), synth(batch)
-    for key, shape in [("turb", (4, 3, P, P)), ("tilt", (4, 3, P, P)), ("gt", (4, 3, P, P)), ("flow", (4, 2, P, P)),
-                       ("depth", (4, 1, P, P))]:
+    for key, shape in [
+        ("turb", (4, 3, P, P)),
+        ("tilt", (4, 3, P, P)),
+        ("gt", (4, 3, P, P)),
+        ("flow", (4, 2, P, P)),
+        ("depth", (4, 1, P, P)),
+    ]:
         assert a[key].shape == shape
     assert ((a["dr0"] >= 3.75) & (a["dr0"] <= 5)).all() and (a["bin"] == BIN_NAMES.index("strong")).all()
     assert not torch.equal(a["tilt"], b["tilt"])  # new turbulence on every call

@@ -1,4 +1,5 @@
 """make-dataset / check-dataset: plans, files, resume after SIGKILL, 2-process run, problem detection."""
+
 import json
 import os
 import shutil
@@ -31,9 +32,29 @@ ENV = {**os.environ, "OMP_NUM_THREADS": "2", "PYTHONUNBUFFERED": "1"}
 
 
 def make_args(clean, out, pairs=PAIRS, split="test", extra=()):
-    return ["make-dataset", "--clean", str(clean), "--out", str(out), "--pairs", str(pairs), "--patch", str(PATCH),
-            "--split", split, "--batch", str(BATCH), "--seed", "7", "--depth", "prior", "--device", "cpu",
-            "--no-progress", *extra]
+    return [
+        "make-dataset",
+        "--clean",
+        str(clean),
+        "--out",
+        str(out),
+        "--pairs",
+        str(pairs),
+        "--patch",
+        str(PATCH),
+        "--split",
+        split,
+        "--batch",
+        str(BATCH),
+        "--seed",
+        "7",
+        "--depth",
+        "prior",
+        "--device",
+        "cpu",
+        "--no-progress",
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -201,9 +222,23 @@ def test_two_ranks_match_single_process(reference, clean_dir, tmp_path):
     out = tmp_path / "ds"
     port = str(_free_port())
     cmd = [sys.executable, "-m", "d2turb", *make_args(clean_dir, out)]
-    procs = [subprocess.Popen(cmd, env={**ENV, "RANK": str(r), "LOCAL_RANK": str(r), "WORLD_SIZE": "2",
-                                        "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port},
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in range(2)]
+    procs = [
+        subprocess.Popen(
+            cmd,
+            env={
+                **ENV,
+                "RANK": str(r),
+                "LOCAL_RANK": str(r),
+                "WORLD_SIZE": "2",
+                "MASTER_ADDR": "127.0.0.1",
+                "MASTER_PORT": port,
+            },
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for r in range(2)
+    ]
     results = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], results
     rank0 = json.loads(results[0][0].strip().splitlines()[-1])
@@ -226,9 +261,15 @@ def test_check_dataset_reports_each_problem(reference, tmp_path, capsys):
     (out / "meta.jsonl").write_text("".join(lines[:5]) + json.dumps(bad_bin) + "\n" + lines[4])
     report = check_dataset(out)
     text = "\n".join(report.problems)
-    for expected in ["0000000: missing depth/0000000.png", "0000001: turb does not decode", "0000002: flow contains NaN",
-                     "0000003: tilt is RGB 32x32", "orphan file gt/9999999.png", "0000005: D/r0 = ",
-                     "0000004: duplicate id"]:
+    for expected in [
+        "0000000: missing depth/0000000.png",
+        "0000001: turb does not decode",
+        "0000002: flow contains NaN",
+        "0000003: tilt is RGB 32x32",
+        "orphan file gt/9999999.png",
+        "0000005: D/r0 = ",
+        "0000004: duplicate id",
+    ]:
         assert expected in text
     assert len(report.problems) == 7, text
     assert main(["check-dataset", str(out)]) == 1
@@ -270,7 +311,30 @@ def test_real_clean_images(shared_data, tmp_path):
     if len(files) < 2:
         pytest.skip("bsd100 images absent")
     out = tmp_path / "ds"
-    assert main(["make-dataset", "--clean", *map(str, files), "--out", str(out), "--pairs", "2", "--patch", "64",
-                 "--split", "test", "--bins", "medium,strong", "--depth", "none", "--device", "cpu", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "make-dataset",
+                "--clean",
+                *map(str, files),
+                "--out",
+                str(out),
+                "--pairs",
+                "2",
+                "--patch",
+                "64",
+                "--split",
+                "test",
+                "--bins",
+                "medium,strong",
+                "--depth",
+                "none",
+                "--device",
+                "cpu",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     report = check_dataset(out)
     assert report.ok and report.counts == {"medium": 1, "strong": 1}

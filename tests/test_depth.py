@@ -1,4 +1,5 @@
 """Depth providers (d2turb.depth): file loading, CLI spec, weight-free prior, Depth Anything V2."""
+
 import json
 
 import numpy as np
@@ -76,11 +77,14 @@ def test_constant_map_is_all_far(tmp_path):
     assert torch.equal(load_depth(tmp_path / "c.npy"), torch.ones(1, 4, 5))
 
 
-@pytest.mark.parametrize("content, msg", [
-    (np.array([[1.0, np.nan], [2.0, 3.0]]), "NaN"),
-    (np.zeros((3, 3)), "no valid"),
-    (np.zeros((2, 3, 3)), "2-D"),
-])
+@pytest.mark.parametrize(
+    "content, msg",
+    [
+        (np.array([[1.0, np.nan], [2.0, 3.0]]), "NaN"),
+        (np.zeros((3, 3)), "no valid"),
+        (np.zeros((2, 3, 3)), "2-D"),
+    ],
+)
 def test_bad_arrays_raise(tmp_path, content, msg):
     np.save(tmp_path / "bad.npy", content)
     with pytest.raises(D2TurbError, match=msg):
@@ -123,6 +127,7 @@ def test_depth_for_image_specs(tmp_path, astronaut):
 
 
 # ---- weight-free prior ---------------------------------------------------------------------------
+
 
 def test_box_filter_matches_scipy_uniform_filter_inside():
     from scipy.ndimage import uniform_filter
@@ -200,15 +205,29 @@ def test_default_prior_beats_vertical_baseline_on_kitti(shared_data):
 
 # ---- Depth Anything V2 (tiny random model, no download) --------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def tiny_depth_anything(tmp_path_factory):
     transformers = pytest.importorskip("transformers")
     torch.manual_seed(0)
-    backbone = transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
-                                         patch_size=14, image_size=56, out_features=["stage1", "stage2", "stage3", "stage4"],
-                                         reshape_hidden_states=False)
-    config = transformers.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32, neck_hidden_sizes=[8, 16, 32, 32],
-                                              fusion_hidden_size=16, head_hidden_size=8, patch_size=14)
+    backbone = transformers.Dinov2Config(
+        hidden_size=32,
+        num_hidden_layers=4,
+        num_attention_heads=2,
+        intermediate_size=64,
+        patch_size=14,
+        image_size=56,
+        out_features=["stage1", "stage2", "stage3", "stage4"],
+        reshape_hidden_states=False,
+    )
+    config = transformers.DepthAnythingConfig(
+        backbone_config=backbone,
+        reassemble_hidden_size=32,
+        neck_hidden_sizes=[8, 16, 32, 32],
+        fusion_hidden_size=16,
+        head_hidden_size=8,
+        patch_size=14,
+    )
     folder = tmp_path_factory.mktemp("tiny_da")
     transformers.DepthAnythingForDepthEstimation(config).save_pretrained(folder)
     return folder
@@ -239,8 +258,16 @@ def test_depth_anything_reads_processor_config(tiny_depth_anything, tmp_path):
 
     folder = tmp_path / "with_processor"
     shutil.copytree(tiny_depth_anything, folder)
-    (folder / "preprocessor_config.json").write_text(json.dumps(
-        {"size": {"height": 28, "width": 28}, "ensure_multiple_of": 14, "image_mean": [0.5] * 3, "image_std": [0.5] * 3}))
+    (folder / "preprocessor_config.json").write_text(
+        json.dumps(
+            {
+                "size": {"height": 28, "width": 28},
+                "ensure_multiple_of": 14,
+                "image_mean": [0.5] * 3,
+                "image_std": [0.5] * 3,
+            }
+        )
+    )
     model = DepthAnything(folder)
     assert model.input_size == 28 and model.mean == (0.5, 0.5, 0.5)
     assert model._input_shape(50, 70) == (28, 42)

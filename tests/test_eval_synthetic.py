@@ -1,4 +1,5 @@
 """Synthetic evaluation: per-bin metrics against analytic / scikit-image oracles, reports, LPIPS policy."""
+
 import json
 import math
 
@@ -41,8 +42,9 @@ def write_tiny_dataset(root, per_bin=(2, 1, 2)):
             meta.append({"id": sid, "index": index, "dr0": DR0[bin_name], "bin": bin_name, "split": "test"})
             index += 1
     (root / "meta.jsonl").write_text("".join(json.dumps(m) + "\n" for m in meta))
-    (root / "dataset.json").write_text(json.dumps({"version": 1, "pairs": index, "patch": SIZE, "split": "test",
-                                                   "bins": list(OFFSETS)}))
+    (root / "dataset.json").write_text(
+        json.dumps({"version": 1, "pairs": index, "patch": SIZE, "split": "test", "bins": list(OFFSETS)})
+    )
     return root
 
 
@@ -76,8 +78,9 @@ def test_per_bin_metrics_match_oracles(tmp_path, no_lpips):
     for s in res["per_sample"]:
         gt = np.asarray(Image.open(data / "gt" / f"{s['id']}.png")) / 255.0
         turb = np.asarray(Image.open(data / "turb" / f"{s['id']}.png")) / 255.0
-        ref = structural_similarity(turb, gt, channel_axis=2, data_range=1.0, gaussian_weights=True, sigma=1.5,
-                                    use_sample_covariance=False)
+        ref = structural_similarity(
+            turb, gt, channel_axis=2, data_range=1.0, gaussian_weights=True, sigma=1.5, use_sample_covariance=False
+        )
         assert s["values"]["input"]["ssim"] == pytest.approx(ref, abs=1e-4)
     assert res["bin_counts"] == {"weak": 2, "medium": 1, "strong": 2}
     # missing LPIPS weights with default metrics: column omitted, visible note
@@ -95,7 +98,9 @@ def test_report_table_and_grids(tmp_path, no_lpips):
     md = (tmp_path / "out" / "results.md").read_text().splitlines()
     header = next(line for line in md if line.startswith("| Method"))
     assert header.split(" | ")[1:5] == ["PSNR↑ weak", "medium", "strong", "**Avg**"]
-    rows = {line.split(" | ")[0][2:]: line for line in md if line.startswith("| input") or line.startswith("| MinusTwo")}
+    rows = {
+        line.split(" | ")[0][2:]: line for line in md if line.startswith("| input") or line.startswith("| MinusTwo")
+    }
     assert "**100.000**" in rows["MinusTwo"] and "<u>42.110</u>" in rows["input"]  # best bold, second underlined
     tex = (tmp_path / "out" / "results.tex").read_text()
     assert r"\multicolumn{4}{c}{PSNR$\uparrow$}" in tex and r"\textbf{100.000}" in tex
@@ -106,9 +111,9 @@ def test_report_table_and_grids(tmp_path, no_lpips):
     grid = np.asarray(Image.open(tmp_path / "out" / "grids" / "weak.png"))
     label = "weak: 0000000  D/r0=1.50"
     y, x = grid_cell_origin(0, 1, [label], cell=SIZE)  # cells shrink to the 40 px images
-    np.testing.assert_array_equal(grid[y:y + SIZE, x:x + SIZE], _gt(0))
+    np.testing.assert_array_equal(grid[y : y + SIZE, x : x + SIZE], _gt(0))
     y, x = grid_cell_origin(0, 2, [label], cell=SIZE)
-    np.testing.assert_array_equal(grid[y:y + SIZE, x:x + SIZE], _gt(0))  # MinusTwo restores weak exactly
+    np.testing.assert_array_equal(grid[y : y + SIZE, x : x + SIZE], _gt(0))  # MinusTwo restores weak exactly
     assert grid.shape[1] == x + SIZE + 4  # exactly three columns
 
 
@@ -119,8 +124,10 @@ def _random_lpips_files(tmp_path):
 
     torch.manual_seed(0)
     save_file(FeatureExtractor("alex").state_dict(), str(tmp_path / "alex_backbone.safetensors"))
-    save_file({f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(CHANNELS["alex"])},
-              str(tmp_path / "alex_lin.safetensors"))
+    save_file(
+        {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(CHANNELS["alex"])},
+        str(tmp_path / "alex_lin.safetensors"),
+    )
     return tmp_path / "alex_lin.safetensors", tmp_path / "alex_backbone.safetensors"
 
 
@@ -134,7 +141,9 @@ def test_lpips_column_with_local_weights(tmp_path, no_lpips):
     model = LPIPS("alex", weights=lin, backbone=backbone)
     for s in res["per_sample"]:
         gt = torch.from_numpy(np.asarray(Image.open(data / "gt" / f"{s['id']}.png")) / 255.0).permute(2, 0, 1).float()
-        turb = torch.from_numpy(np.asarray(Image.open(data / "turb" / f"{s['id']}.png")) / 255.0).permute(2, 0, 1).float()
+        turb = (
+            torch.from_numpy(np.asarray(Image.open(data / "turb" / f"{s['id']}.png")) / 255.0).permute(2, 0, 1).float()
+        )
         assert s["values"]["input"]["lpips"] == pytest.approx(float(model(turb[None], gt[None])[0]), rel=1e-5)
     assert "LPIPS↓ weak" in (tmp_path / "out" / "results.md").read_text()
 

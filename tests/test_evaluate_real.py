@@ -1,4 +1,5 @@
 """`d2turb evaluate --real`: per-image no-reference metrics, models, grids, errors; --data dispatch."""
+
 import json
 import sys
 import types
@@ -30,6 +31,7 @@ def _blur_factory(calls):
     def factory(weights, device):
         calls.append((weights, device))
         return lambda img: torch.nn.functional.avg_pool2d(img[None], 5, 1, 2, count_include_pad=False)[0]
+
     return factory
 
 
@@ -52,8 +54,9 @@ def test_acceptance_command_on_calibration_images(shared_data, tmp_path, capsys)
 def test_models_rows_values_and_grids(real_dir, tmp_path):
     calls = []
     out = tmp_path / "out"
-    results = evaluate_real(real_dir, "niqe,piqe", out, weights=["input", "runs/blur.safetensors"],
-                            restorer_factory=_blur_factory(calls))
+    results = evaluate_real(
+        real_dir, "niqe,piqe", out, weights=["input", "runs/blur.safetensors"], restorer_factory=_blur_factory(calls)
+    )
     assert calls == [("runs/blur.safetensors", "cpu")]
     assert list(results["models"]) == ["input", "blur"]
     a = read_image(real_dir / "a.png")
@@ -77,6 +80,7 @@ def test_interrupted_run_leaves_no_results(real_dir, tmp_path):
     def factory(weights, device):
         def restore(img):
             raise KeyboardInterrupt
+
         return restore
 
     out = tmp_path / "out"
@@ -86,11 +90,14 @@ def test_interrupted_run_leaves_no_results(real_dir, tmp_path):
     assert not out.exists() or not list(out.rglob("*.tmp*"))
 
 
-@pytest.mark.parametrize("metrics, message", [
-    ("musiq", "MUSIQ weights not found"),
-    ("psnr", "psnr needs ground truth"),
-    ("nope", "unknown metric 'nope'"),
-])
+@pytest.mark.parametrize(
+    "metrics, message",
+    [
+        ("musiq", "MUSIQ weights not found"),
+        ("psnr", "psnr needs ground truth"),
+        ("nope", "unknown metric 'nope'"),
+    ],
+)
 def test_cli_metric_errors_are_one_line_and_write_nothing(real_dir, tmp_path, capsys, monkeypatch, metrics, message):
     monkeypatch.delenv("D2TURB_MUSIQ_WEIGHTS", raising=False)
     monkeypatch.setenv("D2TURB_CACHE_DIR", str(tmp_path / "empty_cache"))  # a user's cached weights must not matter
@@ -120,12 +127,36 @@ def test_cli_data_dispatches_to_synthetic_evaluator(tmp_path, monkeypatch):
     fake = types.ModuleType("d2turb.eval.synthetic")
     fake.evaluate_synthetic = lambda *a, **k: calls.append((a, k)) or {}
     monkeypatch.setitem(sys.modules, "d2turb.eval.synthetic", fake)
-    rc = main(["evaluate", "--data", "ds", "--weights", "input", "m.safetensors", "--out", str(tmp_path),
-               "--max-samples", "3", "--lpips-weights", "lin.pth", "--lpips-backbone", "alexnet.pth"])
+    rc = main(
+        [
+            "evaluate",
+            "--data",
+            "ds",
+            "--weights",
+            "input",
+            "m.safetensors",
+            "--out",
+            str(tmp_path),
+            "--max-samples",
+            "3",
+            "--lpips-weights",
+            "lin.pth",
+            "--lpips-backbone",
+            "alexnet.pth",
+        ]
+    )
     assert rc == 0
-    assert calls[-1] == ((["input", "m.safetensors"], "ds", str(tmp_path)),
-                         {"device": "cpu", "metrics": None, "max_samples": 3, "lpips_weights": "lin.pth",
-                          "lpips_backbone": "alexnet.pth"})
-    assert main(["evaluate", "--data", "ds", "--weights", "input", "--metrics", "PSNR, ssim",
-                 "--out", str(tmp_path)]) == 0
+    assert calls[-1] == (
+        (["input", "m.safetensors"], "ds", str(tmp_path)),
+        {
+            "device": "cpu",
+            "metrics": None,
+            "max_samples": 3,
+            "lpips_weights": "lin.pth",
+            "lpips_backbone": "alexnet.pth",
+        },
+    )
+    assert (
+        main(["evaluate", "--data", "ds", "--weights", "input", "--metrics", "PSNR, ssim", "--out", str(tmp_path)]) == 0
+    )
     assert calls[-1][1]["metrics"] == ("psnr", "ssim") and calls[-1][1]["lpips_weights"] is None

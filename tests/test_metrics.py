@@ -1,14 +1,13 @@
 """PSNR / SSIM against scikit-image, accumulator semantics and DDP (2 gloo processes) equivalence."""
+
 import numpy as np
 import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from test_metrics_ddp import _pairs
 
 from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import PSNR, SSIM, psnr, ssim
-
-
-from test_metrics_ddp import _pairs
 
 
 @pytest.fixture(autouse=True)
@@ -48,19 +47,28 @@ def test_ssim_matches_skimage(noisy_astronaut, gaussian):
     ours = ssim(pred, target, gaussian=gaussian)
     for i in range(2):
         if gaussian:  # Wang et al. setting
-            ref = structural_similarity(_hwc(pred[i]), _hwc(target[i]), channel_axis=-1, data_range=1.0,
-                                        gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+            ref = structural_similarity(
+                _hwc(pred[i]),
+                _hwc(target[i]),
+                channel_axis=-1,
+                data_range=1.0,
+                gaussian_weights=True,
+                sigma=1.5,
+                use_sample_covariance=False,
+            )
         else:  # skimage default: 7x7 uniform window, sample covariance
             ref = structural_similarity(_hwc(pred[i]), _hwc(target[i]), channel_axis=-1, data_range=1.0)
         assert ours[i].item() == pytest.approx(ref, abs=1e-3)  # the requirement
         assert ours[i].item() == pytest.approx(ref, abs=1e-4)  # float32 filtering is in fact ~1e-6 away
-        f64 = ssim(pred[i:i + 1].double(), target[i:i + 1].double(), gaussian=gaussian)
+        f64 = ssim(pred[i : i + 1].double(), target[i : i + 1].double(), gaussian=gaussian)
         assert f64.item() == pytest.approx(ref, abs=1e-8)  # float64 input: equal to float64 precision
 
 
 def test_ssim_properties(astronaut):
     assert ssim(astronaut, astronaut).item() == pytest.approx(1.0, abs=1e-9)
-    levels = [ssim((astronaut + s * torch.randn_like(astronaut)).clamp(0, 1), astronaut).item() for s in (0.02, 0.1, 0.3)]
+    levels = [
+        ssim((astronaut + s * torch.randn_like(astronaut)).clamp(0, 1), astronaut).item() for s in (0.02, 0.1, 0.3)
+    ]
     assert levels[0] > levels[1] > levels[2]
 
 

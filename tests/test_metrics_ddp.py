@@ -2,6 +2,7 @@
 
 Kept apart from the other metric tests so the spawned workers import only torch and d2turb.
 """
+
 import json
 
 import pytest
@@ -26,7 +27,7 @@ def _ddp_worker(rank, world_size, init_file, out_file):
     metrics = {"psnr": PSNR(), "ssim": SSIM(), "ssim_uniform": SSIM(gaussian=False)}
     for i in range(rank, len(pred), world_size):  # rank 0: images 0, 2, 4; rank 1: 1, 3 (unequal shares)
         for m in metrics.values():
-            m.update(pred[i:i + 1], target[i:i + 1])
+            m.update(pred[i : i + 1], target[i : i + 1])
     result = {k: m.compute() for k, m in metrics.items()}
     with open(f"{out_file}.{rank}", "w") as f:
         json.dump(result, f)
@@ -37,8 +38,11 @@ def test_ddp_all_reduce_equals_single_process(tmp_path):
     out = tmp_path / "result"
     mp.spawn(_ddp_worker, args=(2, str(tmp_path / "init"), str(out)), nprocs=2, join=True)
     pred, target = _pairs()
-    expected = {"psnr": psnr(pred, target).mean().item(), "ssim": ssim(pred, target).mean().item(),
-                "ssim_uniform": ssim(pred, target, gaussian=False).mean().item()}
+    expected = {
+        "psnr": psnr(pred, target).mean().item(),
+        "ssim": ssim(pred, target).mean().item(),
+        "ssim_uniform": ssim(pred, target, gaussian=False).mean().item(),
+    }
     for rank in range(2):
         got = json.loads((tmp_path / f"result.{rank}").read_text())
         for k, v in expected.items():

@@ -3,6 +3,7 @@
 Real weights are never needed: random weights with the real shapes are written to tmp files, and the
 network is checked against an independent functional re-derivation of LPIPS (Zhang et al. 2018, Eq. 1).
 """
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -15,9 +16,26 @@ from d2turb.eval.vgg import FeatureExtractor, imagenet_normalize
 
 # torchvision alexnet().features / vgg16().features conv layers: index -> (out, in, k)
 ALEX_CONVS = {0: (64, 3, 11), 3: (192, 64, 5), 6: (384, 192, 3), 8: (256, 384, 3), 10: (256, 256, 3)}
-VGG_CONVS = dict(zip([0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28],
-                     [(64, 3), (64, 64), (128, 64), (128, 128), (256, 128), (256, 256), (256, 256),
-                      (512, 256), (512, 512), (512, 512), (512, 512), (512, 512), (512, 512)]))
+VGG_CONVS = dict(
+    zip(
+        [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28],
+        [
+            (64, 3),
+            (64, 64),
+            (128, 64),
+            (128, 128),
+            (256, 128),
+            (256, 256),
+            (256, 256),
+            (512, 256),
+            (512, 512),
+            (512, 512),
+            (512, 512),
+            (512, 512),
+            (512, 512),
+        ],
+    )
+)
 LIN_CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
 
 

@@ -1,4 +1,5 @@
 """MUSIQ (d2turb.eval.musiq): tiny random models saved/loaded with pyiqa key names, preprocessing by hand."""
+
 import math
 import os
 from pathlib import Path
@@ -8,18 +9,27 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.errors import D2TurbError
-from d2turb.eval.musiq import (MUSIQ, MUSIQConfig, extract_patches, hashed_position_index, multiscale_patches, musiq,
-                               resized_size)
+from d2turb.eval.musiq import (
+    MUSIQ,
+    MUSIQConfig,
+    extract_patches,
+    hashed_position_index,
+    multiscale_patches,
+    musiq,
+    resized_size,
+)
 
 TINY = MUSIQConfig(hidden_size=32, num_layers=2, num_heads=2, mlp_dim=64, stem_width=32)
 PYIQA_KONIQ_PARAMS = 27_125_825  # published config, 1-output head; the released .pth is 108,610,983 bytes
 USER_WEIGHTS = os.environ.get("D2TURB_MUSIQ_WEIGHTS")  # read before the fixture below hides it
 # IQA-PyTorch ResultsCalibra/calibration_summary.csv, "(ours)" rows = pyiqa's torch port that d2turb follows
 # (the official TF scores differ by up to ~1.4 points, e.g. koniq I19: 36.938)
-PYIQA_GOLDEN = {"koniq": (12.4773, 75.7764, 73.7459, 75.4604, 38.0248),
-                "spaq": (17.6804, 70.6531, 79.0364, 79.3189, 50.4526),
-                "paq2piq": (46.0187, 72.6657, 73.7655, 74.388, 69.7218),
-                "ava": (3.4084, 5.6934, 4.6968, 5.1963, 4.1955)}
+PYIQA_GOLDEN = {
+    "koniq": (12.4773, 75.7764, 73.7459, 75.4604, 38.0248),
+    "spaq": (17.6804, 70.6531, 79.0364, 79.3189, 50.4526),
+    "paq2piq": (46.0187, 72.6657, 73.7655, 74.388, 69.7218),
+    "ava": (3.4084, 5.6934, 4.6968, 5.1963, 4.1955),
+}
 
 
 @pytest.fixture(autouse=True)
@@ -48,6 +58,7 @@ def _images(n=2, h=40, w=56, seed=1):
 
 
 # ----------------------------------------------------------------------------- loading
+
 
 def test_loads_by_argument_env_file_env_folder_and_cache(tiny_file, monkeypatch, tmp_path):
     reference, path = tiny_file
@@ -119,6 +130,7 @@ def test_wrong_files_are_one_line_errors(tiny_file, tmp_path):
 
 # ----------------------------------------------------------------------------- behaviour
 
+
 def test_scores_shape_determinism_finiteness_and_sensitivity(tiny_file):
     _, path = tiny_file
     model = MUSIQ(path, config=TINY)
@@ -175,6 +187,7 @@ def test_dropping_padding_equals_the_padded_masked_sequence_of_the_official_code
 
 # ----------------------------------------------------------------------------- preprocessing by hand
 
+
 def test_multiscale_patches_match_a_hand_computation():
     image = torch.rand(1, 3, 50, 70) * 2 - 1
     patches, spatial, scale = multiscale_patches(image, MUSIQConfig())
@@ -212,35 +225,52 @@ def test_extract_patches_row_major_order_and_round_half_even():
     assert (nh, nw) == (2, 3)
     for k in range(6):
         i, j = divmod(k, 3)
-        assert torch.equal(patches[0, k], image[0, :, 32 * i:32 * i + 32, 32 * j:32 * j + 32])
+        assert torch.equal(patches[0, k], image[0, :, 32 * i : 32 * i + 32, 32 * j : 32 * j + 32])
     assert resized_size(3, 4, 6) == (4, 6)  # 4.5 -> 4 (tf.round / Python round: half to even)
     assert resized_size(5, 4, 6) == (6, 5)  # 4.8 -> 5
 
 
 # ----------------------------------------------------------------------------- published configuration
 
+
 def _pyiqa_key_shapes(num_classes=1):
     """pyiqa/archs/musiq_arch.py MUSIQ(): 384 hidden, 14 blocks, 6 heads, mlp 1152, stem 64, 3 scales, grid 10."""
     d, mlp = 384, 1152
     shapes = {"conv_root.weight": (64, 3, 7, 7), "gn_root.weight": (64,), "gn_root.bias": (64,)}
-    for name, shape in [("conv1", (64, 64, 1, 1)), ("conv2", (64, 64, 3, 3)), ("conv3", (256, 64, 1, 1)),
-                        ("conv_proj", (256, 64, 1, 1))]:
+    for name, shape in [
+        ("conv1", (64, 64, 1, 1)),
+        ("conv2", (64, 64, 3, 3)),
+        ("conv3", (256, 64, 1, 1)),
+        ("conv_proj", (256, 64, 1, 1)),
+    ]:
         shapes[f"block1.{name}.weight"] = shape
         gn = name.replace("conv", "gn")
         shapes[f"block1.{gn}.weight"] = shapes[f"block1.{gn}.bias"] = (shape[0],)
-    shapes.update({"embedding.weight": (d, 256 * 8 * 8), "embedding.bias": (d,),
-                   "transformer_encoder.cls": (1, 1, d),
-                   "transformer_encoder.posembed_input.position_emb": (1, 100, d),
-                   "transformer_encoder.scaleembed_input.scale_emb": (3, d),
-                   "transformer_encoder.encoder_norm.weight": (d,), "transformer_encoder.encoder_norm.bias": (d,)})
+    shapes.update(
+        {
+            "embedding.weight": (d, 256 * 8 * 8),
+            "embedding.bias": (d,),
+            "transformer_encoder.cls": (1, 1, d),
+            "transformer_encoder.posembed_input.position_emb": (1, 100, d),
+            "transformer_encoder.scaleembed_input.scale_emb": (3, d),
+            "transformer_encoder.encoder_norm.weight": (d,),
+            "transformer_encoder.encoder_norm.bias": (d,),
+        }
+    )
     for i in range(14):
         p = f"transformer_encoder.transformer.encoderblock_{i}."
         for norm in ("norm1", "norm2"):
             shapes[p + norm + ".weight"] = shapes[p + norm + ".bias"] = (d,)
         for proj in ("query", "key", "value", "out"):
             shapes[f"{p}attention.{proj}.weight"], shapes[f"{p}attention.{proj}.bias"] = (d, d), (d,)
-        shapes.update({p + "mlp.fc1.weight": (mlp, d), p + "mlp.fc1.bias": (mlp,),
-                       p + "mlp.fc2.weight": (d, mlp), p + "mlp.fc2.bias": (d,)})
+        shapes.update(
+            {
+                p + "mlp.fc1.weight": (mlp, d),
+                p + "mlp.fc1.bias": (mlp,),
+                p + "mlp.fc2.weight": (d, mlp),
+                p + "mlp.fc2.bias": (d,),
+            }
+        )
     head = "head" if num_classes == 1 else "head.0"
     shapes.update({f"{head}.weight": (num_classes, d), f"{head}.bias": (num_classes,)})
     return shapes
@@ -280,8 +310,10 @@ def test_full_size_random_checkpoint_through_functional_and_evaluate_real(tmp_pa
     assert "MUSIQ ↑" in (tmp_path / "out" / "results.md").read_text()
 
 
-@pytest.mark.skipif(not USER_WEIGHTS or not Path(USER_WEIGHTS).is_file(),
-                    reason="needs a real pyiqa checkpoint in D2TURB_MUSIQ_WEIGHTS (never downloaded)")
+@pytest.mark.skipif(
+    not USER_WEIGHTS or not Path(USER_WEIGHTS).is_file(),
+    reason="needs a real pyiqa checkpoint in D2TURB_MUSIQ_WEIGHTS (never downloaded)",
+)
 def test_real_checkpoint_matches_pyiqa_calibration_scores(shared_data):
     from d2turb.io import read_image
 

@@ -1,4 +1,5 @@
 """NIQE and PIQE against the original MATLAB outputs on the IQA-PyTorch calibration images."""
+
 import numpy as np
 import pytest
 import torch

@@ -1,4 +1,5 @@
 """D²Turb model family: registry, forward/backward on odd sizes, identity at init, bf16, weights I/O, paper budgets."""
+
 import json
 
 import pytest
@@ -6,8 +7,16 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.errors import D2TurbError
-from d2turb.models import (create_backbone, create_model, list_backbones, list_models, load_pretrained, model_cost,
-                           parameter_count, save_pretrained)
+from d2turb.models import (
+    create_backbone,
+    create_model,
+    list_backbones,
+    list_models,
+    load_pretrained,
+    model_cost,
+    parameter_count,
+    save_pretrained,
+)
 from d2turb.models.injection import ASPI
 
 TINY_RESTORMER = {"dim": 8, "num_blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "num_refinement_blocks": 1}
@@ -18,15 +27,36 @@ TINY_RECT = {"width": 8, "mults": [1, 1, 2, 2], "depth": 3}
 CASES = {
     "restormer": ("restormer", TINY_RESTORMER),
     "nafnet": ("nafnet", TINY_NAFNET),
-    "d2turb-restormer-aspi": ("d2turb", {"backbone": "restormer", "injection": "aspi", "backbone_cfg": TINY_RESTORMER,
-                                         "rectifier_cfg": TINY_RECT, "injection_cfg": {"heads": 2}}),
-    "d2turb-restormer-concat": ("d2turb", {"backbone": "restormer", "injection": "concat",
-                                           "backbone_cfg": TINY_RESTORMER, "rectifier_cfg": TINY_RECT}),
+    "d2turb-restormer-aspi": (
+        "d2turb",
+        {
+            "backbone": "restormer",
+            "injection": "aspi",
+            "backbone_cfg": TINY_RESTORMER,
+            "rectifier_cfg": TINY_RECT,
+            "injection_cfg": {"heads": 2},
+        },
+    ),
+    "d2turb-restormer-concat": (
+        "d2turb",
+        {"backbone": "restormer", "injection": "concat", "backbone_cfg": TINY_RESTORMER, "rectifier_cfg": TINY_RECT},
+    ),
     "d2turb-nafnet-none-depth5-resbottleneck": (
-        "d2turb", {"backbone": "nafnet", "injection": "none", "backbone_cfg": TINY_NAFNET,
-                   "rectifier_cfg": {"width": 4, "mults": [1, 1, 2, 2, 4, 4], "depth": 5, "residual_bottleneck": True}}),
-    "d2turb_lite-depth4-normalized": ("d2turb_lite", {"backbone_cfg": TINY_NAFNET, "rectifier_cfg": {
-        "width": 8, "mults": [1, 1, 2, 2, 2], "depth": 4, "flow_mode": "normalized"}}),
+        "d2turb",
+        {
+            "backbone": "nafnet",
+            "injection": "none",
+            "backbone_cfg": TINY_NAFNET,
+            "rectifier_cfg": {"width": 4, "mults": [1, 1, 2, 2, 4, 4], "depth": 5, "residual_bottleneck": True},
+        },
+    ),
+    "d2turb_lite-depth4-normalized": (
+        "d2turb_lite",
+        {
+            "backbone_cfg": TINY_NAFNET,
+            "rectifier_cfg": {"width": 8, "mults": [1, 1, 2, 2, 2], "depth": 4, "flow_mode": "normalized"},
+        },
+    ),
 }
 D2TURB_CASES = [k for k, (name, _) in CASES.items() if name.startswith("d2turb")]
 KEYS = {"deblurred", "restored", "flow", "guide"}
@@ -218,8 +248,10 @@ def test_aspi_is_resolution_invariant(astronaut):
         aspi.temperature.fill_(8.0)  # a sharp, trained-like temperature makes the test stricter
         embed_s, embed_g = torch.nn.Conv2d(3, 16, 1), torch.nn.Conv2d(3, 24, 1)
         big = F.interpolate(astronaut, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
-        (out_s, attn_s), (out_b, attn_b) = (aspi.attend(torch.tanh(embed_s(img)), torch.tanh(embed_g(img)), return_attn=True)
-                                            for img in (astronaut, big))
+        (out_s, attn_s), (out_b, attn_b) = (
+            aspi.attend(torch.tanh(embed_s(img)), torch.tanh(embed_g(img)), return_attn=True)
+            for img in (astronaut, big)
+        )
     assert big.shape[-1] == 1024
     assert (attn_s - attn_b).abs().max() < 0.02
     assert attn_s.max() > 1.5 / 4  # not uniform (4 channels per head), so the comparison is meaningful

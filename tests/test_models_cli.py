@@ -1,4 +1,5 @@
 """`d2turb models` and `d2turb bench model` (tiny configs; FLOPs counted on the meta device)."""
+
 import json
 
 import pytest
@@ -24,8 +25,30 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
 def test_bench_model_json(tmp_path, capsys):
     out = tmp_path / "b.json"
     cfg = json.dumps({"backbone_cfg": TINY_NAFNET, "rectifier_cfg": {"width": 8, "mults": [1, 1, 2, 2], "depth": 3}})
-    assert main(["bench", "model", "d2turb", "--backbone", "nafnet", "--injection", "concat", "--config", cfg,
-                 "--size", "32", "--repeats", "1", "--warmup", "0", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "model",
+                "d2turb",
+                "--backbone",
+                "nafnet",
+                "--injection",
+                "concat",
+                "--config",
+                cfg,
+                "--size",
+                "32",
+                "--repeats",
+                "1",
+                "--warmup",
+                "0",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     r = json.loads(out.read_text())
     model = create_model("d2turb", **json.loads(cfg), backbone="nafnet", injection="concat")
     assert r["params"] == count_parameters(model)
@@ -49,14 +72,16 @@ def test_bench_all_writes_markdown_table(tmp_path):
     assert text.count("\n| ") >= 7
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["bench", "model"], "exactly one of"),
-    (["bench", "model", "nope", "--no-latency"], "unknown model 'nope'"),
-    (["bench", "model", "nafnet", "--config", "{bad", "--no-latency"], "not valid JSON"),
-    (["bench", "model", "nafnet", "--out", "x.txt"], "must end in .md or .json"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["bench", "model"], "exactly one of"),
+        (["bench", "model", "nope", "--no-latency"], "unknown model 'nope'"),
+        (["bench", "model", "nafnet", "--config", "{bad", "--no-latency"], "not valid JSON"),
+        (["bench", "model", "nafnet", "--out", "x.txt"], "must end in .md or .json"),
+    ],
+)
 def test_bench_errors_are_one_line(capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1
-

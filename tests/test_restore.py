@@ -1,4 +1,5 @@
 """Tiled restoration (d2turb.restore): equality with untiled inference, absence of seams, weights lookup."""
+
 import math
 
 import pytest
@@ -107,8 +108,11 @@ def test_blending_hides_tile_disagreement(astronaut):
     out = Restorer(PerTileOffset(), tile=tile, overlap=overlap).restore_with_details(img)
     deb = out["deblurred"][0]
     # per-tile constants, measured by running the model on each tile alone
-    consts = [float(PerTileOffset()(img[None, :, y:y + tile, x:x + tile])["deblurred"].mean())
-              for y in tile_starts(256, tile, overlap) for x in tile_starts(512, tile, overlap)]
+    consts = [
+        float(PerTileOffset()(img[None, :, y : y + tile, x : x + tile])["deblurred"].mean())
+        for y in tile_starts(256, tile, overlap)
+        for x in tile_starts(512, tile, overlap)
+    ]
     jump = max(consts) - min(consts)
     assert jump > 0.1  # the tiles really disagree
     steps = max(deb.diff(dim=0).abs().max(), deb.diff(dim=1).abs().max())

@@ -1,4 +1,5 @@
 """`d2turb restore` end to end: outputs, odd inputs (16-bit grey, alpha, EXIF), videos, errors."""
+
 import numpy as np
 import pytest
 import torch
@@ -58,10 +59,13 @@ def test_unreadable_video_names_the_extra(tmp_path, capsys):
     assert err.startswith("error: ") and "d2turb[video]" in err
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--weights", "nonexistent-name"], "not found; looked in:"),
-    (["--weights", "input", "--tile", "64", "--overlap", "60"], "overlap must be between"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--weights", "nonexistent-name"], "not found; looked in:"),
+        (["--weights", "input", "--tile", "64", "--overlap", "60"], "overlap must be between"),
+    ],
+)
 def test_errors_are_one_line(tmp_path, capsys, argv, message):
     Image.fromarray(_rgb()).save(tmp_path / "a.png")
     rc = main(["restore", str(tmp_path / "a.png"), "--out", str(tmp_path / "o"), *argv])

@@ -1,4 +1,5 @@
 """Acceptance 1 with a real (tiny, randomly initialised) D²Turb model: tiled == untiled, no seam."""
+
 import numpy as np
 import pytest
 import torch
@@ -13,9 +14,13 @@ def tiny_model():
     from d2turb.models import create_model
 
     torch.manual_seed(0)
-    model = create_model("d2turb", backbone="nafnet", injection="aspi",
-                         backbone_cfg={"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1]},
-                         rectifier_cfg={"width": 8, "mults": [1, 1, 2, 2], "depth": 3})
+    model = create_model(
+        "d2turb",
+        backbone="nafnet",
+        injection="aspi",
+        backbone_cfg={"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1]},
+        rectifier_cfg={"width": 8, "mults": [1, 1, 2, 2], "depth": 3},
+    )
     # the flow head is zero-initialised (identity warp): make it nonzero so the warp matters (|V̂| ≈ 4-5 px), and
     # switch on the NAFBlocks' residual gains so their global channel attention is active too
     torch.nn.init.normal_(model.rectifier.flow_head.weight, std=5.0)
@@ -85,7 +90,7 @@ def test_no_seam_at_tile_edges(results):
             assert got <= 1.02 * ref + 1e-5, key
         diff = (tiled - untiled).abs().mean(0)
         cols = _tile_edges(diff.shape[1], OVERLAP)
-        band = torch.cat([diff[:, max(c - 2, 0):c + 2] for c in cols], dim=1)
+        band = torch.cat([diff[:, max(c - 2, 0) : c + 2] for c in cols], dim=1)
         assert band.mean() <= 2 * diff.mean() + 1e-5, key
     stitched, untiled = results["stitched"]["flow"], results["untiled"]["flow"]
     got, ref = _edge_gradient_energy(stitched, 0), _edge_gradient_energy(untiled, 0)
@@ -101,10 +106,26 @@ def test_cli_with_saved_weights_matches_api(tmp_path, tiny_model, photo, monkeyp
     small = photo[:, :100, :150].contiguous()
     write_image(tmp_path / "img.png", small)
     monkeypatch.setenv("D2TURB_WEIGHTS_DIR", str(tmp_path))
-    rc = main(["restore", str(tmp_path / "img.png"), "--weights", "tiny", "--out", str(tmp_path / "o"),
-               "--tile", "64", "--overlap", "16", "--save-flow", "--save-intermediate"])
+    rc = main(
+        [
+            "restore",
+            str(tmp_path / "img.png"),
+            "--weights",
+            "tiny",
+            "--out",
+            str(tmp_path / "o"),
+            "--tile",
+            "64",
+            "--overlap",
+            "16",
+            "--save-flow",
+            "--save-intermediate",
+        ]
+    )
     assert rc == 0
-    api = Restorer(str(tmp_path / "tiny.safetensors"), tile=64, overlap=16).restore_with_details(read_image(tmp_path / "img.png"))
+    api = Restorer(str(tmp_path / "tiny.safetensors"), tile=64, overlap=16).restore_with_details(
+        read_image(tmp_path / "img.png")
+    )
     assert (read_image(tmp_path / "o" / "img_restored.png") - api["restored"]).abs().max() <= 0.5 / 255 + 1e-4
     assert (read_image(tmp_path / "o" / "img_deblurred.png") - api["deblurred"]).abs().max() <= 0.5 / 255 + 1e-4
     np.testing.assert_allclose(np.load(tmp_path / "o" / "img_flow.npy"), api["flow"].numpy(), atol=1e-5)

@@ -85,19 +85,22 @@ def test_near_region_with_zero_modulation_is_untouched(image):
     assert not torch.allclose(res.turb[..., 30:], image[..., 30:], atol=1e-2)
 
 
-@pytest.mark.parametrize("strategy,expected", [
-    ("uniform", lambda d, s: torch.ones_like(d)),
-    ("linear", lambda d, s: d),
-    ("linear_offset", lambda d, s: (1 - s) * d + s),
-    ("power", lambda d, s: d ** 0.6),
-    ("power_offset", lambda d, s: ((1 - s) * d + s) ** 0.6),  # Eq. 1, 3 with z_max = L
-])
+@pytest.mark.parametrize(
+    "strategy,expected",
+    [
+        ("uniform", lambda d, s: torch.ones_like(d)),
+        ("linear", lambda d, s: d),
+        ("linear_offset", lambda d, s: (1 - s) * d + s),
+        ("power", lambda d, s: d**0.6),
+        ("power_offset", lambda d, s: ((1 - s) * d + s) ** 0.6),  # Eq. 1, 3 with z_max = L
+    ],
+)
 def test_depth_modulation_strategies(strategy, expected):
     d = torch.linspace(0, 1, 11).view(1, 1, 1, 11)
     assert torch.allclose(depth_modulation(d, strategy, 0.3), expected(d, 0.3), atol=1e-6)
     assert depth_modulation(None, strategy) is None
     assert depth_modulation(torch.ones(1, 1, 2, 2), "power_offset", 0.5).eq(1).all()  # far = L ⇒ M = 1
-    assert depth_modulation(torch.zeros(1, 1, 1, 1), "power_offset", 0.5).item() == pytest.approx(0.5 ** 0.6)
+    assert depth_modulation(torch.zeros(1, 1, 1, 1), "power_offset", 0.5).item() == pytest.approx(0.5**0.6)
 
 
 def test_differentiable_with_respect_to_image():
@@ -114,21 +117,24 @@ def test_cn2_to_r0_worked_value():
     assert p.to_dict()["cn2"] == 1e-14 and p.to_dict()["ifov_rad"] == pytest.approx(0.5e-6 / 0.2)
 
 
-@pytest.mark.parametrize("kwargs,fragment", [
-    (dict(aperture_m=-0.1), "aperture_m"),
-    (dict(wavelength_m=float("nan")), "wavelength_m"),
-    (dict(wavelength_m=(500e-9, 600e-9)), "three"),
-    (dict(path_length_m=0), "path_length_m"),
-    (dict(dr0=0.0), "dr0"),
-    (dict(dr0=50.0), "range"),
-    (dict(dr0=2.0, cn2=1e-14), "either dr0 or cn2"),
-    (dict(cn2=-1.0), "cn2"),
-    (dict(ifov_rad=float("inf")), "ifov_rad"),
-    (dict(n_zernike=2), "n_zernike"),
-    (dict(offset_s=1.5), "offset_s"),
-    (dict(modulation="cubic"), "modulation"),
-    (dict(wavelength_m=0.5), "not smaller than the aperture"),
-])
+@pytest.mark.parametrize(
+    "kwargs,fragment",
+    [
+        (dict(aperture_m=-0.1), "aperture_m"),
+        (dict(wavelength_m=float("nan")), "wavelength_m"),
+        (dict(wavelength_m=(500e-9, 600e-9)), "three"),
+        (dict(path_length_m=0), "path_length_m"),
+        (dict(dr0=0.0), "dr0"),
+        (dict(dr0=50.0), "range"),
+        (dict(dr0=2.0, cn2=1e-14), "either dr0 or cn2"),
+        (dict(cn2=-1.0), "cn2"),
+        (dict(ifov_rad=float("inf")), "ifov_rad"),
+        (dict(n_zernike=2), "n_zernike"),
+        (dict(offset_s=1.5), "offset_s"),
+        (dict(modulation="cubic"), "modulation"),
+        (dict(wavelength_m=0.5), "not smaller than the aperture"),
+    ],
+)
 def test_parameter_validation(kwargs, fragment):
     with pytest.raises(D2TurbError, match=fragment):
         TurbulenceParams(**kwargs)
@@ -150,7 +156,14 @@ def test_bad_inputs_raise_clear_errors(sim, image):
 def test_bins_and_sampling():
     assert BINS == {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}
     assert [dr0_bin(x) for x in (1.0, 2.2499, 2.25, 3.0, 3.75, 3.7501, 5.0)] == [
-        "weak", "weak", "medium", "medium", "medium", "strong", "strong"]
+        "weak",
+        "weak",
+        "medium",
+        "medium",
+        "medium",
+        "strong",
+        "strong",
+    ]
     v = sample_dr0(20000, 2.25, 3.75, generator=gen())
     assert v.min() >= 2.25 and v.max() <= 3.75
     assert v.mean().item() == pytest.approx(3.0, abs=0.01)  # uniform: SE 0.433/sqrt(20000) = 0.003

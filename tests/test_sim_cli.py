@@ -1,4 +1,5 @@
 """`d2turb simulate` and `d2turb demo` end to end."""
+
 import json
 
 import numpy as np
@@ -49,8 +50,25 @@ def test_simulate_with_depth_file_and_range(small_png, tmp_path):
     depth_path = tmp_path / "scene_depth.npy"
     np.save(depth_path, depth + 1.0)  # metric-like values, normalised by the loader (far = 1)
     out = tmp_path / "out"
-    assert main(["simulate", str(small_png.parent), "--out", str(out), "--dr0-range", "1", "5", "--depth", str(depth_path),
-                 "--modulation", "power", "--save-flow"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(small_png.parent),
+                "--out",
+                str(out),
+                "--dr0-range",
+                "1",
+                "5",
+                "--depth",
+                str(depth_path),
+                "--modulation",
+                "power",
+                "--save-flow",
+            ]
+        )
+        == 0
+    )
     meta = json.loads((out / "scene_meta.json").read_text())
     assert 1 <= meta["dr0"] <= 5 and meta["modulation"] == "power"
     flow = np.load(out / "scene_flow.npy")

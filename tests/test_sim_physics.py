@@ -1,4 +1,5 @@
 """The simulator's statistics against turbulence theory (docs: physics.md §1–4)."""
+
 import math
 
 import numpy as np
@@ -11,8 +12,20 @@ from d2turb.sim.psf import PupilOptics
 from d2turb.sim.tilt import layer_tilt_correlation, tilt_correlation
 from d2turb.sim.zernike import noll_covariance, noll_to_nm, zernike
 
-NOLL_CHECKS = {(2, 2): 0.4482, (3, 3): 0.4482, (4, 4): 0.02318, (5, 5): 0.02318, (6, 6): 0.02318, (7, 7): 0.00618,
-               (8, 8): 0.00618, (9, 9): 0.00618, (10, 10): 0.00618, (11, 11): 0.00245, (2, 8): -0.0141, (4, 11): -0.00387}
+NOLL_CHECKS = {
+    (2, 2): 0.4482,
+    (3, 3): 0.4482,
+    (4, 4): 0.02318,
+    (5, 5): 0.02318,
+    (6, 6): 0.02318,
+    (7, 7): 0.00618,
+    (8, 8): 0.00618,
+    (9, 9): 0.00618,
+    (10, 10): 0.00618,
+    (11, 11): 0.00245,
+    (2, 8): -0.0141,
+    (4, 11): -0.00387,
+}
 
 
 def test_noll_covariance_check_values():
@@ -27,8 +40,19 @@ def test_noll_covariance_check_values():
 
 
 def test_noll_indices():
-    assert [noll_to_nm(j) for j in range(1, 12)] == [(0, 0), (1, 1), (1, 1), (2, 0), (2, 2), (2, 2), (3, 1), (3, 1),
-                                                     (3, 3), (3, 3), (4, 0)]
+    assert [noll_to_nm(j) for j in range(1, 12)] == [
+        (0, 0),
+        (1, 1),
+        (1, 1),
+        (2, 0),
+        (2, 2),
+        (2, 2),
+        (3, 1),
+        (3, 1),
+        (3, 3),
+        (3, 3),
+        (4, 0),
+    ]
 
 
 def test_zernike_orthonormal_on_unit_disk():
@@ -76,9 +100,14 @@ def test_tilt_std_in_pixels(dr0, ifov_factor):
     standard deviation is 1/sqrt(2N) = 0.5 %; tolerance 5 %."""
     lam, d = 525e-9, 0.1
     ifov = ifov_factor * lam / (2 * d)
-    sim = Simulator(TurbulenceParams(aperture_m=d, wavelength_m=lam, dr0=dr0, ifov_rad=ifov, n_zernike=10, psf_grid_px=4))
+    sim = Simulator(
+        TurbulenceParams(aperture_m=d, wavelength_m=lam, dr0=dr0, ifov_rad=ifov, n_zernike=10, psf_grid_px=4)
+    )
     n = 20000
-    flow = sim.tilt_fields(n, 3, 3, torch.full((n,), dr0), torch.Generator().manual_seed(7))[:, :, 1, 1].double() * sim.px_per_a2
+    flow = (
+        sim.tilt_fields(n, 3, 3, torch.full((n,), dr0), torch.Generator().manual_seed(7))[:, :, 1, 1].double()
+        * sim.px_per_a2
+    )
     expected = math.sqrt(0.1816) * (lam / d) / ifov * dr0 ** (5 / 6)  # = 0.852·(D/r0)^(5/6) at Nyquist
     sx, sy = flow[:, 0].std().item(), flow[:, 1].std().item()
     assert sx == pytest.approx(expected, rel=0.05)
@@ -142,7 +171,7 @@ def test_path_geometry_is_weighted_layer_average():
     for theta in [1e-5, 1e-4, 1e-3]:
         perp, par = tilt_correlation(theta, d, length, "path")
 
-        def layer(t, which):
+        def layer(t, which, theta=theta):
             s = theta * length * t / (d * (1 - t))
             return layer_tilt_correlation(s)[which] * (1 - t) ** (5 / 3)
 
@@ -190,7 +219,7 @@ def test_mean_psf_matches_theoretical_otf(with_tilt):
     d, lam, n_modes, dr0 = 0.1, 525e-9, 36, 2.0
     first = 2 if with_tilt else 4
     optics = PupilOptics([lam], lam, d, lam / (2 * d), range(first, n_modes + 1))
-    cov = np.asarray(noll_covariance(n_modes))[first - 2:, first - 2:] * dr0 ** (5 / 3)
+    cov = np.asarray(noll_covariance(n_modes))[first - 2 :, first - 2 :] * dr0 ** (5 / 3)
     a = np.random.default_rng(0).multivariate_normal(np.zeros(len(cov)), cov, size=3000)
     psf = optics.psfs(torch.from_numpy(a).float(), 31)[0].double().mean(0)
     assert psf.sum().item() == pytest.approx(1.0, abs=1e-6)

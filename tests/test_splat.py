@@ -1,4 +1,5 @@
 """Backward flow by density-based forward splatting (d2turb.ops.splat)."""
+
 import numpy as np
 import pytest
 import torch
@@ -101,12 +102,15 @@ def test_gradcheck():
     assert torch.autograd.gradcheck(lambda f: backward_flow(f), (flow,), eps=1e-6, atol=1e-5)
 
 
-@pytest.mark.parametrize("bad, msg", [
-    (torch.zeros(2, 8, 8), "(B, 2, H, W)"),
-    (torch.zeros(1, 3, 8, 8), "(B, 2, H, W)"),
-    (torch.zeros(1, 2, 8, 8, dtype=torch.long), "floating"),
-    (torch.full((1, 2, 8, 8), float("nan")), "NaN"),
-])
+@pytest.mark.parametrize(
+    "bad, msg",
+    [
+        (torch.zeros(2, 8, 8), "(B, 2, H, W)"),
+        (torch.zeros(1, 3, 8, 8), "(B, 2, H, W)"),
+        (torch.zeros(1, 2, 8, 8, dtype=torch.long), "floating"),
+        (torch.full((1, 2, 8, 8), float("nan")), "NaN"),
+    ],
+)
 def test_bad_input_raises_clear_error(bad, msg):
     with pytest.raises(D2TurbError, match=msg.replace("(", r"\(").replace(")", r"\)")):
         backward_flow(bad)
@@ -116,8 +120,12 @@ def _natural_images(size: int) -> torch.Tensor:
     from skimage import data, transform
 
     imgs = [data.astronaut(), data.coffee(), data.chelsea(), np.stack([data.camera()] * 3, -1)]
-    return torch.stack([torch.from_numpy(transform.resize(im, (size, size), anti_aliasing=True)).float().permute(2, 0, 1)
-                        for im in imgs])
+    return torch.stack(
+        [
+            torch.from_numpy(transform.resize(im, (size, size), anti_aliasing=True)).float().permute(2, 0, 1)
+            for im in imgs
+        ]
+    )
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
 """d2turb.train: loss terms vs hand computation, configs, training loop, resume, DDP, atomic checkpoints, CLI."""
+
 import json
 import math
 import os
@@ -18,7 +19,9 @@ from d2turb.train.losses import native_loss_name
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_MODEL = {
-    "name": "d2turb", "backbone": "nafnet", "injection": "aspi",
+    "name": "d2turb",
+    "backbone": "nafnet",
+    "injection": "aspi",
     "backbone_cfg": {"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1], "middle_blocks": 1},
     "rectifier_cfg": {"width": 8, "mults": [1, 2, 2, 2], "depth": 3},
 }
@@ -36,9 +39,12 @@ def make_pairs(root: Path, n: int = 8, size: int = 32, seed: int = 0, split: str
     lines = []
     for i in range(n):
         sid = f"{i:07d}"
-        gt = F.interpolate(torch.rand(1, 3, size // 4, size // 4, generator=g), size=(size, size), mode="bilinear",
-                           align_corners=True)
-        flow = F.interpolate(torch.randn(1, 2, 4, 4, generator=g), size=(size, size), mode="bilinear", align_corners=True)
+        gt = F.interpolate(
+            torch.rand(1, 3, size // 4, size // 4, generator=g), size=(size, size), mode="bilinear", align_corners=True
+        )
+        flow = F.interpolate(
+            torch.randn(1, 2, 4, 4, generator=g), size=(size, size), mode="bilinear", align_corners=True
+        )
         tilt = warp(gt, -flow).clamp(0, 1)
         turb = F.avg_pool2d(F.pad(tilt, (1, 1, 1, 1), mode="replicate"), 3, 1)
         for kind, image in (("turb", turb), ("tilt", tilt), ("gt", gt)):
@@ -57,9 +63,13 @@ def pairs(tmp_path_factory) -> Path:
 
 
 def tiny_cfg(pairs: Path, **train) -> dict:
-    base = {"model": TINY_MODEL, "data": {"pairs": str(pairs), "patch": 32, "num_workers": 0, "hflip": False},
-            "train": {"iterations": 4, "batch": 4, "lr": 1e-3, "device": "cpu", **train},
-            "log": {"every": 1, "progress": False}, "checkpoint": {"every": 1000}}
+    base = {
+        "model": TINY_MODEL,
+        "data": {"pairs": str(pairs), "patch": 32, "num_workers": 0, "hflip": False},
+        "train": {"iterations": 4, "batch": 4, "lr": 1e-3, "device": "cpu", **train},
+        "log": {"every": 1, "progress": False},
+        "checkpoint": {"every": 1000},
+    }
     return load_config(base=base)
 
 
@@ -98,7 +108,8 @@ def test_psnr_native_loss_is_minus_psnr():
 
     out, batch = fake_batch(b=3)
     assert psnr_loss(out["deblurred"], batch["tilt"]).item() == pytest.approx(
-        -psnr(out["deblurred"], batch["tilt"]).mean().item(), rel=1e-5)
+        -psnr(out["deblurred"], batch["tilt"]).mean().item(), rel=1e-5
+    )
     loss = MultiStageLoss(native="psnr", flow=0.0, photo=0.0)
     assert loss(out, batch)[0].item() == pytest.approx(-psnr(out["deblurred"], batch["tilt"]).mean().item(), rel=1e-5)
 
@@ -142,7 +153,10 @@ def test_vgg_term_with_tiny_random_vgg(tmp_path):
     path = tmp_path / "vgg16.safetensors"
     save_file(state, str(path))
     out, batch = fake_batch(b=1, h=32, w=32)
-    fa, fb = _vgg_oracle(state, imagenet_normalize(out["restored"])), _vgg_oracle(state, imagenet_normalize(batch["gt"]))
+    fa, fb = (
+        _vgg_oracle(state, imagenet_normalize(out["restored"])),
+        _vgg_oracle(state, imagenet_normalize(batch["gt"])),
+    )
     expected_vgg = sum(((a - b) ** 2).mean() for a, b in zip(fa, fb)).item()
     photo = np.abs(out["restored"].numpy() - batch["gt"].numpy()).mean()
     assert PerceptualLoss.from_file(path)(out["restored"], batch["gt"]).item() == pytest.approx(expected_vgg, rel=1e-4)
@@ -296,9 +310,17 @@ def test_on_the_fly_synthesis_training(tmp_path, astronaut):
 
     (tmp_path / "clean").mkdir()
     write_image(tmp_path / "clean" / "a.png", astronaut[0, :, :64, :64])
-    base = {"model": TINY_MODEL, "data": {"clean": [str(tmp_path / "clean")], "patch": 32, "num_workers": 0,
-                                          "on_the_fly": {"depth": "none", "length": 4, "bins": ["strong"]}},
-            "train": {"iterations": 2, "batch": 2, "device": "cpu"}, "log": {"progress": False}}
+    base = {
+        "model": TINY_MODEL,
+        "data": {
+            "clean": [str(tmp_path / "clean")],
+            "patch": 32,
+            "num_workers": 0,
+            "on_the_fly": {"depth": "none", "length": 4, "bins": ["strong"]},
+        },
+        "train": {"iterations": 2, "batch": 2, "device": "cpu"},
+        "log": {"progress": False},
+    }
     trainer = Trainer(load_config(base=base), tmp_path / "run")
     batch = trainer._to_device(next(iter(trainer.loader)))
     assert batch["turb"].shape == (2, 3, 32, 32) and batch["flow"].shape == (2, 2, 32, 32)
@@ -315,24 +337,34 @@ def _free_port() -> int:
 
 
 def test_ddp_two_processes_equal_one_process(pairs, tmp_path):
-    from safetensors.torch import load_file
-
     import yaml
+    from safetensors.torch import load_file
 
     cfg = tiny_cfg(pairs, iterations=2, batch=4)
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     cmd = [sys.executable, "-m", "d2turb", "train", "--config", str(tmp_path / "cfg.yaml")]
     env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
     env.update(OMP_NUM_THREADS="1", MASTER_ADDR="127.0.0.1", MASTER_PORT=str(_free_port()))
-    procs = [subprocess.Popen(cmd + ["--out", str(tmp_path / "ddp")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              env={**env, "RANK": str(r), "LOCAL_RANK": str(r), "WORLD_SIZE": "2"}) for r in range(2)]
-    single = subprocess.run(cmd + ["--out", str(tmp_path / "single")], capture_output=True, text=True, env=env,
-                            timeout=120)
+    procs = [
+        subprocess.Popen(
+            cmd + ["--out", str(tmp_path / "ddp")],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env={**env, "RANK": str(r), "LOCAL_RANK": str(r), "WORLD_SIZE": "2"},
+        )
+        for r in range(2)
+    ]
+    single = subprocess.run(
+        cmd + ["--out", str(tmp_path / "single")], capture_output=True, text=True, env=env, timeout=120
+    )
     outs = [p.communicate(timeout=120) for p in procs]
     assert single.returncode == 0, single.stderr
     assert all(p.returncode == 0 for p in procs), [o[1].decode()[-2000:] for o in outs]
     assert b"trained 2/2" in outs[0][0] and outs[1][0] == b""  # only rank 0 reports
-    a, b = load_file(str(tmp_path / "single" / "model.safetensors")), load_file(str(tmp_path / "ddp" / "model.safetensors"))
+    a, b = (
+        load_file(str(tmp_path / "single" / "model.safetensors")),
+        load_file(str(tmp_path / "ddp" / "model.safetensors")),
+    )
     init = Trainer(cfg, tmp_path / "fresh").model.state_dict()
     assert any(not torch.equal(init[k], a[k]) for k in a)  # training moved the weights
     for k in a:
@@ -346,10 +378,25 @@ def test_cli_one_line_errors(capsys, tmp_path, pairs):
     assert main(["train", "--config", str(tmp_path / "missing.yaml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: config file not found: {tmp_path / 'missing.yaml'}"]
-    (tmp_path / "c.yaml").write_text(f"model: {{name: d2turb_lite}}\ndata: {{pairs: {pairs}}}\ntrain: {{iterations: 1}}\n")
+    (tmp_path / "c.yaml").write_text(
+        f"model: {{name: d2turb_lite}}\ndata: {{pairs: {pairs}}}\ntrain: {{iterations: 1}}\n"
+    )
     assert main(["train", "--config", str(tmp_path / "c.yaml"), "--set", "loss.lambda_flow=3"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: unknown config key 'loss.lambda_flow'")
-    assert main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "r"), "--resume",
-                 "--set", "train.device=cpu"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--config",
+                str(tmp_path / "c.yaml"),
+                "--out",
+                str(tmp_path / "r"),
+                "--resume",
+                "--set",
+                "train.device=cpu",
+            ]
+        )
+        == 2
+    )
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith("error: --resume: no checkpoint")

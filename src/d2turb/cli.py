@@ -1,5 +1,6 @@
 """The ``d2turb`` command line. Each subcommand lives in ``d2turb/commands/<name>.py`` and exposes
 ``register(subparsers)``; heavy imports happen inside the command, so ``d2turb --help`` is fast."""
+
 from __future__ import annotations
 
 import argparse
@@ -13,7 +14,9 @@ COMMANDS = ["demo", "simulate", "make_dataset", "check_dataset", "models", "benc
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="d2turb", description="Depth-aware atmospheric turbulence: simulate, restore, evaluate.")
+    parser = argparse.ArgumentParser(
+        prog="d2turb", description="Depth-aware atmospheric turbulence: simulate, restore, evaluate."
+    )
     parser.add_argument("--version", action="version", version=f"d2turb {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:

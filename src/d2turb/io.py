@@ -1,12 +1,13 @@
 """Image and file I/O: robust reading of odd images, atomic writes (temp name, then rename)."""
+
 from __future__ import annotations
 
 import contextlib
 import json
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch

@@ -9,6 +9,7 @@ per-tile warp would sample the tile's clamped border instead of the true neighbo
 warp of blended, seamless fields cannot create a seam, and it equals the untiled model's warp
 wherever the tiles agree with the untiled model.
 """
+
 from __future__ import annotations
 
 import math
@@ -117,9 +118,9 @@ def axis_window(size: int, overlap: int, taper_start: bool, taper_end: bool) -> 
         t = (torch.arange(ramp, dtype=torch.float64) + 0.5) / ramp
         rise = torch.cat([torch.zeros(guard, dtype=torch.float64), torch.sin(0.5 * math.pi * t) ** 2])
         if taper_start:
-            w[:guard + ramp] = rise
+            w[: guard + ramp] = rise
         if taper_end:
-            w[size - guard - ramp:] = torch.minimum(w[size - guard - ramp:], rise.flip(0))
+            w[size - guard - ramp :] = torch.minimum(w[size - guard - ramp :], rise.flip(0))
     return w.clamp_min(_WINDOW_FLOOR).float()
 
 
@@ -180,7 +181,7 @@ class Restorer:
         """dict(restored, deblurred, flow): images shaped like the input, flow (…,2,H,W) in pixels."""
         x, single = self._as_batch(image)
         with torch.no_grad():
-            outs = [self._restore_one(x[i:i + 1]) for i in range(x.shape[0])]
+            outs = [self._restore_one(x[i : i + 1]) for i in range(x.shape[0])]
         result = {k: torch.cat([o[k] for o in outs]) for k in ("restored", "deblurred", "flow")}
         return {k: v[0] for k, v in result.items()} if single else result
 
@@ -228,16 +229,20 @@ class Restorer:
 
             bar = tqdm(total=len(boxes), desc="tiles", unit="tile", leave=False)
         for y0, x0, th, tw in boxes:
-            out = self._run_model(x[:, :, y0:y0 + th, x0:x0 + tw])
-            win = (axis_window(th, self.overlap, y0 > 0, y0 + th < h)[:, None]
-                   * axis_window(tw, self.overlap, x0 > 0, x0 + tw < w)[None, :])
+            out = self._run_model(x[:, :, y0 : y0 + th, x0 : x0 + tw])
+            win = (
+                axis_window(th, self.overlap, y0 > 0, y0 + th < h)[:, None]
+                * axis_window(tw, self.overlap, x0 > 0, x0 + tw < w)[None, :]
+            )
             for key, value in out.items():
                 if value.shape[-2:] != (th, tw):
-                    raise D2TurbError(f"model {self.name} returned {key} of size {tuple(value.shape[-2:])} for a {th}x{tw} tile")
+                    raise D2TurbError(
+                        f"model {self.name} returned {key} of size {tuple(value.shape[-2:])} for a {th}x{tw} tile"
+                    )
                 if key not in acc:
                     acc[key] = torch.zeros(1, value.shape[1], h, w)
-                acc[key][:, :, y0:y0 + th, x0:x0 + tw].addcmul_(value, win)
-            weight[:, :, y0:y0 + th, x0:x0 + tw] += win
+                acc[key][:, :, y0 : y0 + th, x0 : x0 + tw].addcmul_(value, win)
+            weight[:, :, y0 : y0 + th, x0 : x0 + tw] += win
             if bar is not None:
                 bar.update()
         if bar is not None:

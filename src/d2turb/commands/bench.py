@@ -1,4 +1,5 @@
 """`d2turb bench model`: parameters, FLOPs/MACs and latency of a model, or the efficiency table of the registry."""
+
 from __future__ import annotations
 
 from d2turb.errors import D2TurbError
@@ -7,9 +8,12 @@ from d2turb.errors import D2TurbError
 def register(sub):
     p = sub.add_parser("bench", help="benchmark models (params, FLOPs/MACs, latency)")
     what = p.add_subparsers(dest="bench_target", metavar="TARGET")
-    m = what.add_parser("model", help="params, FLOPs/MACs at --size and forward latency of a model",
-                        description="FLOPs are counted with torch FlopCounterMode (convolutions and matmuls, "
-                                    "MACs = FLOPs/2); 'conv GMACs' counts convolutions only, the papers' convention.")
+    m = what.add_parser(
+        "model",
+        help="params, FLOPs/MACs at --size and forward latency of a model",
+        description="FLOPs are counted with torch FlopCounterMode (convolutions and matmuls, "
+        "MACs = FLOPs/2); 'conv GMACs' counts convolutions only, the papers' convention.",
+    )
     m.add_argument("name", nargs="?", help="registered model (see `d2turb models`)")
     m.add_argument("--all", action="store_true", help="efficiency table of the whole registry")
     m.add_argument("--backbone", help="backbone of a d2turb model")
@@ -30,7 +34,11 @@ def _config(args) -> dict:
 
     cfg = {}
     if args.config:
-        text = Path(args.config).read_text() if args.config.endswith(".json") and Path(args.config).is_file() else args.config
+        text = (
+            Path(args.config).read_text()
+            if args.config.endswith(".json") and Path(args.config).is_file()
+            else args.config
+        )
         try:
             cfg = json.loads(text)
         except ValueError as exc:
@@ -73,6 +81,9 @@ def run(args):
         if args.out.endswith(".json"):
             write_json(args.out, results if args.all else results[0])
         else:
-            write_text(args.out, f"FLOPs: torch FlopCounterMode at {args.size}², MACs = FLOPs/2; conv GMACs = "
-                                 f"convolutions only; latency = median of {args.repeats} forwards (batch 1, fp32).\n\n{table}")
+            write_text(
+                args.out,
+                f"FLOPs: torch FlopCounterMode at {args.size}², MACs = FLOPs/2; conv GMACs = "
+                f"convolutions only; latency = median of {args.repeats} forwards (batch 1, fp32).\n\n{table}",
+            )
     return 0

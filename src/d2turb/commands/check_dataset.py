@@ -1,12 +1,16 @@
 """`d2turb check-dataset`: verify a generated dataset; exit 1 with the list of problems if broken."""
+
 from __future__ import annotations
 
 import sys
 
 
 def register(sub):
-    p = sub.add_parser("check-dataset", help="verify a dataset made by make-dataset",
-                       description="Checks files, decoding, shapes, NaN in flow, orphans, duplicates and bins.")
+    p = sub.add_parser(
+        "check-dataset",
+        help="verify a dataset made by make-dataset",
+        description="Checks files, decoding, shapes, NaN in flow, orphans, duplicates and bins.",
+    )
     p.add_argument("root", metavar="DIR", help="dataset folder")
     p.add_argument("--quick", action="store_true", help="check file presence only, do not decode")
     p.add_argument("--max-problems", type=int, default=50, help="problems listed at most (default 50)")

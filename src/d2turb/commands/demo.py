@@ -1,4 +1,5 @@
 """`d2turb demo`: built-in samples under weak/medium/strong depth-aware turbulence, one labelled grid."""
+
 from __future__ import annotations
 
 LEVELS = (("weak", 1.5), ("medium", 3.0), ("strong", 4.5))
@@ -8,9 +9,12 @@ SIZE = (192, 256)  # H, W of every demo image
 def register(sub):
     from d2turb.commands.simulate import add_physics_args
 
-    p = sub.add_parser("demo", help="simulate turbulence on built-in sample images and write a labelled grid",
-                       description="Writes DIR/demo.png (rows: images; columns: clean | weak | medium | strong | depth and M) "
-                                   "and per-image PNGs.")
+    p = sub.add_parser(
+        "demo",
+        help="simulate turbulence on built-in sample images and write a labelled grid",
+        description="Writes DIR/demo.png (rows: images; columns: clean | weak | medium | strong | depth and M) "
+        "and per-image PNGs.",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     add_physics_args(p)
@@ -41,7 +45,7 @@ def sample_images() -> dict:
         h, w = img.shape[:2]
         ch, cw = (h, h * 4 // 3) if w * 3 >= h * 4 else (w * 3 // 4, w)
         y0, x0 = (h - ch) // 2, (w - cw) // 2
-        img = transform.resize(img[y0:y0 + ch, x0:x0 + cw], SIZE, anti_aliasing=True)
+        img = transform.resize(img[y0 : y0 + ch, x0 : x0 + cw], SIZE, anti_aliasing=True)
         out[name] = torch.from_numpy(np.asarray(img, dtype=np.float32)).permute(2, 0, 1).contiguous()
     out["chart"] = line_chart()
     return out
@@ -77,8 +81,12 @@ def run(args):
     depth = estimate_depth_prior(batch)  # (B, 1, H, W), far = 1
     b = len(names)
     dr0 = torch.tensor([v for _, v in LEVELS], dtype=torch.float64).repeat_interleave(b)
-    res = sim(batch.repeat(len(LEVELS), 1, 1, 1), depth=depth.repeat(len(LEVELS), 1, 1, 1), dr0=dr0,
-              generator=torch.Generator().manual_seed(args.seed))
+    res = sim(
+        batch.repeat(len(LEVELS), 1, 1, 1),
+        depth=depth.repeat(len(LEVELS), 1, 1, 1),
+        dr0=dr0,
+        generator=torch.Generator().manual_seed(args.seed),
+    )
     modulation = depth_modulation(depth, params.modulation, params.offset_s)
     rows, meta = [], {"params": params.to_dict(), "seed": args.seed, "levels": dict(LEVELS), "images": names}
     for i, name in enumerate(names):
@@ -91,7 +99,7 @@ def run(args):
         d = to_uint8(depth[i, 0])
         m = to_uint8(modulation[i, 0])
         write_image(out / f"{name}_depth.png", depth[i])
-        half = np.concatenate([d[:, : d.shape[1] // 2], m[:, d.shape[1] // 2:]], axis=1)
+        half = np.concatenate([d[:, : d.shape[1] // 2], m[:, d.shape[1] // 2 :]], axis=1)
         tiles.append(_label(Image.fromarray(half).convert("RGB"), "depth | M"))
         rows.append(np.concatenate([np.asarray(t) for t in tiles], axis=1))
     grid = np.concatenate(rows, axis=0)

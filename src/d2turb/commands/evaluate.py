@@ -1,4 +1,5 @@
 """`d2turb evaluate`: metrics on a synthetic test set (--data, with ground truth) or on real images (--real)."""
+
 from __future__ import annotations
 
 import os
@@ -8,28 +9,48 @@ from d2turb.errors import D2TurbError
 
 def register(sub):
     p = sub.add_parser(
-        "evaluate", help="evaluate restoration models (PSNR/SSIM/LPIPS with ground truth, NIQE/PIQE without)",
+        "evaluate",
+        help="evaluate restoration models (PSNR/SSIM/LPIPS with ground truth, NIQE/PIQE without)",
         description="With --data: full-reference metrics of each model on a synthetic dataset. With --real: "
-                    "no-reference metrics (NIQE, PIQE) of real images, after restoring them with each --weights "
-                    "model ('input' = unrestored). Writes OUT/results.json and OUT/results.md.")
+        "no-reference metrics (NIQE, PIQE) of real images, after restoring them with each --weights "
+        "model ('input' = unrestored). Writes OUT/results.json and OUT/results.md.",
+    )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", metavar="DATASET_DIR", help="synthetic dataset folder (from make_dataset)")
     src.add_argument("--real", metavar="DIR", help="folder of real degraded images (no ground truth)")
-    p.add_argument("--weights", nargs="+", metavar="W",
-                   help="models to evaluate: .safetensors paths or names, and/or 'input' (identity baseline); "
-                        "with --real the default is 'input' only")
-    p.add_argument("--metrics", default=None,
-                   help="comma-separated metrics (default: psnr,ssim,lpips with --data, LPIPS skipped with a note "
-                        "when its weights are missing; niqe,piqe with --real)")
+    p.add_argument(
+        "--weights",
+        nargs="+",
+        metavar="W",
+        help="models to evaluate: .safetensors paths or names, and/or 'input' (identity baseline); "
+        "with --real the default is 'input' only",
+    )
+    p.add_argument(
+        "--metrics",
+        default=None,
+        help="comma-separated metrics (default: psnr,ssim,lpips with --data, LPIPS skipped with a note "
+        "when its weights are missing; niqe,piqe with --real)",
+    )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument("--max-samples", type=int, default=None, help="evaluate at most this many images")
-    p.add_argument("--lpips-weights", metavar="FILE", help="LPIPS v0.1 linear-layer weights (alex.pth / vgg.pth); "
-                                                          "else $D2TURB_LPIPS_WEIGHTS or $D2TURB_CACHE_DIR (~/.cache/d2turb/)")
-    p.add_argument("--lpips-backbone", metavar="FILE", help="torchvision AlexNet/VGG16 weights; else "
-                                                            "$D2TURB_LPIPS_BACKBONE or ~/.cache/d2turb/")
-    p.add_argument("--musiq-weights", metavar="FILE", help="MUSIQ checkpoint (IQA-PyTorch .pth or .safetensors); else "
-                                                           "$D2TURB_MUSIQ_WEIGHTS or ~/.cache/d2turb/musiq/")
+    p.add_argument(
+        "--lpips-weights",
+        metavar="FILE",
+        help="LPIPS v0.1 linear-layer weights (alex.pth / vgg.pth); "
+        "else $D2TURB_LPIPS_WEIGHTS or $D2TURB_CACHE_DIR (~/.cache/d2turb/)",
+    )
+    p.add_argument(
+        "--lpips-backbone",
+        metavar="FILE",
+        help="torchvision AlexNet/VGG16 weights; else $D2TURB_LPIPS_BACKBONE or ~/.cache/d2turb/",
+    )
+    p.add_argument(
+        "--musiq-weights",
+        metavar="FILE",
+        help="MUSIQ checkpoint (IQA-PyTorch .pth or .safetensors); else "
+        "$D2TURB_MUSIQ_WEIGHTS or ~/.cache/d2turb/musiq/",
+    )
     p.set_defaults(func=run)
 
 
@@ -39,9 +60,15 @@ def run(args):
     if args.real:
         from d2turb.eval.real import evaluate_real, parse_metrics
 
-        results = evaluate_real(args.real, parse_metrics(args.metrics or "niqe,piqe"), args.out,
-                                weights=args.weights, device=args.device, max_samples=args.max_samples,
-                                musiq_weights=args.musiq_weights)
+        results = evaluate_real(
+            args.real,
+            parse_metrics(args.metrics or "niqe,piqe"),
+            args.out,
+            weights=args.weights,
+            device=args.device,
+            max_samples=args.max_samples,
+            musiq_weights=args.musiq_weights,
+        )
         for model, scores in results["models"].items():
             print(model + ": " + ", ".join(f"{m} {v['mean']:.4f}" for m, v in scores.items()))
     else:
@@ -52,8 +79,15 @@ def run(args):
 
         # metrics=None: the default set, where missing LPIPS weights only drop the LPIPS column with a note
         metrics = tuple(parse_metrics(args.metrics)) if args.metrics else None
-        evaluate_synthetic(args.weights, args.data, args.out, device=args.device, metrics=metrics,
-                           max_samples=args.max_samples, lpips_weights=args.lpips_weights,
-                           lpips_backbone=args.lpips_backbone)
+        evaluate_synthetic(
+            args.weights,
+            args.data,
+            args.out,
+            device=args.device,
+            metrics=metrics,
+            max_samples=args.max_samples,
+            lpips_weights=args.lpips_weights,
+            lpips_backbone=args.lpips_backbone,
+        )
     print(f"wrote {os.path.join(args.out, 'results.json')}")
     return 0

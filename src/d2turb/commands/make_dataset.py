@@ -1,4 +1,5 @@
 """`d2turb make-dataset`: paired turbulence dataset from folders of clean images (restartable, torchrun-ready)."""
+
 from __future__ import annotations
 
 import json
@@ -18,23 +19,37 @@ def _param(text: str):
 
 def register(sub):
     p = sub.add_parser(
-        "make-dataset", help="generate turb/tilt/gt/flow/depth training or test pairs",
+        "make-dataset",
+        help="generate turb/tilt/gt/flow/depth training or test pairs",
         description="Generate paired samples. Restartable: rerun the same command after an interruption. "
-                    "Scales out with `torchrun --nproc_per_node N -m d2turb make-dataset ...`.")
+        "Scales out with `torchrun --nproc_per_node N -m d2turb make-dataset ...`.",
+    )
     p.add_argument("--clean", nargs="+", required=True, metavar="DIR", help="folders (or files) of clean images")
     p.add_argument("--out", required=True, metavar="DIR", help="output dataset folder")
     p.add_argument("--pairs", type=int, required=True, metavar="N", help="number of samples")
     p.add_argument("--patch", type=int, default=256, help="crop size in px (default 256)")
-    p.add_argument("--split", choices=["train", "test"], default="train",
-                   help="train: D/r0 uniform over the bins' union; test: balanced, bin = bins[i %% n_bins]")
+    p.add_argument(
+        "--split",
+        choices=["train", "test"],
+        default="train",
+        help="train: D/r0 uniform over the bins' union; test: balanced, bin = bins[i %% n_bins]",
+    )
     p.add_argument("--bins", default="weak,medium,strong", help="comma-separated D/r0 bins (default all three)")
-    p.add_argument("--depth", default="prior", metavar="SPEC", help="none | prior | DIR | anything:PATH (default prior)")
-    p.add_argument("--depth-is-disparity", dest="disparity", action="store_true",
-                   help="maps in a --depth DIR hold disparity (inverse depth, near = large)")
+    p.add_argument(
+        "--depth", default="prior", metavar="SPEC", help="none | prior | DIR | anything:PATH (default prior)"
+    )
+    p.add_argument(
+        "--depth-is-disparity",
+        dest="disparity",
+        action="store_true",
+        help="maps in a --depth DIR hold disparity (inverse depth, near = large)",
+    )
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     p.add_argument("--batch", type=int, default=8, help="samples per simulator call (part of the seed; default 8)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (default auto)")
-    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="simulator parameter override (repeatable)")
+    p.add_argument(
+        "--param", action="append", default=[], metavar="KEY=VALUE", help="simulator parameter override (repeatable)"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -47,9 +62,19 @@ def run(args):
     except ValueError as exc:
         raise D2TurbError(f"--param expects KEY=VALUE, got {exc.args[0]!r}") from None
     cfg = DatasetConfig(
-        clean=args.clean, out=args.out, pairs=args.pairs, patch=args.patch, split=args.split,
-        bins=tuple(b.strip() for b in args.bins.split(",") if b.strip()), depth=args.depth, depth_is_disparity=args.disparity, seed=args.seed,
-        batch=args.batch, device=args.device, params=params)
+        clean=args.clean,
+        out=args.out,
+        pairs=args.pairs,
+        patch=args.patch,
+        split=args.split,
+        bins=tuple(b.strip() for b in args.bins.split(",") if b.strip()),
+        depth=args.depth,
+        depth_is_disparity=args.disparity,
+        seed=args.seed,
+        batch=args.batch,
+        device=args.device,
+        params=params,
+    )
     stats = generate_dataset(cfg, progress=not args.no_progress)
     if stats["rank"] == 0:
         print(json.dumps(stats, sort_keys=True))

@@ -1,11 +1,15 @@
 """`d2turb models`: list the registered models and backbones with their parameter counts."""
+
 from __future__ import annotations
 
 
 def register(sub):
-    p = sub.add_parser("models", help="list models and backbones with parameter counts",
-                       description="List registered models (complete D²Turb variants and plain backbones used as "
-                                   "standalone restorers) and backbones, with parameter counts of their default configs.")
+    p = sub.add_parser(
+        "models",
+        help="list models and backbones with parameter counts",
+        description="List registered models (complete D²Turb variants and plain backbones used as "
+        "standalone restorers) and backbones, with parameter counts of their default configs.",
+    )
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=run)
 
@@ -22,7 +26,9 @@ def run(args):
     for name in list_backbones():
         with torch.device("meta"):
             b = create_backbone(name)
-        backbones.append({"name": name, "params": sum(p.numel() for p in b.parameters()), "guide_channels": b.guide_channels})
+        backbones.append(
+            {"name": name, "params": sum(p.numel() for p in b.parameters()), "guide_channels": b.guide_channels}
+        )
     if args.json:
         print(json.dumps({"models": models, "backbones": backbones}, indent=2))
         return 0

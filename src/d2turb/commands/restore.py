@@ -1,4 +1,5 @@
 """`d2turb restore`: restore images, image folders or a video with a trained model (tiled, any size)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,13 +11,19 @@ VIDEO_HINT = "install the video extra: pip install 'd2turb[video]'"
 
 
 def register(sub):
-    p = sub.add_parser("restore", help="restore turbulence-degraded images (any size, tiled)",
-                       description="Restore images, folders of frames or a video. Writes NAME_restored.png "
-                                   "(and NAME_flow.npy / NAME_deblurred.png on request) into --out.")
+    p = sub.add_parser(
+        "restore",
+        help="restore turbulence-degraded images (any size, tiled)",
+        description="Restore images, folders of frames or a video. Writes NAME_restored.png "
+        "(and NAME_flow.npy / NAME_deblurred.png on request) into --out.",
+    )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, or a video file")
-    p.add_argument("--weights", required=True,
-                   help="a .safetensors file from save_pretrained, a weights name looked up in $D2TURB_WEIGHTS_DIR, "
-                        "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline)")
+    p.add_argument(
+        "--weights",
+        required=True,
+        help="a .safetensors file from save_pretrained, a weights name looked up in $D2TURB_WEIGHTS_DIR, "
+        "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline)",
+    )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--tile", type=int, default=512, help="tile size in pixels (default 512)")
     p.add_argument("--overlap", type=int, default=64, help="pixels shared by neighbouring tiles (default 64)")

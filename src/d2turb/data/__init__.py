@@ -1,9 +1,18 @@
 """d2turb.data: paired-dataset generation (make-dataset), verification (check-dataset), PyTorch datasets."""
+
 from d2turb.data.check import CheckReport, check_dataset
 from d2turb.data.datasets import CleanCropDataset, OnTheFlySynthesis, PairDataset, crop_sample, flip_sample
 from d2turb.data.generate import DatasetConfig, generate_dataset, plan_sample
 
 __all__ = [
-    "CheckReport", "CleanCropDataset", "DatasetConfig", "OnTheFlySynthesis", "PairDataset", "check_dataset",
-    "crop_sample", "flip_sample", "generate_dataset", "plan_sample",
+    "CheckReport",
+    "CleanCropDataset",
+    "DatasetConfig",
+    "OnTheFlySynthesis",
+    "PairDataset",
+    "check_dataset",
+    "crop_sample",
+    "flip_sample",
+    "generate_dataset",
+    "plan_sample",
 ]

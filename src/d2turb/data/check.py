@@ -1,4 +1,5 @@
 """Verification of a generated pair dataset (``d2turb check-dataset``)."""
+
 from __future__ import annotations
 
 import json
@@ -36,7 +37,9 @@ def _check_sample(root: Path, rec: dict, patch: int, decode: bool) -> list[str]:
             with Image.open(file_path(root, kind, sid)) as img:
                 img.load()
                 if img.mode != "RGB" or img.size != (patch, patch):
-                    problems.append(f"{sid}: {kind} is {img.mode} {img.size[0]}x{img.size[1]}, expected RGB {patch}x{patch}")
+                    problems.append(
+                        f"{sid}: {kind} is {img.mode} {img.size[0]}x{img.size[1]}, expected RGB {patch}x{patch}"
+                    )
         except (OSError, SyntaxError, ValueError) as exc:
             problems.append(f"{sid}: {kind} does not decode ({exc.__class__.__name__})")
     try:
@@ -68,7 +71,9 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
         cfg = json.loads((root / CONFIG_NAME).read_text())
         patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), {k: tuple(v) for k, v in cfg["bin_ranges"].items()}
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise D2TurbError(f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})") from None
+        raise D2TurbError(
+            f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})"
+        ) from None
     report = CheckReport(counts={b: 0 for b in sorted(ranges, key=lambda b: ranges[b][0])})
     problems = report.problems
     meta_path = root / META_NAME

@@ -1,4 +1,5 @@
 """PyTorch datasets: generated pairs from disk, and clean crops + on-the-fly synthesis on the training device."""
+
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -33,7 +34,7 @@ def crop_sample(sample: dict, y0: int, x0: int, size: int) -> dict:
     out = dict(sample)
     for key in ("turb", "tilt", "gt", "depth", "flow"):
         if key in out and out[key] is not None:
-            out[key] = out[key][..., y0:y0 + size, x0:x0 + size]
+            out[key] = out[key][..., y0 : y0 + size, x0 : x0 + size]
     return out
 
 
@@ -50,8 +51,14 @@ class PairDataset(Dataset):
     Augmentation randomness comes from ``torch``'s global RNG (seeded per DataLoader worker).
     """
 
-    def __init__(self, root: str | Path, split: str | None = None, crop: int | None = None,
-                 hflip: bool = False, vflip: bool = False):
+    def __init__(
+        self,
+        root: str | Path,
+        split: str | None = None,
+        crop: int | None = None,
+        hflip: bool = False,
+        vflip: bool = False,
+    ):
         self.root = Path(root)
         if split is not None and (self.root / split / "dataset.json").is_file():
             self.root = self.root / split  # a parent folder holding train/ and test/
@@ -105,8 +112,15 @@ class CleanCropDataset(Dataset):
     Full-image depth maps are cached per worker (``cache`` entries).
     """
 
-    def __init__(self, dirs: list[str | Path], patch: int = 256, depth_spec: str = "prior",
-                 length: int | None = None, hflip: bool = True, cache: int = 32):
+    def __init__(
+        self,
+        dirs: list[str | Path],
+        patch: int = 256,
+        depth_spec: str = "prior",
+        length: int | None = None,
+        hflip: bool = True,
+        cache: int = 32,
+    ):
         from d2turb.data.generate import make_depth_fn
 
         self.paths = expand_inputs([str(d) for d in dirs])
@@ -158,12 +172,20 @@ class OnTheFlySynthesis:
     dict as PairDataset, with ``flow`` the backward flow (``backward_flow`` of the simulator's forward flow).
     """
 
-    def __init__(self, simulator, bins=("weak", "medium", "strong"), device: str | torch.device = "cpu",
-                 seed: int | None = None, use_depth: bool = True):
+    def __init__(
+        self,
+        simulator,
+        bins=("weak", "medium", "strong"),
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+        use_depth: bool = True,
+    ):
         ranges = bin_ranges()
         unknown = [b for b in bins if b not in ranges]
         if not bins or unknown:
-            raise D2TurbError(f"unknown bin {unknown[0]!r}; choose from {','.join(ranges)}" if unknown else "no bins given")
+            raise D2TurbError(
+                f"unknown bin {unknown[0]!r}; choose from {','.join(ranges)}" if unknown else "no bins given"
+            )
         self.simulator, self.bins, self.ranges = simulator, tuple(bins), ranges
         self.device = torch.device(device)
         self.use_depth = use_depth
@@ -196,8 +218,12 @@ class OnTheFlySynthesis:
             flow = backward_flow(res.flow)
         names = [bin_of(float(v), self.ranges) for v in dr0]
         return {
-            "turb": res.turb, "tilt": res.tilt, "gt": gt, "flow": flow,
+            "turb": res.turb,
+            "tilt": res.tilt,
+            "gt": gt,
+            "flow": flow,
             "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
-            "dr0": dr0.to(self.device), "bin": torch.tensor([bin_index(n) for n in names], device=self.device),
+            "dr0": dr0.to(self.device),
+            "bin": torch.tensor([bin_index(n) for n in names], device=self.device),
             "id": batch.get("id"),
         }

@@ -6,6 +6,7 @@ noise for the batch ("chunk") ``c = i // batch`` is seeded from ``(seed, c)``. C
 round-robin (``c ≡ rank mod world``; with ``--batch 1`` that is ``i ≡ rank mod world``), so for a given
 seed, batch size and device the output does not depend on the number of processes or on restarts.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -23,8 +24,19 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.data.layout import (
-    CONFIG_NAME, FILES, FORMAT_VERSION, META_NAME, SHARD_DIR, append_line, bin_of, bin_ranges, file_path,
-    parse_meta_lines, sample_id, truncate_partial_line, write_depth_png,
+    CONFIG_NAME,
+    FILES,
+    FORMAT_VERSION,
+    META_NAME,
+    SHARD_DIR,
+    append_line,
+    bin_of,
+    bin_ranges,
+    file_path,
+    parse_meta_lines,
+    sample_id,
+    truncate_partial_line,
+    write_depth_png,
 )
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image, write_image, write_json, write_npy, write_text
@@ -196,7 +208,11 @@ class SourceCache:
                 print(f"warning: skipping corrupt source {exc}", file=sys.stderr)
                 self.bad.add(k)
                 continue
-            depth = None if self.depth_fn is None else self.depth_fn(image, self.sources[k]).float().reshape(1, *image.shape[-2:])
+            depth = (
+                None
+                if self.depth_fn is None
+                else self.depth_fn(image, self.sources[k]).float().reshape(1, *image.shape[-2:])
+            )
             image = resize_up(image, self.patch)
             if depth is not None:
                 depth = resize_up(depth, self.patch)
@@ -255,10 +271,19 @@ def merge_meta(root: Path) -> int:
 
 def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
     return {
-        "version": FORMAT_VERSION, "pairs": cfg.pairs, "patch": cfg.patch, "split": cfg.split,
-        "bins": list(cfg.bins), "bin_ranges": {b: list(bin_ranges()[b]) for b in cfg.bins},
-        "seed": cfg.seed, "batch": cfg.batch, "depth": cfg.depth,
-        "depth_is_disparity": cfg.depth_is_disparity, "params": params_full, "clean": [str(c) for c in cfg.clean], "sources": len(sources),
+        "version": FORMAT_VERSION,
+        "pairs": cfg.pairs,
+        "patch": cfg.patch,
+        "split": cfg.split,
+        "bins": list(cfg.bins),
+        "bin_ranges": {b: list(bin_ranges()[b]) for b in cfg.bins},
+        "seed": cfg.seed,
+        "batch": cfg.batch,
+        "depth": cfg.depth,
+        "depth_is_disparity": cfg.depth_is_disparity,
+        "params": params_full,
+        "clean": [str(c) for c in cfg.clean],
+        "sources": len(sources),
         "files": {k: f"{k}/<id>{s}" for k, s in FILES.items()},
         "flow": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, flow) ~ gt",
         "depth_encoding": "16-bit PNG, depth = value / 65535, far = 1",
@@ -341,9 +366,17 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
     ranges = bin_ranges()
     done = set(collect_records(root))
     n_chunks = (cfg.pairs + cfg.batch - 1) // cfg.batch
-    my_chunks = [c for c in range(info.rank, n_chunks, info.world)
-                 if any(sample_id(i) not in done for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs)))]
-    todo = sum(1 for c in my_chunks for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs)) if sample_id(i) not in done)
+    my_chunks = [
+        c
+        for c in range(info.rank, n_chunks, info.world)
+        if any(sample_id(i) not in done for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs)))
+    ]
+    todo = sum(
+        1
+        for c in my_chunks
+        for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
+        if sample_id(i) not in done
+    )
     shard = shard_dir(root) / f"rank-{info.rank}.jsonl"
     shard.parent.mkdir(parents=True, exist_ok=True)
     truncate_partial_line(shard)
@@ -367,12 +400,23 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
                 x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
                 clean.append(image[:, y0:y1, x0:x1])
                 depth.append(None if dmap is None else dmap[:, y0:y1, x0:x1])
-                metas.append({
-                    "id": plan.id, "index": plan.index, "split": cfg.split, "source": str(sources[k]),
-                    "crop": [x0, y0, x1, y1], "source_size": [int(image.shape[-1]), int(image.shape[-2])],
-                    "dr0": plan.dr0, "bin": plan.bin, "seed": cfg.seed, "chunk": c,
-                    "sim_seed": chunk_seed(cfg.seed, c), "depth": cfg.depth, "params": params_full,
-                })
+                metas.append(
+                    {
+                        "id": plan.id,
+                        "index": plan.index,
+                        "split": cfg.split,
+                        "source": str(sources[k]),
+                        "crop": [x0, y0, x1, y1],
+                        "source_size": [int(image.shape[-1]), int(image.shape[-2])],
+                        "dr0": plan.dr0,
+                        "bin": plan.bin,
+                        "seed": cfg.seed,
+                        "chunk": c,
+                        "sim_seed": chunk_seed(cfg.seed, c),
+                        "depth": cfg.depth,
+                        "params": params_full,
+                    }
+                )
             clean_t = torch.stack(clean).to(device)
             depth_t = None if depth[0] is None else torch.stack(depth).to(device)
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
@@ -389,7 +433,10 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
                 write_image(file_path(root, "tilt", plan.id), tilt[b])
                 write_image(file_path(root, "gt", plan.id), clean[b])
                 write_npy(file_path(root, "flow", plan.id), flow[b].numpy().astype(np.float16))
-                write_depth_png(file_path(root, "depth", plan.id), depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch))
+                write_depth_png(
+                    file_path(root, "depth", plan.id),
+                    depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
+                )
                 append_line(shard, meta)  # the meta line last: a sample is done once it is there
                 written += 1
                 if bar is not None:
@@ -397,5 +444,12 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - start
-    return {"rank": info.rank, "world": info.world, "generated": written, "already_done": len(done),
-            "seconds": seconds, "pairs_per_s": written / seconds if seconds > 0 else 0.0, "device": str(device)}
+    return {
+        "rank": info.rank,
+        "world": info.world,
+        "generated": written,
+        "already_done": len(done),
+        "seconds": seconds,
+        "pairs_per_s": written / seconds if seconds > 0 else 0.0,
+        "device": str(device),
+    }

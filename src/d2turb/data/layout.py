@@ -9,6 +9,7 @@ out/gt/<id>.png                  8-bit RGB clean crop
 out/flow/<id>.npy                float16 (2, H, W) backward flow in px, x then y: warp(tilt, flow) ≈ gt
 out/depth/<id>.png               16-bit grey relative depth, value = round(depth * 65535), far = 65535
 """
+
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
 """Depth Anything V2 (relative) through ``transformers``, from a local model folder only (never downloads)."""
+
 from __future__ import annotations
 
 import os
@@ -25,11 +26,18 @@ class DepthAnything:
     both sides multiples of 14, bicubic) and ImageNet-normalised.
     """
 
-    def __init__(self, path: str | os.PathLike, device: str | torch.device = "cpu", input_size: int = 518,
-                 max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        device: str | torch.device = "cpu",
+        input_size: int = 518,
+        max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO,
+    ):
         path = Path(path)
         if not (path / "config.json").is_file():
-            raise D2TurbError(f"Depth Anything model folder {path}: not found or has no config.json (give a local folder)")
+            raise D2TurbError(
+                f"Depth Anything model folder {path}: not found or has no config.json (give a local folder)"
+            )
         os.environ.setdefault("HF_HUB_OFFLINE", "1")
         try:
             from transformers import AutoModelForDepthEstimation
@@ -41,7 +49,10 @@ class DepthAnything:
         try:
             self.model = AutoModelForDepthEstimation.from_pretrained(path, local_files_only=True).to(device).eval()
         except (OSError, ValueError, KeyError) as exc:
-            raise D2TurbError(f"Depth Anything model folder {path}: cannot load ({exc.__class__.__name__}: {str(exc).splitlines()[0]})") from None
+            raise D2TurbError(
+                f"Depth Anything model folder {path}: cannot load "
+                f"({exc.__class__.__name__}: {str(exc).splitlines()[0]})"
+            ) from None
         self.device, self.input_size, self.max_depth_ratio = torch.device(device), input_size, max_depth_ratio
         self.mean, self.std = IMAGENET_MEAN, IMAGENET_STD
         self.patch = int(getattr(self.model.config, "patch_size", 14))
@@ -51,7 +62,9 @@ class DepthAnything:
 
             cfg = json.loads(pre.read_text())
             size = cfg.get("size", {})
-            self.input_size = int(size.get("height", size.get("shortest_edge", input_size)) if isinstance(size, dict) else size)
+            self.input_size = int(
+                size.get("height", size.get("shortest_edge", input_size)) if isinstance(size, dict) else size
+            )
             self.mean, self.std = tuple(cfg.get("image_mean", self.mean)), tuple(cfg.get("image_std", self.std))
             self.patch = int(cfg.get("ensure_multiple_of", self.patch))
 
@@ -64,7 +77,9 @@ class DepthAnything:
         """Raw relative disparity (B,1,H,W) at the image resolution."""
         x = image[None] if image.ndim == 3 else image
         if x.ndim != 4 or x.shape[1] != 3 or not torch.isfinite(x).all():
-            raise D2TurbError(f"DepthAnything: expected a finite RGB image (3,H,W) or (B,3,H,W), got {tuple(image.shape)}")
+            raise D2TurbError(
+                f"DepthAnything: expected a finite RGB image (3,H,W) or (B,3,H,W), got {tuple(image.shape)}"
+            )
         h, w = x.shape[-2:]
         x = x.to(self.device, torch.float32).clamp(0, 1)
         x = F.interpolate(x, size=self._input_shape(h, w), mode="bicubic", align_corners=False).clamp(0, 1)
@@ -76,7 +91,13 @@ class DepthAnything:
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
         disp = self.disparity(image).cpu().double().numpy()
-        depth = np.stack([depth_from_values(d[0], is_disparity=True, max_depth_ratio=self.max_depth_ratio,
-                                            name="Depth Anything output")[None] for d in disp])
+        depth = np.stack(
+            [
+                depth_from_values(
+                    d[0], is_disparity=True, max_depth_ratio=self.max_depth_ratio, name="Depth Anything output"
+                )[None]
+                for d in disp
+            ]
+        )
         out = torch.from_numpy(depth.astype(np.float32))
         return out[0] if image.ndim == 3 else out

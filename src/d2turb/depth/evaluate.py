@@ -2,6 +2,7 @@
 
 ``python -m d2turb.depth.evaluate [DEPTH_DATA_DIR]`` prints the table of docs/depth.md.
 """
+
 from __future__ import annotations
 
 import sys

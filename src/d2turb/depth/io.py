@@ -2,6 +2,7 @@
 
 Convention: relative depth d̃ ∈ [0, 1], far = 1, returned as a float32 tensor (1, H, W).
 """
+
 from __future__ import annotations
 
 import os
@@ -67,8 +68,12 @@ def normalize_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.nd
     return np.clip((depth - lo) / (hi - lo), 0.0, 1.0)
 
 
-def depth_from_values(values: np.ndarray, is_disparity: bool = False, max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO,
-                      name: str = "depth") -> np.ndarray:
+def depth_from_values(
+    values: np.ndarray,
+    is_disparity: bool = False,
+    max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO,
+    name: str = "depth",
+) -> np.ndarray:
     """Raw depth (or disparity) values → relative depth in [0, 1], far = 1.
 
     Values ≤ 0 mean "no measurement" (KITTI convention) and are filled from the nearest valid pixel.
@@ -100,8 +105,12 @@ def resize_depth(depth: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return x[0] if depth.ndim == 3 else x
 
 
-def load_depth(path: str | os.PathLike, size: tuple[int, int] | None = None, is_disparity: bool = False,
-               max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO) -> torch.Tensor:
+def load_depth(
+    path: str | os.PathLike,
+    size: tuple[int, int] | None = None,
+    is_disparity: bool = False,
+    max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO,
+) -> torch.Tensor:
     """Load a depth (or, with ``is_disparity``, an inverse-depth) map → float32 (1, H, W) in [0, 1], far = 1.
 
     PNG (8/16-bit, raw values; any positive scale works since the map is min/max normalised), TIFF,
@@ -120,14 +129,21 @@ def find_depth_file(folder: str | os.PathLike, image_path: str | os.PathLike) ->
         for candidate in (folder / (image_path.stem + suffix), folder / (image_path.stem + suffix.upper())):
             if candidate.is_file():
                 return candidate
-    raise D2TurbError(f"{image_path.name}: no depth file named {image_path.stem}.* ({'/'.join(DEPTH_SUFFIXES)}) in {folder}")
+    raise D2TurbError(
+        f"{image_path.name}: no depth file named {image_path.stem}.* ({'/'.join(DEPTH_SUFFIXES)}) in {folder}"
+    )
 
 
 _ANYTHING_CACHE: dict[str, object] = {}
 
 
-def depth_for_image(spec: str | None, image_path: str | os.PathLike | None, image: torch.Tensor,
-                    is_disparity: bool = False, device: str | torch.device | None = None) -> torch.Tensor | None:
+def depth_for_image(
+    spec: str | None,
+    image_path: str | os.PathLike | None,
+    image: torch.Tensor,
+    is_disparity: bool = False,
+    device: str | torch.device | None = None,
+) -> torch.Tensor | None:
     """Resolve the CLI depth spec for one image → (1, H, W) in [0, 1] (far = 1), or None for ``none``.
 
     ``none`` | ``prior`` (weight-free estimate) | ``anything:PATH`` (local Depth Anything V2 folder) |
@@ -148,7 +164,7 @@ def depth_for_image(spec: str | None, image_path: str | os.PathLike | None, imag
     if spec.startswith("anything:"):
         from d2turb.depth.anything import DepthAnything
 
-        model_dir = spec[len("anything:"):]
+        model_dir = spec[len("anything:") :]
         key = f"{model_dir}|{device}"
         if key not in _ANYTHING_CACHE:
             _ANYTHING_CACHE.clear()  # keep at most one model in memory

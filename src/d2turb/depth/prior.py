@@ -11,6 +11,7 @@ Methods (``estimate_depth_prior(image, method=...)``):
 The default (``DEFAULT_METHOD``) is the one with the best mean Spearman correlation against measured
 KITTI depth (docs/depth.md).
 """
+
 from __future__ import annotations
 
 import torch
@@ -69,7 +70,9 @@ def _rank_normalise(x: torch.Tensor) -> torch.Tensor:
     flat = x.reshape(b, -1)
     ranks = torch.empty_like(flat)
     order = flat.argsort(dim=1)
-    ranks.scatter_(1, order, torch.linspace(0, 1, flat.shape[1], dtype=x.dtype, device=x.device).expand(b, -1).contiguous())
+    ranks.scatter_(
+        1, order, torch.linspace(0, 1, flat.shape[1], dtype=x.dtype, device=x.device).expand(b, -1).contiguous()
+    )
     return ranks.reshape(b, c, h, w)
 
 
@@ -86,7 +89,7 @@ def _scales(h: int, w: int) -> tuple[int, int]:
 
 
 def _grey(image: torch.Tensor) -> torch.Tensor:
-    return (0.299 * image[:, 0:1] + 0.587 * image[:, 1:2] + 0.114 * image[:, 2:3])
+    return 0.299 * image[:, 0:1] + 0.587 * image[:, 1:2] + 0.114 * image[:, 2:3]
 
 
 def haze_depth(image: torch.Tensor, omega: float = 0.95, eps: float = 1e-3) -> torch.Tensor:
@@ -115,7 +118,9 @@ def cap_depth(image: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
     return _minmax(guided_filter(_grey(image), d, r_guide, eps))
 
 
-def estimate_depth_prior(image: torch.Tensor, method: str = DEFAULT_METHOD, cue_weight: float = CUE_WEIGHT) -> torch.Tensor:
+def estimate_depth_prior(
+    image: torch.Tensor, method: str = DEFAULT_METHOD, cue_weight: float = CUE_WEIGHT
+) -> torch.Tensor:
     """Weight-free relative depth: image (3,H,W) → (1,H,W), or (B,3,H,W) → (B,1,H,W); [0,1], far = 1.
 
     ``cue_weight``: weight of the rank-normalised haze cue in the ``*+vertical`` blends.
@@ -142,6 +147,10 @@ def estimate_depth_prior(image: torch.Tensor, method: str = DEFAULT_METHOD, cue_
             cue = haze_depth(small) if method.startswith("haze") else cap_depth(small)
             if "+" in method:
                 cue = _rank_normalise(cue)
-            cue = F.interpolate(cue, size=(h, w), mode="bilinear", align_corners=False) if cue.shape[-2:] != (h, w) else cue
+            cue = (
+                F.interpolate(cue, size=(h, w), mode="bilinear", align_corners=False)
+                if cue.shape[-2:] != (h, w)
+                else cue
+            )
             out = cue if "+" not in method else _minmax(cue_weight * cue + (1 - cue_weight) * vert)
     return out[0] if single else out

@@ -10,6 +10,7 @@ Each is found, in order, from the explicit argument, the environment variable
 below), or the cache folder ``$D2TURB_CACHE_DIR`` (default ``~/.cache/d2turb/``). ``.pth``/``.pt``
 files are read with ``torch.load(weights_only=True)``; ``.safetensors`` is also accepted.
 """
+
 from __future__ import annotations
 
 import os
@@ -19,18 +20,27 @@ import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
-from d2turb.io import cache_dir
 from d2turb.eval.vgg import CHANNELS, FeatureExtractor, load_backbone, load_state_dict_file
+from d2turb.io import cache_dir
 
-BACKBONE_NAMES = {"alex": ["alexnet.safetensors", "alexnet.pth", "alexnet-owt-7be5be79.pth"],
-                  "vgg": ["vgg16.safetensors", "vgg16.pth", "vgg16-397923af.pth"]}
-LIN_NAMES = {net: [f"lpips/{net}.safetensors", f"lpips/{net}.pth", f"lpips_{net}.safetensors", f"lpips_{net}.pth",
-                   f"{net}.safetensors", f"{net}.pth"] for net in CHANNELS}
+BACKBONE_NAMES = {
+    "alex": ["alexnet.safetensors", "alexnet.pth", "alexnet-owt-7be5be79.pth"],
+    "vgg": ["vgg16.safetensors", "vgg16.pth", "vgg16-397923af.pth"],
+}
+LIN_NAMES = {
+    net: [
+        f"lpips/{net}.safetensors",
+        f"lpips/{net}.pth",
+        f"lpips_{net}.safetensors",
+        f"lpips_{net}.pth",
+        f"{net}.safetensors",
+        f"{net}.pth",
+    ]
+    for net in CHANNELS
+}
 # Input normalisation of the LPIPS ScalingLayer, applied to images mapped to [-1, 1]
 _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
-
-
 
 
 def _find(explicit: str | os.PathLike | None, env: str, names: list[str], what: str, option: str) -> Path:
@@ -46,8 +56,10 @@ def _find(explicit: str | os.PathLike | None, env: str, names: list[str], what: 
     for path in candidates:
         if path.is_file():
             return path
-    raise D2TurbError(f"LPIPS needs the {what}: pass {option} FILE, set {env}, or put {names[-1]} in {cache_dir()} "
-                      f"(nothing is downloaded)")
+    raise D2TurbError(
+        f"LPIPS needs the {what}: pass {option} FILE, set {env}, or put {names[-1]} in {cache_dir()} "
+        f"(nothing is downloaded)"
+    )
 
 
 def _lin_head(channels: int) -> nn.Module:
@@ -59,17 +71,28 @@ def _lin_head(channels: int) -> nn.Module:
 class LPIPS(nn.Module):
     """LPIPS distance; ``forward(pred, target)`` takes (B, 3, H, W) in [0, 1] and returns (B,) (0 = identical)."""
 
-    def __init__(self, net: str = "alex", weights: str | os.PathLike | None = None,
-                 backbone: str | os.PathLike | None = None) -> None:
+    def __init__(
+        self, net: str = "alex", weights: str | os.PathLike | None = None, backbone: str | os.PathLike | None = None
+    ) -> None:
         super().__init__()
         if net not in CHANNELS:
             raise D2TurbError(f"unknown LPIPS network {net!r}; choose 'alex' or 'vgg'")
         self.net = net
         backbone_name = "AlexNet" if net == "alex" else "VGG16"
-        backbone_path = _find(backbone, "D2TURB_LPIPS_BACKBONE", BACKBONE_NAMES[net],
-                              f"{backbone_name} backbone weights (torchvision format)", "--lpips-backbone")
-        lin_path = _find(weights, "D2TURB_LPIPS_WEIGHTS", LIN_NAMES[net],
-                         f"LPIPS v0.1 '{net}' linear-layer weights ({net}.pth of the lpips package)", "--lpips-weights")
+        backbone_path = _find(
+            backbone,
+            "D2TURB_LPIPS_BACKBONE",
+            BACKBONE_NAMES[net],
+            f"{backbone_name} backbone weights (torchvision format)",
+            "--lpips-backbone",
+        )
+        lin_path = _find(
+            weights,
+            "D2TURB_LPIPS_WEIGHTS",
+            LIN_NAMES[net],
+            f"LPIPS v0.1 '{net}' linear-layer weights ({net}.pth of the lpips package)",
+            "--lpips-weights",
+        )
         self.features = load_backbone(FeatureExtractor(net, device="meta"), backbone_path)
         for i, c in enumerate(CHANNELS[net]):
             self.add_module(f"lin{i}", _lin_head(c))
@@ -87,8 +110,10 @@ class LPIPS(nn.Module):
             if key not in state:
                 raise D2TurbError(f"LPIPS {self.net} linear weights {path}: missing key {key}")
             if tuple(state[key].shape) != (1, c, 1, 1):
-                raise D2TurbError(f"LPIPS {self.net} linear weights {path}: {key} has shape {tuple(state[key].shape)}, "
-                                  f"expected (1, {c}, 1, 1) (weights of the other network?)")
+                raise D2TurbError(
+                    f"LPIPS {self.net} linear weights {path}: {key} has shape {tuple(state[key].shape)}, "
+                    f"expected (1, {c}, 1, 1) (weights of the other network?)"
+                )
             getattr(self, f"lin{i}").model[1].weight.data.copy_(state[key].float())
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -4,6 +4,7 @@ Images are float tensors (B, C, H, W) (or one image (C, H, W)) in [0, 1]. The ac
 (``PSNR``, ``SSIM``, ``LPIPSMetric``) average per-image values; under ``torch.distributed`` their
 sums and counts are all-reduced in ``compute()``, so every rank gets the global mean.
 """
+
 from __future__ import annotations
 
 import math
@@ -54,8 +55,14 @@ def _filter_valid(x: torch.Tensor, k1d: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
 
 
-def ssim(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0, gaussian: bool = True,
-         sigma: float = 1.5, win_size: int = 7) -> torch.Tensor:
+def ssim(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    data_range: float = 1.0,
+    gaussian: bool = True,
+    sigma: float = 1.5,
+    win_size: int = 7,
+) -> torch.Tensor:
     """Per-image mean SSIM (Wang et al. 2004), shape (B,), averaged over channels and pixels.
 
     ``gaussian=True`` (default) equals ``skimage.metrics.structural_similarity(..., channel_axis=-1,

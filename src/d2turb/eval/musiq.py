@@ -21,6 +21,7 @@ Pipeline (higher score = better quality):
 The official pipeline pads each scale to a fixed sequence length and masks the padding out of the
 attention; padded tokens are simply not created here, which gives the same [CLS] output.
 """
+
 from __future__ import annotations
 
 import math
@@ -61,9 +62,8 @@ class MUSIQConfig:
         return len(self.longer_side_lengths) + int(self.use_original_resolution)
 
 
-
-
 # ----------------------------------------------------------------------------- preprocessing
+
 
 def _same_padding(size: int, kernel: int, stride: int) -> tuple[int, int]:
     """TensorFlow "SAME" padding (before, after) along one axis."""
@@ -83,6 +83,7 @@ def hashed_position_index(count_h: int, count_w: int, grid_size: int = 10) -> to
     row' = floor(i * (G / count_h)) computed in float32 like TF/torch nearest-neighbour resizing of
     ``arange(G)`` to ``count`` samples (clamped to G - 1).
     """
+
     def axis(count: int) -> torch.Tensor:
         scale = torch.tensor(grid_size / count, dtype=torch.float32)
         return torch.floor(torch.arange(count, dtype=torch.float32) * scale).long().clamp(max=grid_size - 1)
@@ -124,6 +125,7 @@ def multiscale_patches(image: torch.Tensor, config: MUSIQConfig = MUSIQConfig())
 
 # ----------------------------------------------------------------------------- network (pyiqa key names)
 
+
 class _StdConv(nn.Conv2d):
     """Conv with weight standardisation and TF "SAME" padding (BiT-style ResNet stem of MUSIQ)."""
 
@@ -158,8 +160,10 @@ class _Attention(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, n, d = x.shape
-        q, k, v = (proj(x).reshape(b, n, self.heads, d // self.heads).transpose(1, 2)
-                   for proj in (self.query, self.key, self.value))
+        q, k, v = (
+            proj(x).reshape(b, n, self.heads, d // self.heads).transpose(1, 2)
+            for proj in (self.query, self.key, self.value)
+        )
         y = F.scaled_dot_product_attention(q, k, v)  # softmax(q k^T / sqrt(d_head)) v
         return self.out(y.transpose(1, 2).reshape(b, n, d))
 
@@ -204,8 +208,9 @@ class _Encoder(nn.Module):
         self.scaleembed_input = _ScaleEmbedding(config.num_scales, d)
         self.cls = nn.Parameter(torch.zeros(1, 1, d))
         self.encoder_norm = nn.LayerNorm(d, eps=1e-6)
-        self.transformer = nn.ModuleDict({f"encoderblock_{i}": _EncoderBlock(d, config.mlp_dim, config.num_heads)
-                                          for i in range(config.num_layers)})
+        self.transformer = nn.ModuleDict(
+            {f"encoderblock_{i}": _EncoderBlock(d, config.mlp_dim, config.num_heads) for i in range(config.num_layers)}
+        )
 
     def forward(self, tokens: torch.Tensor, spatial: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         x = tokens + self.posembed_input.position_emb[0, spatial] + self.scaleembed_input.scale_emb[scale]
@@ -230,8 +235,10 @@ def _num_classes(state: dict[str, torch.Tensor], path: Path) -> int:
         return state["head.weight"].shape[0]
     if "head.0.weight" in state:
         return state["head.0.weight"].shape[0]
-    raise D2TurbError(f"{path} is not a MUSIQ checkpoint (no head.weight / head.0.weight; "
-                      f"first keys: {', '.join(list(state)[:3]) or 'none'})")
+    raise D2TurbError(
+        f"{path} is not a MUSIQ checkpoint (no head.weight / head.0.weight; "
+        f"first keys: {', '.join(list(state)[:3]) or 'none'})"
+    )
 
 
 class MUSIQ(nn.Module):
@@ -243,8 +250,13 @@ class MUSIQ(nn.Module):
     (tests / training); then ``config.num_classes`` defaults to 1.
     """
 
-    def __init__(self, weights: str | os.PathLike | None | bool = None, device: str | torch.device = "cpu",
-                 config: MUSIQConfig | None = None, chunk_patches: int = 1024):
+    def __init__(
+        self,
+        weights: str | os.PathLike | None | bool = None,
+        device: str | torch.device = "cpu",
+        config: MUSIQConfig | None = None,
+        chunk_patches: int = 1024,
+    ):
         super().__init__()
         config = config or MUSIQConfig()
         state, path = None, None
@@ -299,15 +311,19 @@ def _load_strict(model: nn.Module, state: dict[str, torch.Tensor], path: Path) -
     missing = [k for k in wanted if k not in state]
     unexpected = [k for k in state if k not in wanted]
     if missing or unexpected:
-        raise D2TurbError(f"{path} is not a MUSIQ checkpoint for this config: {len(missing)} missing keys "
-                          f"({', '.join(missing[:3])}), {len(unexpected)} unexpected ({', '.join(unexpected[:3])})")
+        raise D2TurbError(
+            f"{path} is not a MUSIQ checkpoint for this config: {len(missing)} missing keys "
+            f"({', '.join(missing[:3])}), {len(unexpected)} unexpected ({', '.join(unexpected[:3])})"
+        )
     bad = [k for k in wanted if state[k].shape != wanted[k].shape]
     if bad:
         k = bad[0]
         c = model.config
-        raise D2TurbError(f"{path}: {len(bad)} MUSIQ weights have the wrong shape, e.g. {k} is {tuple(state[k].shape)} "
-                          f"in the file but {tuple(wanted[k].shape)} in the model (hidden {c.hidden_size}, "
-                          f"{c.num_layers} layers, mlp {c.mlp_dim}, stem {c.stem_width})")
+        raise D2TurbError(
+            f"{path}: {len(bad)} MUSIQ weights have the wrong shape, e.g. {k} is {tuple(state[k].shape)} "
+            f"in the file but {tuple(wanted[k].shape)} in the model (hidden {c.hidden_size}, "
+            f"{c.num_layers} layers, mlp {c.mlp_dim}, stem {c.stem_width})"
+        )
     model.load_state_dict(state)
 
 
@@ -316,8 +332,10 @@ def find_weights(weights: str | os.PathLike | None = None) -> Path:
     if weights:
         path = Path(weights).expanduser()
         if not path.is_file():
-            raise D2TurbError(f"MUSIQ weights file not found: {path} (pass an existing pyiqa musiq_*_ckpt-*.pth; "
-                              f"nothing is downloaded)")
+            raise D2TurbError(
+                f"MUSIQ weights file not found: {path} (pass an existing pyiqa musiq_*_ckpt-*.pth; "
+                f"nothing is downloaded)"
+            )
         return path
     folders = [cache_dir("musiq")]
     if os.environ.get(ENV_VAR):
@@ -332,8 +350,10 @@ def find_weights(weights: str | os.PathLike | None = None) -> Path:
         for path in candidates:
             if path.is_file():
                 return path
-    raise D2TurbError(f"MUSIQ weights not found: pass weights=FILE, set {ENV_VAR}=FILE, or put "
-                      f"musiq_koniq_ckpt-e95806b9.pth (IQA-PyTorch release) in {cache_dir('musiq')} (nothing is downloaded)")
+    raise D2TurbError(
+        f"MUSIQ weights not found: pass weights=FILE, set {ENV_VAR}=FILE, or put "
+        f"musiq_koniq_ckpt-e95806b9.pth (IQA-PyTorch release) in {cache_dir('musiq')} (nothing is downloaded)"
+    )
 
 
 _MODELS: dict[tuple[str, str], MUSIQ] = {}

@@ -10,6 +10,7 @@ One deliberate deviation from floating-point MATLAB: in perfectly flat 7x7 patch
 set to exactly 0 (its exact-arithmetic value) instead of +-1e-14 round-off noise whose sign depends on
 the filter implementation; the noise changes the AGGD left/right counts (NIQE of I19 by ~0.4).
 """
+
 from __future__ import annotations
 
 import functools
@@ -24,7 +25,9 @@ from d2turb.errors import D2TurbError
 
 # MATLAB rgb2gray: first row of inv(NTSC RGB->YIQ matrix), i.e. 0.2989, 0.5870, 0.1140 at full precision.
 # The full precision matters: the documented 4-digit weights move NIQE of I03 by 0.17.
-MATLAB_GREY_WEIGHTS = tuple(float(w) for w in np.linalg.inv([[1.0, 0.956, 0.621], [1.0, -0.272, -0.647], [1.0, -1.106, 1.703]])[0])
+MATLAB_GREY_WEIGHTS = tuple(
+    float(w) for w in np.linalg.inv([[1.0, 0.956, 0.621], [1.0, -0.272, -0.647], [1.0, -1.106, 1.703]])[0]
+)
 BLOCK = 96
 _GAMMA_GRID = 0.2 + 0.001 * np.arange(9801)  # MATLAB 0.2:0.001:10
 _R_GAMMA = gamma_fn(2 / _GAMMA_GRID) ** 2 / (gamma_fn(1 / _GAMMA_GRID) * gamma_fn(3 / _GAMMA_GRID))
@@ -53,8 +56,9 @@ def matlab_grey_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
 def _cubic(x: np.ndarray) -> np.ndarray:
     """MATLAB's bicubic kernel (a = -0.5)."""
     ax = np.abs(x)
-    return ((1.5 * ax**3 - 2.5 * ax**2 + 1) * (ax <= 1)
-            + (-0.5 * ax**3 + 2.5 * ax**2 - 4 * ax + 2) * ((ax > 1) & (ax <= 2)))
+    return (1.5 * ax**3 - 2.5 * ax**2 + 1) * (ax <= 1) + (-0.5 * ax**3 + 2.5 * ax**2 - 4 * ax + 2) * (
+        (ax > 1) & (ax <= 2)
+    )
 
 
 def _resize_matrix(in_len: int, scale: float) -> np.ndarray:
@@ -101,7 +105,9 @@ def _aggd_fit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _block_features(mscn: np.ndarray, block: int) -> np.ndarray:
     """18 NIQE features per non-overlapping block → (n_blocks, 18); blocks in MATLAB column-major order."""
     nr, nc = mscn.shape[0] // block, mscn.shape[1] // block
-    blocks = mscn[: nr * block, : nc * block].reshape(nr, block, nc, block).transpose(2, 0, 1, 3).reshape(-1, block, block)
+    blocks = (
+        mscn[: nr * block, : nc * block].reshape(nr, block, nc, block).transpose(2, 0, 1, 3).reshape(-1, block, block)
+    )
     alpha, bl, br = _aggd_fit(blocks.reshape(len(blocks), -1))
     feats = [alpha, (bl + br) / 2]
     for shift in ((0, 1), (1, 0), (1, 1), (1, -1)):  # MATLAB circshift within the block
@@ -116,7 +122,9 @@ def niqe_features(grey: np.ndarray, window: np.ndarray) -> np.ndarray:
     """(n_blocks, 36) features of a 2-D image with values 0..255 (two scales)."""
     h, w = (grey.shape[0] // BLOCK) * BLOCK, (grey.shape[1] // BLOCK) * BLOCK
     if h == 0 or w == 0:
-        raise D2TurbError(f"NIQE needs an image of at least {BLOCK}x{BLOCK} pixels, got {grey.shape[1]}x{grey.shape[0]}")
+        raise D2TurbError(
+            f"NIQE needs an image of at least {BLOCK}x{BLOCK} pixels, got {grey.shape[1]}x{grey.shape[0]}"
+        )
     im = grey[:h, :w]
     per_scale = []
     for scale in (1, 2):
@@ -136,8 +144,10 @@ def niqe_grey(grey: np.ndarray) -> float:
         feats = niqe_features(grey, window)
     complete = feats[np.isfinite(feats).all(axis=1)]  # flat blocks have undefined fits (MATLAB nanmean/nancov)
     if len(complete) < 2:
-        raise D2TurbError(f"NIQE needs at least two textured {BLOCK}x{BLOCK} blocks; the "
-                          f"{grey.shape[1]}x{grey.shape[0]} image has {len(complete)}")
+        raise D2TurbError(
+            f"NIQE needs at least two textured {BLOCK}x{BLOCK} blocks; the "
+            f"{grey.shape[1]}x{grey.shape[0]} image has {len(complete)}"
+        )
     d = mu_p - np.nanmean(np.where(np.isfinite(feats), feats, np.nan), axis=0)
     cov = np.cov(complete, rowvar=False)
     return float(np.sqrt(d @ np.linalg.pinv((cov_p + cov) / 2) @ d))

@@ -4,6 +4,7 @@
 artifacts (an edge segment of 6 pixels with std < 0.1) and for Gaussian noise (centre/surround std
 criterion). Score in [0, 100], lower is better; a flat image scores 100.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,7 +48,9 @@ def piqe_grey(grey: np.ndarray) -> float:
 
     # Gaussian noise: block std vs ratio of centre to surround std
     centre = blocks[:, :, [7, 8]].transpose(0, 2, 1).reshape(len(blocks), 2 * BLOCK)
-    surround = np.delete(blocks, [7, 9], axis=2).reshape(len(blocks), (BLOCK - 2) * BLOCK)  # MATLAB deletes cols 8 then (new) 9
+    surround = np.delete(blocks, [7, 9], axis=2).reshape(
+        len(blocks), (BLOCK - 2) * BLOCK
+    )  # MATLAB deletes cols 8 then (new) 9
     with np.errstate(divide="ignore", invalid="ignore"):
         cen_sur = np.nan_to_num(centre.std(axis=1, ddof=1) / surround.std(axis=1, ddof=1), nan=0.0)
         block_sigma = np.sqrt(var)

@@ -4,12 +4,13 @@
 each model in ``weights`` ("input" = the unrestored image), and writes ``results.json``,
 ``results.md`` and, with models, comparison grids ``grids/<name>.png`` (input | model 1 | ...).
 """
+
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import torch
 
@@ -22,7 +23,9 @@ HIGHER_IS_BETTER = ("musiq",)
 FULL_REFERENCE = ("psnr", "ssim", "lpips")
 
 
-def no_reference_metric(name: str, device: str = "cpu", musiq_weights: str | None = None) -> Callable[[torch.Tensor], float]:
+def no_reference_metric(
+    name: str, device: str = "cpu", musiq_weights: str | None = None
+) -> Callable[[torch.Tensor], float]:
     """(3, H, W) image in [0, 1] → float, for "niqe", "piqe" (lower is better) or "musiq" (higher is better)."""
     if name == "niqe":
         from d2turb.eval.niqe import niqe
@@ -75,25 +78,41 @@ def _fmt(v: float) -> str:
 
 def _markdown(results: dict) -> str:
     metrics, models = results["metrics"], list(results["models"])
-    lines = [f"# No-reference evaluation of `{results['data']}` ({len(results['images'])} images)", "",
-             "Lower is better for NIQE and PIQE, higher for MUSIQ.", "",
-             "| model | " + " | ".join(f"{m.upper()} {'↑' if m in HIGHER_IS_BETTER else '↓'}" for m in metrics)
-             + " |",
-             "|---|" + "---:|" * len(metrics)]
+    lines = [
+        f"# No-reference evaluation of `{results['data']}` ({len(results['images'])} images)",
+        "",
+        "Lower is better for NIQE and PIQE, higher for MUSIQ.",
+        "",
+        "| model | " + " | ".join(f"{m.upper()} {'↑' if m in HIGHER_IS_BETTER else '↓'}" for m in metrics) + " |",
+        "|---|" + "---:|" * len(metrics),
+    ]
     for model in models:
         lines.append(f"| {model} | " + " | ".join(_fmt(results["models"][model][m]["mean"]) for m in metrics) + " |")
     for m in metrics:
-        lines += ["", f"## {m.upper()} per image", "", "| image | " + " | ".join(models) + " |",
-                  "|---|" + "---:|" * len(models)]
+        lines += [
+            "",
+            f"## {m.upper()} per image",
+            "",
+            "| image | " + " | ".join(models) + " |",
+            "|---|" + "---:|" * len(models),
+        ]
         for name in results["images"]:
-            lines.append(f"| {name} | " + " | ".join(_fmt(results["models"][k][m]["per_image"][name]) for k in models) + " |")
+            lines.append(
+                f"| {name} | " + " | ".join(_fmt(results["models"][k][m]["per_image"][name]) for k in models) + " |"
+            )
     return "\n".join(lines) + "\n"
 
 
-def evaluate_real(real_dir: str | os.PathLike, metrics=("niqe", "piqe"), out_dir: str | os.PathLike = "eval_real",
-                  weights: list[str] | None = None, device: str = "cpu", max_samples: int | None = None,
-                  restorer_factory: Callable[[str, str], Callable[[torch.Tensor], torch.Tensor]] | None = None,
-                  musiq_weights: str | None = None) -> dict:
+def evaluate_real(
+    real_dir: str | os.PathLike,
+    metrics=("niqe", "piqe"),
+    out_dir: str | os.PathLike = "eval_real",
+    weights: list[str] | None = None,
+    device: str = "cpu",
+    max_samples: int | None = None,
+    restorer_factory: Callable[[str, str], Callable[[torch.Tensor], torch.Tensor]] | None = None,
+    musiq_weights: str | None = None,
+) -> dict:
     """Score the images of ``real_dir``; returns the dict written to ``out_dir/results.json``.
 
     ``results["models"][model][metric] = {"per_image": {file name: value}, "mean": value}`` with one
@@ -126,11 +145,21 @@ def evaluate_real(real_dir: str | os.PathLike, metrics=("niqe", "piqe"), out_dir
                 except D2TurbError as exc:
                     raise D2TurbError(f"{path.name} ({n}): {exc}") from None
         if any(r is not None for r in restorers.values()):
-            write_image(out_dir / "grids" / f"{path.stem}.png", _grid([image, *[outputs[n] for n in model_names if restorers[n] is not None]]))
+            write_image(
+                out_dir / "grids" / f"{path.stem}.png",
+                _grid([image, *[outputs[n] for n in model_names if restorers[n] is not None]]),
+            )
 
-    results = {"mode": "real", "data": str(real_dir), "metrics": metric_names, "images": names,
-               "models": {n: {m: {"per_image": values[n][m], "mean": sum(values[n][m].values()) / len(names)}
-                              for m in metric_names} for n in model_names}}
+    results = {
+        "mode": "real",
+        "data": str(real_dir),
+        "metrics": metric_names,
+        "images": names,
+        "models": {
+            n: {m: {"per_image": values[n][m], "mean": sum(values[n][m].values()) / len(names)} for m in metric_names}
+            for n in model_names
+        },
+    }
     results.update({m: results["models"][model_names[0]][m] for m in metric_names})
     write_json(out_dir / "results.json", results)
     write_text(out_dir / "results.md", _markdown(results))

@@ -1,5 +1,6 @@
 """Evaluation reports: paper-style tables (Markdown and LaTeX, laid out like Table 1) and labelled
 comparison grids (input | GT | each model)."""
+
 from __future__ import annotations
 
 import math
@@ -61,19 +62,33 @@ def latex_table(table: dict, metrics: list[str]) -> str:
     """The same table as LaTeX (booktabs, \\textbf best, \\underline second), like the paper's Table 1."""
     models = list(table)
     n = 4 * len(metrics)
-    head = " & ".join(rf"\multicolumn{{4}}{{c}}{{{METRIC_INFO[m][0]}$\{'uparrow' if METRIC_INFO[m][1] else 'downarrow'}$}}"
-                      for m in metrics)
+    head = " & ".join(
+        rf"\multicolumn{{4}}{{c}}{{{METRIC_INFO[m][0]}$\{'uparrow' if METRIC_INFO[m][1] else 'downarrow'}$}}"
+        for m in metrics
+    )
     rules = " ".join(rf"\cmidrule(lr){{{2 + 4 * k}-{5 + 4 * k}}}" for k in range(len(metrics)))
     sub = " & ".join([r"weak & medium & strong & \textbf{Avg}"] * len(metrics))
-    lines = [rf"\begin{{tabular}}{{@{{}} l *{{{n}}}{{c}} @{{}}}}", r"\toprule",
-             rf"\multirow{{2}}{{*}}{{Method}} & {head} \\", rules, rf"& {sub} \\", r"\midrule"]
+    lines = [
+        rf"\begin{{tabular}}{{@{{}} l *{{{n}}}{{c}} @{{}}}}",
+        r"\toprule",
+        rf"\multirow{{2}}{{*}}{{Method}} & {head} \\",
+        rules,
+        rf"& {sub} \\",
+        r"\midrule",
+    ]
     per_metric = {metric: _cells(table, models, metric) for metric in metrics}
     for i, model in enumerate(models):
         cells = []
         for metric in metrics:
             for text, rank in per_metric[metric][i]:
                 text = text.replace("–", "--")
-                cells.append(rf"\textbf{{{text}}}" if rank == 0 and len(models) > 1 else rf"\underline{{{text}}}" if rank == 1 else text)
+                cells.append(
+                    rf"\textbf{{{text}}}"
+                    if rank == 0 and len(models) > 1
+                    else rf"\underline{{{text}}}"
+                    if rank == 1
+                    else text
+                )
         name = model.replace("_", r"\_")
         lines.append(f"{name} & " + " & ".join(cells) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
@@ -90,8 +105,9 @@ def fit_cell(image: torch.Tensor, cell: int) -> torch.Tensor:
     return F.interpolate(image[None].float(), size=size, mode="area")[0]
 
 
-def comparison_grid(rows: list[list[torch.Tensor]], col_labels: list[str], row_labels: list[str],
-                    cell: int = 192, gap: int = 4) -> np.ndarray:
+def comparison_grid(
+    rows: list[list[torch.Tensor]], col_labels: list[str], row_labels: list[str], cell: int = 192, gap: int = 4
+) -> np.ndarray:
     """Labelled grid (HxWx3 uint8): one row per sample, one column per image kind. Each image is fitted
     into a ``cell``×``cell`` box (top-left aligned; the box shrinks to the largest image when all are
     smaller), column labels on top, row labels on the left."""

@@ -5,12 +5,13 @@ Outputs in ``out_dir``: ``results.json`` (per-bin means, per-sample values, note
 (Markdown table laid out like the paper's Table 1), ``results.tex`` (the same in LaTeX) and
 ``grids/<bin>.png`` (labelled comparison grids: input | GT | each model).
 """
+
 from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -29,7 +30,7 @@ def _quantise(x: torch.Tensor) -> torch.Tensor:
 def _unique_names(names: list[str]) -> list[str]:
     out = []
     for i, name in enumerate(names):
-        out.append(name if names.count(name) == 1 else f"{name}#{names[:i + 1].count(name)}")
+        out.append(name if names.count(name) == 1 else f"{name}#{names[: i + 1].count(name)}")
     return out
 
 
@@ -49,17 +50,30 @@ def _lpips_requested(metrics, lpips_weights, lpips_backbone) -> bool:
     """LPIPS counts as asked for explicitly (missing weights → error) when its weights were pointed to
     (arguments or $D2TURB_LPIPS_WEIGHTS / $D2TURB_LPIPS_BACKBONE) or "lpips" was named in a metric list
     other than the default set; otherwise missing weights only drop the column, with a note."""
-    pointed = lpips_weights is not None or lpips_backbone is not None or any(
-        os.environ.get(v) for v in ("D2TURB_LPIPS_WEIGHTS", "D2TURB_LPIPS_BACKBONE"))
+    pointed = (
+        lpips_weights is not None
+        or lpips_backbone is not None
+        or any(os.environ.get(v) for v in ("D2TURB_LPIPS_WEIGHTS", "D2TURB_LPIPS_BACKBONE"))
+    )
     named = metrics is not None and "lpips" in metrics and set(metrics) != set(DEFAULT_METRICS)
     return pointed or named
 
 
-def evaluate_synthetic(weights: Sequence, data_dir: str | os.PathLike, out_dir: str | os.PathLike, device: str = "cpu",
-                       metrics: Sequence[str] | None = None, max_samples: int | None = None,
-                       lpips_weights: str | os.PathLike | None = None, lpips_backbone: str | os.PathLike | None = None,
-                       lpips_net: str = "alex", tile: int = 512, overlap: int = 64, grid_per_bin: int = 2,
-                       progress: bool = False) -> dict:
+def evaluate_synthetic(
+    weights: Sequence,
+    data_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    device: str = "cpu",
+    metrics: Sequence[str] | None = None,
+    max_samples: int | None = None,
+    lpips_weights: str | os.PathLike | None = None,
+    lpips_backbone: str | os.PathLike | None = None,
+    lpips_net: str = "alex",
+    tile: int = 512,
+    overlap: int = 64,
+    grid_per_bin: int = 2,
+    progress: bool = False,
+) -> dict:
     """Evaluate models on a make-dataset folder; write results.json/.md/.tex and grids; return the results.
 
     ``weights``: .safetensors paths, weights names, "input" (identity baseline) or nn.Modules, in table order
@@ -84,7 +98,9 @@ def evaluate_synthetic(weights: Sequence, data_dir: str | os.PathLike, out_dir: 
     metrics = list(DEFAULT_METRICS if metrics is None else metrics)
     unknown = [m for m in metrics if m not in ALL_METRICS]
     if unknown or not metrics:
-        raise D2TurbError(f"unknown metric {unknown[0]!r}; choose from {', '.join(ALL_METRICS)}" if unknown else "no metrics given")
+        raise D2TurbError(
+            f"unknown metric {unknown[0]!r}; choose from {', '.join(ALL_METRICS)}" if unknown else "no metrics given"
+        )
     if max_samples is not None and max_samples < 1:
         raise D2TurbError(f"max_samples must be >= 1, got {max_samples}")
 
@@ -131,8 +147,9 @@ def evaluate_synthetic(weights: Sequence, data_dir: str | os.PathLike, out_dir: 
             outputs.append(pred)
         samples.append(record)
         if bin_name in grids and len(grids[bin_name]) < grid_per_bin:
-            grids[bin_name].append(([turb, gt] + [outputs[k] for k in grid_models],
-                                    f"{item['id']}  D/r0={float(item['dr0']):.2f}"))
+            grids[bin_name].append(
+                ([turb, gt] + [outputs[k] for k in grid_models], f"{item['id']}  D/r0={float(item['dr0']):.2f}")
+            )
 
     table = {}
     for name in names:
@@ -157,16 +174,26 @@ def evaluate_synthetic(weights: Sequence, data_dir: str | os.PathLike, out_dir: 
                 Image.fromarray(arr).save(tmp, format="PNG")
             grid_files[bin_name] = str(path.relative_to(out))
     results = {
-        "data": str(Path(data_dir)), "samples_evaluated": count, "bin_counts": counts, "metrics": metrics,
-        "models": names, "weights": [os.fspath(w) if isinstance(w, (str, os.PathLike)) else type(w).__name__ for w in weights],
-        "table": table, "per_sample": samples, "notes": notes, "grids": grid_files,
+        "data": str(Path(data_dir)),
+        "samples_evaluated": count,
+        "bin_counts": counts,
+        "metrics": metrics,
+        "models": names,
+        "weights": [os.fspath(w) if isinstance(w, (str, os.PathLike)) else type(w).__name__ for w in weights],
+        "table": table,
+        "per_sample": samples,
+        "notes": notes,
+        "grids": grid_files,
         "protocol": "per-bin mean over samples; avg = mean over all samples; outputs quantised to 8 bits",
     }
     write_json(out / "results.json", results)
     bins_line = ", ".join(f"{b}: {counts[b]}" for b in BIN_NAMES)
-    md = ["# Synthetic evaluation\n", f"Dataset `{data_dir}` — {count} samples ({bins_line}); "
-          "bins: weak D/r0 < 2.25 ≤ medium ≤ 3.75 < strong. Avg = mean over all samples.\n",
-          markdown_table(table, metrics)]
+    md = [
+        "# Synthetic evaluation\n",
+        f"Dataset `{data_dir}` — {count} samples ({bins_line}); "
+        "bins: weak D/r0 < 2.25 ≤ medium ≤ 3.75 < strong. Avg = mean over all samples.\n",
+        markdown_table(table, metrics),
+    ]
     md += [f"\n> **Note:** {n}\n" for n in notes]
     if grid_files:
         md.append("\n" + "\n".join(f"![{b}]({p})" for b, p in grid_files.items()) + "\n")

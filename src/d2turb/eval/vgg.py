@@ -4,6 +4,7 @@ The ``features`` Sequential has the same indices as ``torchvision.models.alexnet
 ``torchvision.models.vgg16().features``, so a torchvision state dict (``features.0.weight`` ...) loads
 as is. ``forward`` returns the five ReLU outputs used by LPIPS (and by perceptual losses).
 """
+
 from __future__ import annotations
 
 import os
@@ -15,8 +16,21 @@ from torch import nn
 from d2turb.errors import D2TurbError
 
 # (layer spec, indices of the ReLUs whose outputs are returned)
-_ALEX = [("C", 3, 64, 11, 4, 2), ("R",), ("M",), ("C", 64, 192, 5, 1, 2), ("R",), ("M",),
-         ("C", 192, 384, 3, 1, 1), ("R",), ("C", 384, 256, 3, 1, 1), ("R",), ("C", 256, 256, 3, 1, 1), ("R",), ("M",)]
+_ALEX = [
+    ("C", 3, 64, 11, 4, 2),
+    ("R",),
+    ("M",),
+    ("C", 64, 192, 5, 1, 2),
+    ("R",),
+    ("M",),
+    ("C", 192, 384, 3, 1, 1),
+    ("R",),
+    ("C", 384, 256, 3, 1, 1),
+    ("R",),
+    ("C", 256, 256, 3, 1, 1),
+    ("R",),
+    ("M",),
+]
 _ALEX_TAPS = (1, 4, 7, 9, 11)  # relu1 .. relu5
 _VGG16_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"]
 _VGG16_TAPS = (3, 8, 15, 22, 29)  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
@@ -108,11 +122,15 @@ def load_backbone(extractor: FeatureExtractor, path: str | os.PathLike) -> Featu
     wanted = extractor.state_dict()
     missing = [k for k in wanted if k not in state]
     if missing:
-        raise D2TurbError(f"{extractor.net} backbone {path}: missing keys {missing[:3]} (expected torchvision "
-                          f"{'alexnet' if extractor.net == 'alex' else 'vgg16'} weights)")
+        raise D2TurbError(
+            f"{extractor.net} backbone {path}: missing keys {missing[:3]} (expected torchvision "
+            f"{'alexnet' if extractor.net == 'alex' else 'vgg16'} weights)"
+        )
     bad = [k for k in wanted if state[k].shape != wanted[k].shape]
     if bad:
-        raise D2TurbError(f"{extractor.net} backbone {path}: shape mismatch for {bad[0]}: "
-                          f"{tuple(state[bad[0]].shape)} vs {tuple(wanted[bad[0]].shape)}")
+        raise D2TurbError(
+            f"{extractor.net} backbone {path}: shape mismatch for {bad[0]}: "
+            f"{tuple(state[bad[0]].shape)} vs {tuple(wanted[bad[0]].shape)}"
+        )
     extractor.load_state_dict({k: state[k].float() for k in wanted}, assign=True)
     return extractor

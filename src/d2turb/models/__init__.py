@@ -2,16 +2,46 @@
 
 To add a backbone, create ``d2turb/models/<name>.py`` with a class decorated by ``@register_backbone("<name>")`` and
 add it to the imports below (see docs/models.md)."""
-from d2turb.models.registry import (create_backbone, create_model, list_backbones, list_models, register_backbone,
-                                    register_model)
+
 from d2turb.models import nafnet, restormer  # noqa: F401  (register the backbones)
+from d2turb.models.complexity import (
+    count_flops,
+    count_parameters,
+    flop_counts,
+    measure_latency,
+    model_cost,
+    parameter_count,
+)
 from d2turb.models.d2turb import BackboneRestorer, D2Turb
 from d2turb.models.hub import load_pretrained, save_pretrained
 from d2turb.models.injection import ASPI
 from d2turb.models.rectifier import TiltRectifier
-from d2turb.models.complexity import (count_flops, count_parameters, flop_counts, measure_latency, model_cost,
-                                      parameter_count)
+from d2turb.models.registry import (
+    create_backbone,
+    create_model,
+    list_backbones,
+    list_models,
+    register_backbone,
+    register_model,
+)
 
-__all__ = ["create_model", "create_backbone", "list_models", "list_backbones", "register_model", "register_backbone",
-           "D2Turb", "BackboneRestorer", "TiltRectifier", "ASPI", "save_pretrained", "load_pretrained",
-           "count_parameters", "parameter_count", "count_flops", "flop_counts", "model_cost", "measure_latency"]
+__all__ = [
+    "create_model",
+    "create_backbone",
+    "list_models",
+    "list_backbones",
+    "register_model",
+    "register_backbone",
+    "D2Turb",
+    "BackboneRestorer",
+    "TiltRectifier",
+    "ASPI",
+    "save_pretrained",
+    "load_pretrained",
+    "count_parameters",
+    "parameter_count",
+    "count_flops",
+    "flop_counts",
+    "model_cost",
+    "measure_latency",
+]

@@ -1,4 +1,5 @@
 """Small building blocks shared by the backbones and the rectifier."""
+
 from __future__ import annotations
 
 import torch
@@ -37,8 +38,9 @@ class ChannelLayerNorm(nn.Module):
         return y.to(x.dtype)
 
 
-def transposed_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int, temperature: torch.Tensor,
-                         return_attn: bool = False):
+def transposed_attention(
+    q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int, temperature: torch.Tensor, return_attn: bool = False
+):
     """Attention across channels (Restormer MDTA): q, k, v (B, C, H, W); q and k are L2-normalised over pixels,
     so logits are cosine similarities scaled by a learned per-head temperature, independent of image size.
     Returns (B, C, H, W) and optionally the (B, heads, C/h, C/h) attention matrices."""

@@ -1,4 +1,5 @@
 """Model cost: parameter counts (built on the meta device, no memory), FLOPs via FlopCounterMode, latency."""
+
 from __future__ import annotations
 
 import time
@@ -46,8 +47,13 @@ def model_cost(name: str, size: int = 256, **cfg) -> dict:
         model = create_model(name, **cfg)
     counts = flop_counts(model, size, "meta")
     conv = counts.get("aten.convolution", 0)
-    return {"params": count_parameters(model), "flops": counts["total"], "gmacs": counts["total"] / 2e9,
-            "conv_gmacs": conv / 2e9, "size": size}
+    return {
+        "params": count_parameters(model),
+        "flops": counts["total"],
+        "gmacs": counts["total"] / 2e9,
+        "conv_gmacs": conv / 2e9,
+        "size": size,
+    }
 
 
 def _sync(device: torch.device) -> None:
@@ -55,8 +61,14 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def measure_latency(model: torch.nn.Module, size: int | tuple[int, int] = 256, device="cpu", warmup: int = 1,
-                    repeats: int = 3, dtype=torch.float32) -> float:
+def measure_latency(
+    model: torch.nn.Module,
+    size: int | tuple[int, int] = 256,
+    device="cpu",
+    warmup: int = 1,
+    repeats: int = 3,
+    dtype=torch.float32,
+) -> float:
     """Median wall time in seconds of one forward on a (1, 3, size, size) input."""
     device = torch.device(device)
     h, w = (size, size) if isinstance(size, int) else size
@@ -85,8 +97,16 @@ def efficiency_entries() -> list[tuple[str, dict]]:
     return entries + [(name, {}) for name in list_models() if name not in listed]
 
 
-def benchmark(name: str, cfg: dict | None = None, size: int = 256, device="cpu", warmup: int = 1, repeats: int = 3,
-              latency: bool = True, dtype=torch.float32) -> dict:
+def benchmark(
+    name: str,
+    cfg: dict | None = None,
+    size: int = 256,
+    device="cpu",
+    warmup: int = 1,
+    repeats: int = 3,
+    latency: bool = True,
+    dtype=torch.float32,
+) -> dict:
     """Parameters, FLOPs/MACs (meta device) and, unless ``latency=False``, the median forward latency on ``device``."""
     cfg = dict(cfg or {})
     result = {"model": name, "config": cfg, **model_cost(name, size, **cfg), "device": str(device)}
@@ -105,9 +125,14 @@ def _label(result: dict) -> str:
 def markdown_table(results: list[dict]) -> str:
     """Efficiency table: model, params (M), GMACs (all / convolutions only), latency."""
     size = results[0]["size"] if results else 256
-    lines = [f"| model | params (M) | GMACs @ {size}² | conv GMACs @ {size}² | latency (ms) | device |",
-             "|---|---:|---:|---:|---:|---|"]
+    lines = [
+        f"| model | params (M) | GMACs @ {size}² | conv GMACs @ {size}² | latency (ms) | device |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
     for r in results:
         lat = f"{r['latency_s'] * 1e3:.1f}" if "latency_s" in r else "–"
-        lines.append(f"| {_label(r)} | {r['params'] / 1e6:.2f} | {r['gmacs']:.2f} | {r['conv_gmacs']:.2f} | {lat} | {r['device']} |")
+        lines.append(
+            f"| {_label(r)} | {r['params'] / 1e6:.2f} | {r['gmacs']:.2f} | {r['conv_gmacs']:.2f} | {lat} "
+            f"| {r['device']} |"
+        )
     return "\n".join(lines) + "\n"

@@ -1,13 +1,14 @@
 """D²Turb (Sec. 3.2): deblurring backbone → (Î_tilt, F_guide) (Eq. 8); tilt rectifier with injection of F_guide
 (Eq. 10) → backward flow V̂; Î_clean = S(Î_tilt, V̂) (Eq. 9). Also the plain-backbone restorers (Table 1 baselines)."""
+
 from __future__ import annotations
 
 import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
-from d2turb.models.registry import create_backbone, register_model
 from d2turb.models.rectifier import TiltRectifier
+from d2turb.models.registry import create_backbone, register_model
 from d2turb.ops.warp import warp
 
 
@@ -21,20 +22,29 @@ def _check_input(image: torch.Tensor) -> None:
 
 @register_model("d2turb")
 class D2Turb(nn.Module):
-    """forward(image (B,3,H,W)) -> {"deblurred": Î_tilt, "restored": Î_clean, "flow": V̂ (B,2,H,W) pixels x,y, "guide": F_guide}.
+    """forward(image (B,3,H,W)) -> {"deblurred": Î_tilt, "restored": Î_clean, "flow": V̂ (B,2,H,W) pixels x,y,
+    "guide": F_guide}.
 
     backbone: a registered backbone name, configured by ``backbone_cfg``; injection: "aspi" | "concat" | "none",
     configured by ``injection_cfg``; ``rectifier_cfg``: TiltRectifier keywords (width, mults, depth,
-    residual_bottleneck, flow_mode). Defaults = paper configuration (Restormer + ASPI: 31.88 M parameters; paper 31.82 M).
+    residual_bottleneck, flow_mode). Defaults = paper configuration (Restormer + ASPI: 31.88 M parameters;
+    paper 31.82 M).
     """
 
-    def __init__(self, backbone: str = "restormer", injection: str = "aspi", backbone_cfg: dict | None = None,
-                 rectifier_cfg: dict | None = None, injection_cfg: dict | None = None):
+    def __init__(
+        self,
+        backbone: str = "restormer",
+        injection: str = "aspi",
+        backbone_cfg: dict | None = None,
+        rectifier_cfg: dict | None = None,
+        injection_cfg: dict | None = None,
+    ):
         super().__init__()
         self.backbone = create_backbone(backbone, **(backbone_cfg or {}))
         try:
-            self.rectifier = TiltRectifier(self.backbone.guide_channels, injection=injection,
-                                           injection_cfg=injection_cfg, **(rectifier_cfg or {}))
+            self.rectifier = TiltRectifier(
+                self.backbone.guide_channels, injection=injection, injection_cfg=injection_cfg, **(rectifier_cfg or {})
+            )
         except (TypeError, ValueError) as exc:
             raise D2TurbError(f"d2turb: bad rectifier/injection config ({exc})") from None
 
@@ -63,8 +73,13 @@ class BackboneRestorer(nn.Module):
 
 
 @register_model("d2turb_lite")
-def d2turb_lite(backbone: str = "nafnet", injection: str = "aspi", backbone_cfg: dict | None = None,
-                rectifier_cfg: dict | None = None, injection_cfg: dict | None = None) -> D2Turb:
+def d2turb_lite(
+    backbone: str = "nafnet",
+    injection: str = "aspi",
+    backbone_cfg: dict | None = None,
+    rectifier_cfg: dict | None = None,
+    injection_cfg: dict | None = None,
+) -> D2Turb:
     """CPU-friendly preset: the tiny NAFNet backbone and a narrow 4-level rectifier."""
     rect = {"width": 16, "mults": (1, 2, 4, 4, 8), "depth": 4, **(rectifier_cfg or {})}
     return D2Turb(backbone, injection, backbone_cfg, rect, injection_cfg)

@@ -1,6 +1,7 @@
 """Weights I/O. ``save_pretrained`` writes one .safetensors file whose metadata holds the model config
 (``d2turb_config``: JSON of ``model.config``) and ``d2turb_sha256``: a SHA-256 over the tensors (name, dtype, shape,
 bytes, in name order). ``load_pretrained`` rebuilds the model, verifies the checksum and loads strictly."""
+
 from __future__ import annotations
 
 import hashlib
@@ -45,7 +46,8 @@ def save_pretrained(model: nn.Module, path: str | os.PathLike) -> Path:
 
 
 def load_pretrained(path: str | os.PathLike, device="cpu") -> nn.Module:
-    """Rebuild the model saved by :func:`save_pretrained`, verify its checksum, load strictly; returns it in eval mode."""
+    """Rebuild the model saved by :func:`save_pretrained`, verify its checksum, load strictly; returns it in eval
+    mode."""
     from safetensors import safe_open
 
     path = Path(path)

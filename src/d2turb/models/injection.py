@@ -1,6 +1,7 @@
 """How the rectifier's shallow embedding F_shallow receives the backbone's F_guide (paper Sec. 3.2, Table ablation):
 "none" (pure cascade), "concat" (concatenate, 1×1 conv) and "aspi" (Adaptive Structural Prior Injection, Eq. 10).
 Every variant maps (F_shallow (B,C,H,W), F_guide (B,G,H,W)) -> F_fused (B,C,H,W)."""
+
 from __future__ import annotations
 
 import torch

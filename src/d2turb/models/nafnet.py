@@ -1,5 +1,6 @@
 """NAFNet-style backbone (Chen et al., ECCV 2022): a light, fast deblurring backbone for CPU users.
 forward(image) -> (Î_tilt, F_guide) (Eq. 8); F_guide is the decoder feature before the output conv."""
+
 from __future__ import annotations
 
 import torch
@@ -42,8 +43,14 @@ class NAFBlock(nn.Module):
 
 @register_backbone("nafnet")
 class NAFNet(nn.Module):
-    def __init__(self, width: int = 16, enc_blocks=(1, 1, 1, 1), middle_blocks: int = 1, dec_blocks=(1, 1, 1, 1),
-                 in_channels: int = 3):
+    def __init__(
+        self,
+        width: int = 16,
+        enc_blocks=(1, 1, 1, 1),
+        middle_blocks: int = 1,
+        dec_blocks=(1, 1, 1, 1),
+        in_channels: int = 3,
+    ):
         super().__init__()
         if len(enc_blocks) != len(dec_blocks):
             raise ValueError("nafnet: enc_blocks and dec_blocks need the same length")

@@ -4,10 +4,11 @@
 :func:`d2turb.models.hub.save_pretrained` can rebuild it. Adding a backbone is a one-file job: decorate
 its class with ``@register_backbone("name")`` (and import the file in ``d2turb/models/__init__.py``).
 """
+
 from __future__ import annotations
 
 import json
-from typing import Callable
+from collections.abc import Callable
 
 from torch import nn
 

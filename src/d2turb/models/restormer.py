@@ -2,6 +2,7 @@
 (Eq. 8), F_guide being the refinement feature right before the output projection.
 Default = the paper configuration: widths 48/96/192/384, blocks 4/6/6/8, heads 1/2/4/8, 4 refinement blocks,
 FFN expansion 2.66, bias-free LayerNorm, no conv biases (26.13 M parameters)."""
+
 from __future__ import annotations
 
 import torch
@@ -74,8 +75,17 @@ class Upsample(nn.Sequential):  # conv doubles channels, pixel-shuffle: (C, H, W
 class Restormer(nn.Module):
     multiple = 8  # three 2× downsamples
 
-    def __init__(self, dim: int = 48, num_blocks=(4, 6, 6, 8), heads=(1, 2, 4, 8), num_refinement_blocks: int = 4,
-                 ffn_expansion: float = 2.66, bias: bool = False, norm_bias: bool = False, in_channels: int = 3):
+    def __init__(
+        self,
+        dim: int = 48,
+        num_blocks=(4, 6, 6, 8),
+        heads=(1, 2, 4, 8),
+        num_refinement_blocks: int = 4,
+        ffn_expansion: float = 2.66,
+        bias: bool = False,
+        norm_bias: bool = False,
+        in_channels: int = 3,
+    ):
         super().__init__()
         if len(num_blocks) != 4 or len(heads) != 4:
             raise ValueError("restormer: num_blocks and heads need 4 entries (levels 1-4)")

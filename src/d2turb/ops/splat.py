@@ -7,6 +7,7 @@ weights, the weights are accumulated as a density, and V = Σ w·(−Δ) / Σ w.
 ``min_density``) are filled by normalised convolution from filled neighbours, then by −Δ.
 Everything is differentiable with respect to Δ (bilinear weights and values, ``index_add``).
 """
+
 from __future__ import annotations
 
 import torch
@@ -68,8 +69,9 @@ def check_flow(flow: torch.Tensor, name: str = "flow") -> None:
         raise D2TurbError(f"{name}: contains NaN or infinite values")
 
 
-def backward_flow(forward_flow: torch.Tensor, min_density: float = 1e-3, fill_iterations: int = 8,
-                  refine_iterations: int = 0) -> torch.Tensor:
+def backward_flow(
+    forward_flow: torch.Tensor, min_density: float = 1e-3, fill_iterations: int = 8, refine_iterations: int = 0
+) -> torch.Tensor:
     """Invert a forward displacement Δ (``warp(I, Δ)`` = I_tilt) into V with ``warp(I_tilt, V) ≈ I``.
 
     forward_flow (B, 2, H, W) in pixels (channel 0 = x). ``min_density``: splatted weight below which

@@ -1,4 +1,5 @@
 """Differentiable backward warping by a dense pixel flow."""
+
 from __future__ import annotations
 
 import torch
@@ -18,7 +19,9 @@ def base_grid(height: int, width: int, device=None, dtype=torch.float32) -> torc
     return torch.stack((xs, ys))[None]
 
 
-def sample_at(image: torch.Tensor, coords: torch.Tensor, padding_mode: str = "border", mode: str = "bilinear") -> torch.Tensor:
+def sample_at(
+    image: torch.Tensor, coords: torch.Tensor, padding_mode: str = "border", mode: str = "bilinear"
+) -> torch.Tensor:
     """Sample ``image`` (B, C, H, W) at absolute pixel coordinates ``coords`` (B, 2, h, w), x then y.
 
     The output is (B, C, h, w); h, w need not equal H, W (e.g. a strip of rows of a large image).
@@ -38,7 +41,9 @@ def warp(image: torch.Tensor, flow: torch.Tensor, padding_mode: str = "border", 
     Differentiable with respect to both image and flow.
     """
     if image.ndim != 4 or flow.ndim != 4 or flow.shape[1] != 2:
-        raise D2TurbError(f"warp: expected image (B,C,H,W) and flow (B,2,H,W), got {tuple(image.shape)} and {tuple(flow.shape)}")
+        raise D2TurbError(
+            f"warp: expected image (B,C,H,W) and flow (B,2,H,W), got {tuple(image.shape)} and {tuple(flow.shape)}"
+        )
     if image.shape[0] != flow.shape[0] or image.shape[-2:] != flow.shape[-2:]:
         raise D2TurbError(f"warp: image {tuple(image.shape)} and flow {tuple(flow.shape)} do not match")
     _, _, h, w = image.shape

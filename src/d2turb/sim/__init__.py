@@ -1,6 +1,25 @@
 """Physics-validated, depth-aware atmospheric turbulence simulator (paper Eq. 1–7)."""
-from d2turb.sim.params import BINS, MODULATIONS, TurbulenceParams, depth_modulation, dr0_bin, fried_r0_spherical, sample_dr0
+
+from d2turb.sim.params import (
+    BINS,
+    MODULATIONS,
+    TurbulenceParams,
+    depth_modulation,
+    dr0_bin,
+    fried_r0_spherical,
+    sample_dr0,
+)
 from d2turb.sim.simulator import SimResult, Simulator, simulate
 
-__all__ = ["BINS", "MODULATIONS", "TurbulenceParams", "Simulator", "SimResult", "simulate", "sample_dr0", "dr0_bin",
-           "depth_modulation", "fried_r0_spherical"]
+__all__ = [
+    "BINS",
+    "MODULATIONS",
+    "TurbulenceParams",
+    "Simulator",
+    "SimResult",
+    "simulate",
+    "sample_dr0",
+    "dr0_bin",
+    "depth_modulation",
+    "fried_r0_spherical",
+]

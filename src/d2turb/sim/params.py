@@ -1,4 +1,5 @@
 """Physical turbulence parameters (SI units) with validation, strength bins and depth modulation."""
+
 from __future__ import annotations
 
 import math
@@ -60,19 +61,29 @@ class TurbulenceParams:
         wl = tuple(wl) if isinstance(wl, (list, tuple)) else (wl,)
         if len(wl) not in (1, 3):
             raise D2TurbError(f"wavelength_m must be one value or three (R, G, B), got {len(wl)}")
-        self.wavelength_m = tuple(_positive("wavelength_m", w) for w in wl) if len(wl) == 3 else _positive("wavelength_m", wl[0])
+        self.wavelength_m = (
+            tuple(_positive("wavelength_m", w) for w in wl) if len(wl) == 3 else _positive("wavelength_m", wl[0])
+        )
         if max(self.wavelengths) >= self.aperture_m:
-            raise D2TurbError(f"wavelength {max(self.wavelengths)} m is not smaller than the aperture {self.aperture_m} m")
+            raise D2TurbError(
+                f"wavelength {max(self.wavelengths)} m is not smaller than the aperture {self.aperture_m} m"
+            )
         if self.cn2 is not None:
             cn2 = _positive("cn2", self.cn2)
             dr0_from_cn2 = self.aperture_m / fried_r0_spherical(cn2, self.path_length_m, self.reference_wavelength)
             if self.dr0 is not None and abs(float(self.dr0) - dr0_from_cn2) > 1e-3 * dr0_from_cn2:
-                raise D2TurbError(f"give either dr0 or cn2: dr0={self.dr0} disagrees with cn2={self.cn2} (D/r0={dr0_from_cn2:.4g})")
+                raise D2TurbError(
+                    f"give either dr0 or cn2: dr0={self.dr0} disagrees with cn2={self.cn2} (D/r0={dr0_from_cn2:.4g})"
+                )
             self.cn2, self.dr0 = cn2, dr0_from_cn2
         self.dr0 = 3.0 if self.dr0 is None else _positive("dr0", self.dr0)
         if self.dr0 > MAX_DR0:
             raise D2TurbError(f"D/r0 = {self.dr0:.3g} is beyond the supported range (0, {MAX_DR0:g}]")
-        self.ifov_rad = self.reference_wavelength / (2 * self.aperture_m) if self.ifov_rad is None else _positive("ifov_rad", self.ifov_rad)
+        self.ifov_rad = (
+            self.reference_wavelength / (2 * self.aperture_m)
+            if self.ifov_rad is None
+            else _positive("ifov_rad", self.ifov_rad)
+        )
         if not isinstance(self.n_zernike, int) or not 4 <= self.n_zernike <= 120:
             raise D2TurbError(f"n_zernike must be an integer in [4, 120], got {self.n_zernike!r}")
         s = float(self.offset_s)
@@ -127,7 +138,9 @@ def sample_dr0(n: int, low: float, high: float, generator: torch.Generator | Non
     return low + (high - low) * torch.rand(int(n), generator=generator, dtype=torch.float64).float()
 
 
-def depth_modulation(depth: torch.Tensor | None, strategy: str = "power_offset", offset_s: float = 0.5) -> torch.Tensor | None:
+def depth_modulation(
+    depth: torch.Tensor | None, strategy: str = "power_offset", offset_s: float = 0.5
+) -> torch.Tensor | None:
     """Turbulence modulation M from relative depth d̃ in [0, 1] (far = 1).
 
     power_offset: z = L((1-s)d̃ + s) (Eq. 1), M = (z/L)^(3/5) (Eq. 3, z_max = L).

@@ -1,4 +1,5 @@
 """Exact PSFs from Zernike phase by pupil FFT, PCA basis and spatially varying blur."""
+
 from __future__ import annotations
 
 import math
@@ -19,8 +20,16 @@ class PupilOptics:
     one pixel; undersampled pixels (ifov > λ/(2D)) are computed on an odd q× finer grid and binned.
     """
 
-    def __init__(self, wavelengths, ref_wavelength: float, aperture_m: float, ifov_rad: float,
-                 modes: range, device="cpu", min_size: int = 64):
+    def __init__(
+        self,
+        wavelengths,
+        ref_wavelength: float,
+        aperture_m: float,
+        ifov_rad: float,
+        modes: range,
+        device="cpu",
+        min_size: int = 64,
+    ):
         self.modes, self.device = list(modes), torch.device(device)
         self.channels = []
         for wl in wavelengths:
@@ -36,11 +45,15 @@ class PupilOptics:
             inside = rho <= 1.0
             zern = np.stack([zernike(j, rho[inside], theta[inside]) for j in self.modes]) * (ref_wavelength / wl)
             rows, cols = np.nonzero(inside)
-            self.channels.append(dict(
-                q=q, n_out=n_out, nf=nf,
-                zern=torch.from_numpy(zern).float().to(self.device),
-                index=torch.from_numpy(rows * nf + cols).to(self.device),
-            ))
+            self.channels.append(
+                dict(
+                    q=q,
+                    n_out=n_out,
+                    nf=nf,
+                    zern=torch.from_numpy(zern).float().to(self.device),
+                    index=torch.from_numpy(rows * nf + cols).to(self.device),
+                )
+            )
         self.max_half_window = min(ch["n_out"] for ch in self.channels) // 2 - 1
 
     def psfs(self, coeffs: torch.Tensor, half_window: int) -> torch.Tensor:
@@ -61,7 +74,7 @@ class PupilOptics:
                 psf = torch.roll(psf, shifts=((q - 1) // 2, (q - 1) // 2), dims=(-2, -1))
                 psf = F.avg_pool2d(psf[:, None], q)[:, 0]
             c = n_out // 2
-            psf = psf[:, c - h: c + h + 1, c - h: c + h + 1]
+            psf = psf[:, c - h : c + h + 1, c - h : c + h + 1]
             out.append(psf / psf.sum(dim=(-2, -1), keepdim=True))
         return torch.stack(out)
 
@@ -95,7 +108,14 @@ def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0
     if total <= 1e-12 * float((mean * mean).sum()) * fit.shape[0]:
         k = 0
     else:
-        k = int(torch.searchsorted(torch.cumsum(lam, 0) / total, torch.tensor(explained, dtype=lam.dtype, device=lam.device)).item()) + 1
+        k = (
+            int(
+                torch.searchsorted(
+                    torch.cumsum(lam, 0) / total, torch.tensor(explained, dtype=lam.dtype, device=lam.device)
+                ).item()
+            )
+            + 1
+        )
         k = min(k, max_components, fit.shape[0])
     comps = (fit.T @ u[:, :k]) / lam[:k].sqrt().clamp_min(1e-30)
     comps = comps - comps.mean(0, keepdim=True)  # exactly zero-sum: a flat image stays flat
@@ -120,7 +140,7 @@ def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Ten
     kern_f = torch.fft.rfft2(torch.roll(kern, shifts=(-half, -half), dims=(-2, -1)))
     out = None
     for k in range(basis.shape[1]):
-        conv = torch.fft.irfft2(img_f * kern_f[:, k], s=(hp, wp))[..., half: half + hgt, half: half + wid]
+        conv = torch.fft.irfft2(img_f * kern_f[:, k], s=(hp, wp))[..., half : half + hgt, half : half + wid]
         term = conv if k == 0 else conv * weights[:, :, k - 1]
         out = term if out is None else out + term
     return out

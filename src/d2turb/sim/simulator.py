@@ -1,4 +1,5 @@
 """Depth-aware Zernike-based turbulence simulator (paper Eq. 1–7)."""
+
 from __future__ import annotations
 
 import math
@@ -64,8 +65,15 @@ class Simulator:
         size = 1 << (size - 1).bit_length() if size > 64 else size
         if size not in self._optics:
             p = self.params
-            self._optics[size] = PupilOptics(p.wavelengths, p.reference_wavelength, p.aperture_m, p.ifov_rad,
-                                             range(4, p.n_zernike + 1), self.device, min_size=size)
+            self._optics[size] = PupilOptics(
+                p.wavelengths,
+                p.reference_wavelength,
+                p.aperture_m,
+                p.ifov_rad,
+                range(4, p.n_zernike + 1),
+                self.device,
+                min_size=size,
+            )
         return self._optics[size]
 
     # ---- random fields -------------------------------------------------------------------------
@@ -88,8 +96,10 @@ class Simulator:
     def high_sampler(self, gh: int, gw: int, spacing: tuple[float, float]) -> ScalarFieldSampler:
         key = ("high", gh, gw, spacing)
         if key not in self._samplers:
+
             def corr_for(n):
                 return lambda r: sum(wk * np.exp(-(((n + 1) * s) ** 2)) for wk, s in self._separation_s(r))
+
             self._samplers[key] = ScalarFieldSampler(gh, gw, [corr_for(n) for n in self.high_orders], spacing)
         return self._samplers[key]
 
@@ -122,12 +132,16 @@ class Simulator:
             raise D2TurbError(f"D/r0 must be in (0, {MAX_DR0:g}], got {v.tolist()}")
         return v.clone()
 
-    def __call__(self, image: torch.Tensor, depth: torch.Tensor | None = None, dr0=None,
-                 generator: torch.Generator | None = None) -> SimResult:
+    def __call__(
+        self, image: torch.Tensor, depth: torch.Tensor | None = None, dr0=None, generator: torch.Generator | None = None
+    ) -> SimResult:
         if isinstance(image, torch.Tensor) and image.ndim == 3:
             image = image[None]
         if not isinstance(image, torch.Tensor) or image.ndim != 4 or not image.is_floating_point():
-            raise D2TurbError(f"image must be a floating tensor (B, C, H, W) or (C, H, W), got {getattr(image, 'shape', type(image).__name__)}")
+            raise D2TurbError(
+                "image must be a floating tensor (B, C, H, W) or (C, H, W), "
+                f"got {getattr(image, 'shape', type(image).__name__)}"
+            )
         if not torch.isfinite(image).all():
             raise D2TurbError("image contains NaN or infinite values")
         b, c, h, w = image.shape
@@ -177,8 +191,15 @@ class Simulator:
         flow = (modulation * flow0).to(image.dtype)  # Eq. 5
         turb = warp(blurred, flow).clamp(0, 1)  # Eq. 6
         tilt = warp(image, flow)  # Eq. 7
-        return SimResult(turb=turb, tilt=tilt, clean=image, flow=flow, modulation=modulation,
-                         dr0=dr0.float().to(self.device), blur=blurred)
+        return SimResult(
+            turb=turb,
+            tilt=tilt,
+            clean=image,
+            flow=flow,
+            modulation=modulation,
+            dr0=dr0.float().to(self.device),
+            blur=blurred,
+        )
 
     def _check_depth(self, depth, b, h, w):
         if depth is None:
@@ -194,8 +215,14 @@ class Simulator:
         return depth.to(self.device, torch.float32).expand(b, 1, h, w)
 
 
-def simulate(image: torch.Tensor, params: TurbulenceParams | None = None, depth=None, dr0=None, seed: int | None = None,
-             device=None) -> SimResult:
+def simulate(
+    image: torch.Tensor,
+    params: TurbulenceParams | None = None,
+    depth=None,
+    dr0=None,
+    seed: int | None = None,
+    device=None,
+) -> SimResult:
     """One-shot convenience: ``Simulator(params)(image, depth, dr0, generator seeded with seed)``."""
     device = device or (image.device if isinstance(image, torch.Tensor) else "cpu")
     gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None

@@ -5,6 +5,7 @@ I_n(s) = ∫ z^(−14/3) J_n(2sz) J_2(z)² dz and s = θz/(D(1−z/L)) for a lay
 aperture and a point source at range L. A constant-Cn² path averages the layer correlations with
 weight (1−z/L)^(5/3).
 """
+
 from __future__ import annotations
 
 import math
@@ -71,7 +72,9 @@ def path_nodes(geometry: str, layer_z_frac: float = 0.5, n_layers: int = 48) -> 
     return t, w / w.sum()
 
 
-def tilt_correlation(theta_rad, aperture_m: float, path_length_m: float, geometry: str = "path", layer_z_frac: float = 0.5):
+def tilt_correlation(
+    theta_rad, aperture_m: float, path_length_m: float, geometry: str = "path", layer_z_frac: float = 0.5
+):
     """(perpendicular, parallel) correlation of tilt at image separation θ (rad) for the chosen geometry."""
     theta = np.abs(np.asarray(theta_rad, dtype=np.float64))
     t, w = path_nodes(geometry, layer_z_frac)
@@ -144,8 +147,8 @@ class VectorFieldSampler:
 
         sxx, sxy, syy = (c * cell for c in tensor(fy, fx))
         # cells next to the origin: average over a sub×sub grid inside the cell
-        mi = np.unique(np.r_[0:near + 1, gh - near:gh] % gh)
-        ni = np.unique(np.r_[0:near + 1, gw - near:gw] % gw)
+        mi = np.unique(np.r_[0 : near + 1, gh - near : gh] % gh)
+        ni = np.unique(np.r_[0 : near + 1, gw - near : gw] % gw)
         off = (np.arange(sub) + 0.5) / sub - 0.5
         for m in mi:
             for n in ni:
@@ -168,7 +171,7 @@ class VectorFieldSampler:
     def implied_covariance(self) -> np.ndarray:
         """Covariance tensor (gh, gw, 2, 2) of the generated fields versus pixel offset (torus order)."""
         n = self.grid[0] * self.grid[1]
-        return (np.fft.ifft2(self.spectrum, axes=(0, 1)).real * n)
+        return np.fft.ifft2(self.spectrum, axes=(0, 1)).real * n
 
     def sample(self, count: int, generator: torch.Generator | None = None, device="cpu") -> torch.Tensor:
         """(count, 2, H, W) float32 unit-variance fields; real and imaginary parts give two samples."""

@@ -1,4 +1,5 @@
 """Noll-indexed, Noll-normalised Zernike polynomials and Noll's coefficient covariance."""
+
 from __future__ import annotations
 
 import math
@@ -21,7 +22,11 @@ def noll_to_nm(j: int) -> tuple[int, int]:
 def radial(n: int, m: int, rho: np.ndarray) -> np.ndarray:
     out = np.zeros_like(rho, dtype=np.float64)
     for k in range((n - m) // 2 + 1):
-        c = (-1) ** k * math.factorial(n - k) / (math.factorial(k) * math.factorial((n + m) // 2 - k) * math.factorial((n - m) // 2 - k))
+        c = (
+            (-1) ** k
+            * math.factorial(n - k)
+            / (math.factorial(k) * math.factorial((n + m) // 2 - k) * math.factorial((n - m) // 2 - k))
+        )
         out += c * rho ** (n - 2 * k)
     return out
 
@@ -51,7 +56,9 @@ def noll_covariance(n_modes: int) -> np.ndarray:
             if m != m2 or (m != 0 and (j - jp) % 2):
                 continue
             C[a, b] = (
-                2.2424 * (-1) ** ((n + n2 - 2 * m) // 2) * math.sqrt((n + 1) * (n2 + 1))
+                2.2424
+                * (-1) ** ((n + n2 - 2 * m) // 2)
+                * math.sqrt((n + 1) * (n2 + 1))
                 * gamma((n + n2 - 5 / 3) / 2)
                 / (gamma((n - n2 + 17 / 3) / 2) * gamma((n2 - n + 17 / 3) / 2) * gamma((n + n2 + 23 / 3) / 2))
             )

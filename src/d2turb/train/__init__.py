@@ -1,7 +1,27 @@
 """d2turb.train: the multi-stage objective (Sec. 3.3), YAML configs and the (DDP) training loop."""
+
 from d2turb.train.config import DEFAULTS, load_config
-from d2turb.train.losses import NATIVE_LOSS, NATIVE_LOSSES, MultiStageLoss, PerceptualLoss, build_loss, l1_loss, psnr_loss
+from d2turb.train.losses import (
+    NATIVE_LOSS,
+    NATIVE_LOSSES,
+    MultiStageLoss,
+    PerceptualLoss,
+    build_loss,
+    l1_loss,
+    psnr_loss,
+)
 from d2turb.train.trainer import Trainer, init_distributed
 
-__all__ = ["DEFAULTS", "load_config", "MultiStageLoss", "PerceptualLoss", "build_loss", "l1_loss", "psnr_loss",
-           "NATIVE_LOSS", "NATIVE_LOSSES", "Trainer", "init_distributed"]
+__all__ = [
+    "DEFAULTS",
+    "load_config",
+    "MultiStageLoss",
+    "PerceptualLoss",
+    "build_loss",
+    "l1_loss",
+    "psnr_loss",
+    "NATIVE_LOSS",
+    "NATIVE_LOSSES",
+    "Trainer",
+    "init_distributed",
+]

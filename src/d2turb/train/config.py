@@ -3,6 +3,7 @@
 Every section except ``model`` (free keyword arguments of the model) has a fixed set of keys; an unknown key is a
 one-line :class:`D2TurbError`, so a typo never silently trains with a default.
 """
+
 from __future__ import annotations
 
 import copy
@@ -97,7 +98,9 @@ def _nest(path: list[str], value) -> dict:
     return out
 
 
-def load_config(path: str | os.PathLike | None = None, overrides: list[str] | tuple = (), base: dict | None = None) -> dict:
+def load_config(
+    path: str | os.PathLike | None = None, overrides: list[str] | tuple = (), base: dict | None = None
+) -> dict:
     """Read a YAML config (or start from ``base``), merge it onto :data:`DEFAULTS`, apply ``key=value`` overrides,
     validate. Relative data paths are kept as written (resolved against the working directory)."""
     import yaml

@@ -8,12 +8,13 @@
 * Plain backbones (flow None, Table 1 baselines): λ_photo·L1(restored, I_gt) (+ λ_vgg·VGG term).
 All norms are means over elements, so a batch split across processes averages to the full-batch loss.
 """
+
 from __future__ import annotations
 
 import math
 import os
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -58,7 +59,7 @@ class PerceptualLoss(nn.Module):
         self.extractor = extractor.eval().requires_grad_(False)
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike) -> "PerceptualLoss":
+    def from_file(cls, path: str | os.PathLike) -> PerceptualLoss:
         from d2turb.eval.vgg import FeatureExtractor, load_backbone
 
         return cls(load_backbone(FeatureExtractor("vgg", device="meta"), path))
@@ -78,8 +79,15 @@ class PerceptualLoss(nn.Module):
 class MultiStageLoss(nn.Module):
     """``forward(outputs, batch) -> (total, terms)``; ``terms`` maps each term name to its unweighted value."""
 
-    def __init__(self, deblur: float = 1.0, flow: float = 5.0, photo: float = 1.0, vgg: float = 0.02,
-                 perceptual: nn.Module | None = None, native: str = "l1"):
+    def __init__(
+        self,
+        deblur: float = 1.0,
+        flow: float = 5.0,
+        photo: float = 1.0,
+        vgg: float = 0.02,
+        perceptual: nn.Module | None = None,
+        native: str = "l1",
+    ):
         super().__init__()
         if native not in NATIVE_LOSSES:
             raise D2TurbError(f"unknown native loss {native!r}; choose from {', '.join(NATIVE_LOSSES)}")
@@ -111,6 +119,11 @@ def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True
             perceptual = PerceptualLoss.from_file(path).to(device)
         elif warn:
             print("warning: loss.vgg_weights not set; the VGG perceptual term (λ_vgg) is disabled", file=sys.stderr)
-    return MultiStageLoss(deblur=loss_cfg.get("deblur", 1.0), flow=loss_cfg.get("flow", 5.0),
-                          photo=loss_cfg.get("photo", 1.0), vgg=loss_cfg.get("vgg", 0.02), perceptual=perceptual,
-                          native=native_loss_name(model, loss_cfg.get("native")))
+    return MultiStageLoss(
+        deblur=loss_cfg.get("deblur", 1.0),
+        flow=loss_cfg.get("flow", 5.0),
+        photo=loss_cfg.get("photo", 1.0),
+        vgg=loss_cfg.get("vgg", 0.02),
+        perceptual=perceptual,
+        native=native_loss_name(model, loss_cfg.get("native")),
+    )

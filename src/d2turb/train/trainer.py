@@ -6,6 +6,7 @@ with ``torch.load(weights_only=True)``), ``model.safetensors`` / ``best.safetens
 ``log.jsonl``, ``config.yaml``. Only rank 0 writes. Resuming is exact with ``num_workers: 0``: the data order is a
 function of (seed, epoch), the batches already consumed in the current epoch are skipped, and all RNG states return.
 """
+
 from __future__ import annotations
 
 import json
@@ -42,7 +43,7 @@ class ResumableSampler(Sampler):
         self.skip = skip
 
     def __iter__(self):
-        return iter(list(self.inner)[self.skip:])
+        return iter(list(self.inner)[self.skip :])
 
     def __len__(self) -> int:
         return len(self.inner) - self.skip
@@ -99,28 +100,40 @@ class Trainer:
         name, kwargs = model_kwargs(cfg)
         self.model = create_model(name, **kwargs).to(self.device).train()
         self.loss = build_loss(cfg["loss"], self.model, self.device, warn=self.is_main)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=tcfg["lr"], betas=tuple(tcfg["betas"]),
-                                          weight_decay=tcfg["weight_decay"])
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(), lr=tcfg["lr"], betas=tuple(tcfg["betas"]), weight_decay=tcfg["weight_decay"]
+        )
         self.dataset, self.synthesis = self._build_data()
         self.sampler = ResumableSampler(self.dataset, self.world, self.rank, tcfg["seed"])
         self.iters_per_epoch = len(self.sampler) // self.per_rank_batch
         if self.iters_per_epoch < 1:
-            raise D2TurbError(f"the training set has {len(self.dataset)} samples, fewer than one batch of "
-                              f"{self.per_rank_batch} per process")
+            raise D2TurbError(
+                f"the training set has {len(self.dataset)} samples, fewer than one batch of "
+                f"{self.per_rank_batch} per process"
+            )
         self.total = tcfg["iterations"] or tcfg["epochs"] * self.iters_per_epoch
-        self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(self.optimizer, T_max=self.total,
-                                                                    eta_min=tcfg["lr_min"])
+        self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
+            self.optimizer, T_max=self.total, eta_min=tcfg["lr_min"]
+        )
         self.loader_generator = torch.Generator().manual_seed(tcfg["seed"] + self.rank)
-        self.loader = DataLoader(self.dataset, batch_size=self.per_rank_batch, sampler=self.sampler, drop_last=True,
-                                 num_workers=cfg["data"]["num_workers"], generator=self.loader_generator,
-                                 pin_memory=self.device.type == "cuda")
+        self.loader = DataLoader(
+            self.dataset,
+            batch_size=self.per_rank_batch,
+            sampler=self.sampler,
+            drop_last=True,
+            num_workers=cfg["data"]["num_workers"],
+            generator=self.loader_generator,
+            pin_memory=self.device.type == "cuda",
+        )
         self.val_loader = self._build_val()
         torch.manual_seed(tcfg["seed"] + 7919 * self.rank)  # per-rank augmentation stream
         self.ddp = self.model
         if self.world > 1:
             from torch.nn.parallel import DistributedDataParallel
 
-            self.ddp = DistributedDataParallel(self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+            self.ddp = DistributedDataParallel(
+                self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None
+            )
         self.iteration, self.best_psnr = 0, -math.inf
         ckpt = self.run_dir / CHECKPOINT
         if ckpt.is_file():
@@ -134,17 +147,25 @@ class Trainer:
 
             crop = data["patch"]
             probe = PairDataset(data["pairs"])
-            return PairDataset(data["pairs"], crop=min(crop, probe.patch), hflip=data["hflip"], vflip=data["vflip"]), None
+            return PairDataset(
+                data["pairs"], crop=min(crop, probe.patch), hflip=data["hflip"], vflip=data["vflip"]
+            ), None
         from d2turb.data import CleanCropDataset, OnTheFlySynthesis
         from d2turb.data.generate import simulator_params
         from d2turb.sim import Simulator
 
         otf = data["on_the_fly"]
-        dataset = CleanCropDataset(data["clean"], patch=data["patch"], depth_spec=otf["depth"], length=otf["length"],
-                                   hflip=data["hflip"])
+        dataset = CleanCropDataset(
+            data["clean"], patch=data["patch"], depth_spec=otf["depth"], length=otf["length"], hflip=data["hflip"]
+        )
         params, _ = simulator_params(otf["params"] or {})
-        synthesis = OnTheFlySynthesis(Simulator(params, self.device), bins=tuple(otf["bins"]), device=self.device,
-                                      seed=self.cfg["train"]["seed"] + self.rank, use_depth=otf["depth"] != "none")
+        synthesis = OnTheFlySynthesis(
+            Simulator(params, self.device),
+            bins=tuple(otf["bins"]),
+            device=self.device,
+            seed=self.cfg["train"]["seed"] + self.rank,
+            use_depth=otf["depth"] != "none",
+        )
         return dataset, synthesis
 
     def _build_val(self):
@@ -167,8 +188,12 @@ class Trainer:
     def _rng_state(self) -> dict:
         cuda = torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else _EMPTY
         synth = self.synthesis.generator.get_state() if self.synthesis is not None else _EMPTY
-        return {"cpu": torch.get_rng_state(), "cuda": cuda.cpu(), "synth": synth.cpu(),
-                "loader": self.loader_generator.get_state()}
+        return {
+            "cpu": torch.get_rng_state(),
+            "cuda": cuda.cpu(),
+            "synth": synth.cpu(),
+            "loader": self.loader_generator.get_state(),
+        }
 
     def _set_rng_state(self, state: dict) -> None:
         torch.set_rng_state(state["cpu"])
@@ -183,9 +208,17 @@ class Trainer:
         rngs = _gather(self._rng_state(), self.world)
         if not self.is_main:
             return None
-        state = {"format": FORMAT, "iteration": self.iteration, "world_size": self.world, "best_psnr": self.best_psnr,
-                 "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-                 "scheduler": self.scheduler.state_dict(), "rng": rngs, "config": json.dumps(self.cfg)}
+        state = {
+            "format": FORMAT,
+            "iteration": self.iteration,
+            "world_size": self.world,
+            "best_psnr": self.best_psnr,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "rng": rngs,
+            "config": json.dumps(self.cfg),
+        }
         path = self.run_dir / CHECKPOINT
         with atomic_path(path) as tmp:
             torch.save(state, tmp)
@@ -198,8 +231,10 @@ class Trainer:
         except Exception as exc:  # truncated file, foreign pickle, missing keys
             raise D2TurbError(f"{path}: unreadable checkpoint ({exc.__class__.__name__})") from None
         if saved_cfg.get("model") != self.cfg["model"]:
-            raise D2TurbError(f"{path}: checkpoint is for model {saved_cfg.get('model')}, not {self.cfg['model']}; "
-                              "use another --out folder")
+            raise D2TurbError(
+                f"{path}: checkpoint is for model {saved_cfg.get('model')}, not {self.cfg['model']}; "
+                "use another --out folder"
+            )
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
@@ -207,8 +242,11 @@ class Trainer:
         if state["world_size"] == self.world:
             self._set_rng_state(state["rng"][self.rank])
         elif self.is_main:
-            print(f"warning: resuming a {state['world_size']}-process run on {self.world}; "
-                  "data order and RNG streams restart", file=sys.stderr)
+            print(
+                f"warning: resuming a {state['world_size']}-process run on {self.world}; "
+                "data order and RNG streams restart",
+                file=sys.stderr,
+            )
 
     def _log(self, record: dict) -> None:
         if self.is_main:
@@ -223,7 +261,11 @@ class Trainer:
 
     # ---------------------------------------------------------------- steps
     def train_step(self, batch: dict) -> tuple[float, dict]:
-        amp = torch.autocast(self.device.type, dtype=torch.bfloat16) if self.cfg["train"]["amp"] == "bf16" else nullcontext()
+        amp = (
+            torch.autocast(self.device.type, dtype=torch.bfloat16)
+            if self.cfg["train"]["amp"] == "bf16"
+            else nullcontext()
+        )
         with amp:
             out = self.ddp(batch["turb"])
         loss, terms = self.loss(out, batch)
@@ -298,8 +340,16 @@ class Trainer:
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(loss=f"{loss:.4f}")
-                self._after_step({"iter": self.iteration, "epoch": epoch, "lr": lr,
-                                  "loss": loss, **terms, "elapsed_s": round(time.time() - start, 3)})
+                self._after_step(
+                    {
+                        "iter": self.iteration,
+                        "epoch": epoch,
+                        "lr": lr,
+                        "loss": loss,
+                        **terms,
+                        "elapsed_s": round(time.time() - start, 3),
+                    }
+                )
                 if self.iteration >= stop:
                     break
         if bar is not None:
