@@ -78,7 +78,7 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
             img = ImageOps.exif_transpose(img)
             arr = _to_float_array(img)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from None
+        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
     if arr.shape[0] < 2 or arr.shape[1] < 2:
         raise D2TurbError(f"{path}: image is too small ({arr.shape[1]}x{arr.shape[0]})")
     if not np.isfinite(arr).all():

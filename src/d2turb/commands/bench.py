@@ -42,7 +42,7 @@ def _config(args) -> dict:
         try:
             cfg = json.loads(text)
         except ValueError as exc:
-            raise D2TurbError(f"--config: not valid JSON ({exc})") from None
+            raise D2TurbError(f"--config: not valid JSON ({exc})") from exc
         if not isinstance(cfg, dict):
             raise D2TurbError("--config: expected a JSON object")
     for key in ("backbone", "injection"):
@@ -67,8 +67,8 @@ def run(args):
         raise D2TurbError(f"--out {args.out}: must end in .md or .json")
     try:
         device = torch.device(args.device)
-    except RuntimeError:
-        raise D2TurbError(f"--device {args.device!r}: not a device (use cpu or cuda)") from None
+    except RuntimeError as exc:
+        raise D2TurbError(f"--device {args.device!r}: not a device (use cpu or cuda)") from exc
     if device.type == "cuda" and not torch.cuda.is_available():
         raise D2TurbError("--device cuda: CUDA is not available on this machine")
     entries = efficiency_entries() if args.all else [(args.name, _config(args))]

@@ -60,7 +60,7 @@ def run(args):
     try:
         params = dict(_param(t) for t in args.param)
     except ValueError as exc:
-        raise D2TurbError(f"--param expects KEY=VALUE, got {exc.args[0]!r}") from None
+        raise D2TurbError(f"--param expects KEY=VALUE, got {exc.args[0]!r}") from exc
     cfg = DatasetConfig(
         clean=args.clean,
         out=args.out,

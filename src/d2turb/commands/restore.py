@@ -37,8 +37,8 @@ def _iter_video(path: Path):
     """Yield (index, (3,H,W) float tensor) for each frame of a video file."""
     try:
         import imageio.v3 as iio
-    except ImportError:
-        raise D2TurbError(f"{path}: reading video needs imageio; {VIDEO_HINT}") from None
+    except ImportError as exc:
+        raise D2TurbError(f"{path}: reading video needs imageio; {VIDEO_HINT}") from exc
     from d2turb.restore import frame_to_tensor
 
     try:
@@ -47,7 +47,7 @@ def _iter_video(path: Path):
             yield i, frame_to_tensor(frame)
     except (OSError, ValueError, RuntimeError, ImportError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
-        raise D2TurbError(f"{path}: cannot read video ({first}); {VIDEO_HINT}") from None
+        raise D2TurbError(f"{path}: cannot read video ({first}); {VIDEO_HINT}") from exc
 
 
 def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:

@@ -71,9 +71,7 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
         cfg = json.loads((root / CONFIG_NAME).read_text())
         patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), {k: tuple(v) for k, v in cfg["bin_ranges"].items()}
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise D2TurbError(
-            f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})"
-        ) from None
+        raise D2TurbError(f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})") from exc
     report = CheckReport(counts={b: 0 for b in sorted(ranges, key=lambda b: ranges[b][0])})
     problems = report.problems
     meta_path = root / META_NAME

@@ -12,8 +12,8 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+import logging
 import os
-import sys
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -40,6 +40,8 @@ from d2turb.data.layout import (
 )
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image, write_image, write_json, write_npy, write_text
+
+logger = logging.getLogger(__name__)
 
 SPLITS = ("train", "test")
 
@@ -179,7 +181,7 @@ def simulator_params(overrides: dict):
     try:
         params = TurbulenceParams(**overrides)
     except TypeError as exc:
-        raise D2TurbError(f"bad simulator parameter: {exc}") from None
+        raise D2TurbError(f"bad simulator parameter: {exc}") from exc
     full = params.to_dict() if hasattr(params, "to_dict") else dataclasses.asdict(params)
     return params, json.loads(json.dumps(full, default=str))
 
@@ -205,7 +207,7 @@ class SourceCache:
             try:
                 image = read_image(self.sources[k])
             except D2TurbError as exc:
-                print(f"warning: skipping corrupt source {exc}", file=sys.stderr)
+                logger.warning("skipping corrupt source %s", exc)
                 self.bad.add(k)
                 continue
             depth = (
@@ -314,8 +316,8 @@ def dist_info() -> DistInfo:
         world = int(os.environ.get("WORLD_SIZE", "1"))
         rank = int(os.environ.get("RANK", "0"))
         local = int(os.environ.get("LOCAL_RANK", str(rank)))
-    except ValueError:
-        raise D2TurbError("RANK, WORLD_SIZE and LOCAL_RANK must be integers") from None
+    except ValueError as exc:
+        raise D2TurbError("RANK, WORLD_SIZE and LOCAL_RANK must be integers") from exc
     if world < 1 or not 0 <= rank < world:
         raise D2TurbError(f"bad distributed environment: RANK={rank} WORLD_SIZE={world}")
     return DistInfo(rank, world, local)

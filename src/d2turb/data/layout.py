@@ -79,7 +79,7 @@ def read_config(root: Path) -> dict:
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise D2TurbError(f"{path}: unreadable ({exc})") from None
+        raise D2TurbError(f"{path}: unreadable ({exc})") from exc
 
 
 def parse_meta_lines(data: bytes) -> list[dict]:

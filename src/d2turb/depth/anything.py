@@ -38,21 +38,21 @@ class DepthAnything:
             raise D2TurbError(
                 f"Depth Anything model folder {path}: not found or has no config.json (give a local folder)"
             )
-        os.environ.setdefault("HF_HUB_OFFLINE", "1")
         try:
             from transformers import AutoModelForDepthEstimation
             from transformers.utils import logging as hf_logging
 
             hf_logging.disable_progress_bar()
-        except ImportError:
-            raise D2TurbError("Depth Anything needs the 'transformers' package (pip install d2turb[depth])") from None
+        except ImportError as exc:
+            raise D2TurbError("Depth Anything needs the 'transformers' package (pip install d2turb[depth])") from exc
         try:
+            # a local folder with local_files_only never reaches the hub: no process-wide HF_HUB_OFFLINE needed
             self.model = AutoModelForDepthEstimation.from_pretrained(path, local_files_only=True).to(device).eval()
         except (OSError, ValueError, KeyError) as exc:
             raise D2TurbError(
                 f"Depth Anything model folder {path}: cannot load "
                 f"({exc.__class__.__name__}: {str(exc).splitlines()[0]})"
-            ) from None
+            ) from exc
         self.device, self.input_size, self.max_depth_ratio = torch.device(device), input_size, max_depth_ratio
         self.mean, self.std = IMAGENET_MEAN, IMAGENET_STD
         self.patch = int(getattr(self.model.config, "patch_size", 14))

@@ -28,7 +28,7 @@ def read_depth_array(path: str | os.PathLike) -> np.ndarray:
         try:
             arr = np.load(path, allow_pickle=False)
         except (ValueError, OSError, EOFError) as exc:
-            raise D2TurbError(f"{path}: cannot read depth array ({exc.__class__.__name__}: {exc})") from None
+            raise D2TurbError(f"{path}: cannot read depth array ({exc.__class__.__name__}: {exc})") from exc
         if arr.ndim == 3 and arr.shape[0] == 1:
             arr = arr[0]
         if arr.ndim != 2 or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
@@ -39,7 +39,7 @@ def read_depth_array(path: str | os.PathLike) -> np.ndarray:
             img.load()
             arr = np.asarray(img)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise D2TurbError(f"{path}: cannot read depth image ({exc.__class__.__name__}: {exc})") from None
+        raise D2TurbError(f"{path}: cannot read depth image ({exc.__class__.__name__}: {exc})") from exc
     if arr.ndim == 3:  # grey stored as RGB(A): accept only if the colour channels agree
         rgb = arr[..., :3]
         if not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2])):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from pathlib import Path
 
 import torch
@@ -356,15 +357,18 @@ def find_weights(weights: str | os.PathLike | None = None) -> Path:
     )
 
 
-_MODELS: dict[tuple[str, str], MUSIQ] = {}
+@lru_cache(maxsize=2)  # bounded: each model holds ~100 MB; the key's mtime drops a file replaced on disk
+def _cached_model(path: str, mtime_ns: int, device: str) -> MUSIQ:
+    return MUSIQ(Path(path), device=device)
 
 
 def musiq(image: torch.Tensor, weights: str | os.PathLike | None = None, device: str = "cpu") -> torch.Tensor:
-    """MUSIQ score of ``image`` (3, H, W) -> scalar tensor or (B, 3, H, W) -> (B,); the model is cached per file."""
-    path = find_weights(weights)
-    key = (str(path.resolve()), str(device))
-    if key not in _MODELS:
-        _MODELS[key] = MUSIQ(path, device=device)
+    """MUSIQ score of ``image`` (3, H, W) -> scalar tensor or (B, 3, H, W) -> (B,).
+
+    The last two models used (per weights file and device) stay loaded.
+    """
+    path = find_weights(weights).resolve()
+    model = _cached_model(str(path), path.stat().st_mtime_ns, str(device))
     with torch.no_grad():
-        score = _MODELS[key](image)
+        score = model(image)
     return score[0] if image.ndim == 3 else score

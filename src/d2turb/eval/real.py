@@ -143,7 +143,7 @@ def evaluate_real(
                 try:
                     values[n][m][name] = score(restored)
                 except D2TurbError as exc:
-                    raise D2TurbError(f"{path.name} ({n}): {exc}") from None
+                    raise D2TurbError(f"{path.name} ({n}): {exc}") from exc
         if any(r is not None for r in restorers.values()):
             write_image(
                 out_dir / "grids" / f"{path.stem}.png",

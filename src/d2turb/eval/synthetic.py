@@ -8,8 +8,8 @@ Outputs in ``out_dir``: ``results.json`` (per-bin means, per-sample values, note
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -17,6 +17,8 @@ import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
+
+logger = logging.getLogger(__name__)
 
 ALL_METRICS = ("psnr", "ssim", "lpips")
 DEFAULT_METRICS = ALL_METRICS
@@ -115,7 +117,7 @@ def evaluate_synthetic(
     if "lpips" in metrics:
         lpips_model, note = _build_lpips(strict_lpips, lpips_weights, lpips_backbone, lpips_net, device)
         if note:
-            print(f"note: {note}", file=sys.stderr)
+            logger.warning("%s", note)
             notes.append(note)
             metrics.remove("lpips")
 

@@ -107,7 +107,7 @@ def load_state_dict_file(path: str | os.PathLike, what: str) -> dict[str, torch.
         else:
             state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # corrupt / unsafe pickle / wrong format
-        raise D2TurbError(f"{what}: cannot load {path} ({exc.__class__.__name__})") from None
+        raise D2TurbError(f"{what}: cannot load {path} ({exc.__class__.__name__})") from exc
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):

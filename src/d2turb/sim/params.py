@@ -18,8 +18,8 @@ MAX_DR0 = 10.0
 def _positive(name: str, value) -> float:
     try:
         v = float(value)
-    except (TypeError, ValueError):
-        raise D2TurbError(f"{name} must be a number, got {value!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise D2TurbError(f"{name} must be a number, got {value!r}") from exc
     if not math.isfinite(v) or v <= 0:
         raise D2TurbError(f"{name} must be positive and finite, got {value!r}")
     return v

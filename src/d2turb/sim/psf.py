@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import torch
@@ -79,16 +80,27 @@ class PupilOptics:
         return torch.stack(out)
 
 
+_THREADS_LOCK = threading.Lock()
+
+
 def _small_eigh(mat: torch.Tensor):
-    """eigh of a small matrix on one thread (multi-threaded LAPACK stalls for seconds on busy CPUs)."""
+    """eigh of a small matrix on one thread: multi-threaded LAPACK on a busy CPU takes 10× longer and
+    stalls for seconds (384×384 on 2 shared cores: 0.08 s on one thread, 0.75 s median / 7 s worst on two).
+
+    torch's thread count is process-wide, so it is lowered only for this call and restored in ``finally``;
+    the lock keeps two threads from saving and restoring each other's value.
+    """
     if mat.device.type != "cpu":
         return torch.linalg.eigh(mat)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return torch.linalg.eigh(mat)
-    finally:
-        torch.set_num_threads(threads)
+    with _THREADS_LOCK:
+        threads = torch.get_num_threads()
+        if threads == 1:
+            return torch.linalg.eigh(mat)
+        torch.set_num_threads(1)
+        try:
+            return torch.linalg.eigh(mat)
+        finally:
+            torch.set_num_threads(threads)
 
 
 def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0.99, max_fit: int = 384):
