@@ -77,9 +77,9 @@ class Simulator:
         return self._optics[size]
 
     # ---- random fields -------------------------------------------------------------------------
-    def _separation_s(self, r_px: np.ndarray) -> list[tuple[float, np.ndarray]]:
-        """[(weight, s at each pixel separation r)] over the layers of the geometry."""
-        return [(wk, alpha * r_px) for alpha, wk in self.tilt_layers()]
+    def _separation_s(self, r_px: np.ndarray) -> list[tuple[np.ndarray, float]]:
+        """[(s at each pixel separation r, weight)] over the layers of the geometry (order of tilt_layers)."""
+        return [(alpha * r_px, wk) for alpha, wk in self.tilt_layers()]
 
     def tilt_layers(self) -> list[tuple[float, float]]:
         """[(s per pixel of separation, weight)] of the layers of the geometry."""
@@ -98,7 +98,7 @@ class Simulator:
         if key not in self._samplers:
 
             def corr_for(n):
-                return lambda r: sum(wk * np.exp(-(((n + 1) * s) ** 2)) for wk, s in self._separation_s(r))
+                return lambda r: sum(wk * np.exp(-(((n + 1) * s) ** 2)) for s, wk in self._separation_s(r))
 
             self._samplers[key] = ScalarFieldSampler(gh, gw, [corr_for(n) for n in self.high_orders], spacing)
         return self._samplers[key]
