@@ -60,3 +60,21 @@ def test_warp_integer_shift_and_gradcheck():
     # keep sample points away from integer positions where bilinear is not differentiable
     flow.data = flow.data * 0.8 + 0.1
     assert torch.autograd.gradcheck(lambda i, f: warp(i, f), (img, flow))
+
+
+def test_warp_subpixel_shift_of_a_ramp_is_analytic():
+    """out(x) = image(x + flow(x)): bilinear sampling reproduces a linear function exactly, so a ramp
+    I = a + b·x + c·y warped by any flow (inside the image) is a + b·(x + fx) + c·(y + fy)."""
+    h, w = 12, 17
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    img = (0.1 + 0.03 * xs + 0.05 * ys)[None, None]
+    g = torch.Generator().manual_seed(0)
+    flow = torch.stack([0.7 * torch.ones(h, w), -1.3 * torch.ones(h, w)])[None].double()
+    flow = flow + 0.4 * torch.rand(1, 2, h, w, generator=g, dtype=torch.float64)  # non-constant, sub-pixel
+    out = warp(img, flow)
+    expected = 0.1 + 0.03 * (xs + flow[0, 0]) + 0.05 * (ys + flow[0, 1])
+    inside = (xs + flow[0, 0] <= w - 1) & (ys + flow[0, 1] >= 0)
+    torch.testing.assert_close(out[0, 0][inside], expected[inside], atol=1e-12, rtol=0)
+    # a constant shift of +2.5 px in x moves content left: out(x) = img(x + 2.5)
+    out = warp(img, torch.tensor([2.5, 0.0], dtype=torch.float64).view(1, 2, 1, 1).expand(1, 2, h, w))
+    torch.testing.assert_close(out[0, 0, :, :-3], img[0, 0, :, 2:-1] + 0.5 * 0.03, atol=1e-12, rtol=0)

@@ -85,13 +85,24 @@ def _no_user_weights(monkeypatch, tmp_path):
     monkeypatch.setenv("D2TURB_CACHE_DIR", str(tmp_path / "empty_cache"))
 
 
+# The normalisation every torchvision ImageNet model expects, as published in the torchvision model docs
+# (mean and std of the ImageNet training set per RGB channel, for images in [0, 1]).
+TORCHVISION_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+TORCHVISION_IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
 def _oracle_alex_lpips(x0, x1, backbone, lins):
-    """LPIPS written out: scaling layer, AlexNet relu1..5, unit-normalise, weighted squared diff, mean."""
-    shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
-    scale = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
+    """LPIPS written out from Zhang et al. 2018, Eq. 1: AlexNet relu1..5 of the ImageNet-normalised image,
+    unit-normalise over channels, weighted squared difference, mean over pixels, sum over layers.
+
+    The input normalisation is taken from torchvision's published ImageNet statistics on [0, 1] images, not from
+    LPIPS' ScalingLayer: that layer (lpips/lpips.py) works on [−1, 1] images with shift (−.030, −.088, −.188) and
+    scale (.458, .448, .450), which are exactly 2·mean − 1 and 2·std, i.e. the same map."""
+    mean = torch.tensor(TORCHVISION_IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(TORCHVISION_IMAGENET_STD).view(1, 3, 1, 1)
 
     def taps(x):
-        x = (2 * x - 1 - shift) / scale
+        x = (x - mean) / std
         w = lambda i: (backbone[f"features.{i}.weight"], backbone[f"features.{i}.bias"])  # noqa: E731
         r1 = F.relu(F.conv2d(x, *w(0), stride=4, padding=2))
         r2 = F.relu(F.conv2d(F.max_pool2d(r1, 3, 2), *w(3), padding=2))
@@ -198,8 +209,10 @@ def test_vgg_variant_loads_torchvision_keys(tmp_path):
 
 
 def test_feature_extractor_taps_for_perceptual_losses():
-    mean_grey = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1).expand(1, 3, 8, 8)
+    mean_grey = torch.tensor(TORCHVISION_IMAGENET_MEAN).view(1, 3, 1, 1).expand(1, 3, 8, 8)
     assert torch.allclose(imagenet_normalize(mean_grey), torch.zeros(1, 3, 8, 8), atol=1e-6)
+    one_std_up = mean_grey + torch.tensor(TORCHVISION_IMAGENET_STD).view(1, 3, 1, 1)
+    assert torch.allclose(imagenet_normalize(one_std_up), torch.ones(1, 3, 8, 8), atol=1e-6)
     taps = FeatureExtractor("vgg")(torch.rand(1, 3, 32, 32))
     assert [t.shape[1:] for t in taps] == [(64, 32, 32), (128, 16, 16), (256, 8, 8), (512, 4, 4), (512, 2, 2)]
     taps = FeatureExtractor("alex")(torch.rand(1, 3, 64, 64))
