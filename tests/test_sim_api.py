@@ -136,7 +136,7 @@ def test_near_region_with_zero_modulation_is_untouched(image):
     ],
 )
 def test_depth_modulation_strategies(strategy, expected):
-    """M = (z/L)^(3/5): at constant Cn², r0 = (0.158625 k² Cn² z)^(−3/5), so D/r0 ∝ z^(3/5) (docs/physics.md §5)."""
+    """M = (z/L)^(3/5): at constant Cn², r0 = (0.158625 k² Cn² z)^(−3/5), so D/r0 ∝ z^(3/5) (docs/physics.md §6)."""
     d = torch.linspace(0, 1, 11).view(1, 1, 1, 11)
     assert torch.allclose(depth_modulation(d, strategy, 0.3), expected(d, 0.3), atol=1e-6)
     assert depth_modulation(None, strategy) is None

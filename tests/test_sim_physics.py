@@ -1,4 +1,4 @@
-"""The simulator's statistics against turbulence theory (docs/physics.md §1–4)."""
+"""The simulator's statistics against turbulence theory (docs/physics.md §1–4, §7)."""
 
 import functools
 import math
@@ -343,7 +343,7 @@ def test_mean_psf_matches_theoretical_otf(with_tilt):
 
 
 def _high_order_model(n, r_px, p):
-    """Correlation model of the higher-order fields of radial order n (docs/physics.md §6): the path average
+    """Correlation model of the higher-order fields of radial order n (docs/physics.md §7): the path average
     (8/3)∫_0^1 (1−t)^(5/3) exp(−((n+1)·s(t))²) dt with s(t) = r·ifov·L·t/(D(1−t)), by Gauss–Jacobi quadrature
     (weight (1−t)^(5/3), 400 nodes) — written here from the formula, not through the simulator's layers."""
     x, w = special.roots_jacobi(400, 5 / 3, 0.0)

@@ -29,7 +29,7 @@ FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "flow": ".npy", "depth": 
 META_NAME = "meta.jsonl"
 CONFIG_NAME = "dataset.json"
 SHARD_DIR = ".meta"
-BIN_RANGES = dict(BINS)  # D/r0 bins of the benchmark (physics.md §5), from the simulator
+BIN_RANGES = dict(BINS)  # D/r0 bins of the benchmark (docs/physics.md §5), from the simulator
 BIN_NAMES = tuple(BIN_RANGES)
 
 
@@ -38,7 +38,7 @@ def bin_ranges() -> dict[str, tuple[float, float]]:
 
 
 def bin_of(dr0: float, ranges: dict[str, tuple[float, float]] | None = None) -> str | None:
-    """Bin of a D/r0 value: weak < 2.25 ≤ medium ≤ 3.75 < strong (physics.md §5); None outside all bins."""
+    """Bin of a D/r0 value: weak < 2.25 ≤ medium ≤ 3.75 < strong (docs/physics.md §5); None outside all bins."""
     ranges = ranges or bin_ranges()
     hits = [name for name, (lo, hi) in ranges.items() if lo <= dr0 <= hi]
     if len(hits) > 1:  # on a boundary: the closed middle bin wins

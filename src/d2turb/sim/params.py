@@ -26,7 +26,7 @@ def _positive(name: str, value) -> float:
 
 
 def fried_r0_spherical(cn2: float, path_length_m: float, wavelength_m: float) -> float:
-    """Spherical-wave Fried parameter for constant Cn²: r0 = (0.158625 k² Cn² L)^(-3/5) (physics.md §3)."""
+    """Spherical-wave Fried parameter for constant Cn²: r0 = (0.158625 k² Cn² L)^(-3/5) (docs/physics.md §3)."""
     k = 2 * math.pi / wavelength_m
     return (0.158625 * k * k * cn2 * path_length_m) ** (-3 / 5)
 
@@ -121,7 +121,7 @@ class TurbulenceParams:
 
 
 def dr0_bin(x: float) -> str:
-    """Strength bin of D/r0: weak < 2.25 <= medium <= 3.75 < strong (physics.md §5)."""
+    """Strength bin of D/r0: weak < 2.25 <= medium <= 3.75 < strong (docs/physics.md §5)."""
     x = float(x)
     if not math.isfinite(x) or x <= 0:
         raise D2TurbError(f"D/r0 must be positive and finite, got {x!r}")

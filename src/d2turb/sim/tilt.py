@@ -1,6 +1,6 @@
 """Spatial correlation of tilt (angle of arrival) and Gaussian random fields with a given covariance.
 
-Single layer (physics.md §2): c⊥(s) = (I0+I2)(s)/I0(0), c∥(s) = (I0−I2)(s)/I0(0) with
+Single layer (docs/physics.md §2): c⊥(s) = (I0+I2)(s)/I0(0), c∥(s) = (I0−I2)(s)/I0(0) with
 I_n(s) = ∫ z^(−14/3) J_n(2sz) J_2(z)² dz and s = θz/(D(1−z/L)) for a layer at distance z from the
 aperture and a point source at range L. A constant-Cn² path averages the layer correlations with
 weight (1−z/L)^(5/3).
