@@ -114,6 +114,18 @@ def test_blur_and_displacement_scale_with_modulation(image):
     assert torch.allclose(res.blur, depth * ref.blur + (1 - depth) * image, atol=1e-6)
 
 
+def test_default_modulation_is_the_paper_power_law_end_to_end(image):
+    """Default strategy through the simulator: z = L((1 − s)d̃ + s) (Eq. 1), M = (z/L)^(3/5) (Eq. 3), Δ = M·Δ0 (Eq. 5),
+    with s = 0.5, written here from the paper (docs/physics.md §6)."""
+    s = Simulator(TurbulenceParams(n_zernike=6, psf_grid_px=8))
+    depth = torch.linspace(0, 1, 56).expand(2, 1, 40, 56).contiguous()
+    flat = s(image, generator=gen(13))
+    res = s(image, depth=depth, generator=gen(13))
+    m = (0.5 * depth + 0.5) ** 0.6
+    torch.testing.assert_close(res.modulation, m)
+    torch.testing.assert_close(res.flow, m * flat.flow, atol=1e-6, rtol=1e-5)
+
+
 def test_near_region_with_zero_modulation_is_untouched(image):
     s = Simulator(TurbulenceParams(modulation="power", n_zernike=21, dr0=4.5))
     depth = torch.ones(2, 1, 40, 56)
