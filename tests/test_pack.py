@@ -106,7 +106,9 @@ def test_pack_is_deterministic_and_up_to_date(clean_root, pack, tmp_path):
     assert files_of(tmp_path / "p") == files_of(pack) and summary["up_to_date"] is False
     again = make_pack([clean_root], tmp_path / "p", 1.0, 32)
     assert again["up_to_date"] is True and files_of(tmp_path / "p") == files_of(pack)
-    assert not (tmp_path / ".p.partial").exists()
+    (tmp_path / "p" / "train" / "urban100" / "a.jpg").write_bytes(b"damaged")
+    assert make_pack([clean_root], tmp_path / "p", 1.0, 32)["up_to_date"] is False  # a damaged pack is rebuilt
+    assert files_of(tmp_path / "p") == files_of(pack) and not (tmp_path / ".p.partial").exists()
 
 
 def test_pack_fits_its_budget_by_downscaling(tmp_path):

@@ -260,13 +260,14 @@ def make_pack(
     fingerprint = [[f"{s.folder}/{s.path.name}", sha] for s, sha in zip(sources, encoder.sha)]
     if (out / MANIFEST).is_file():
         try:
-            old = json.loads((out / MANIFEST).read_text())
-            same = old.get("options") == options and [[e["source"], e["source_sha256"]] for e in old["images"]]
-        except (ValueError, KeyError, TypeError):
+            previous = read_pack(out, verify=True)  # intact (every checksum) and ...
+            same = previous.get("options") == options and previous.get("excluded_test_folders") == excluded
+            same = same and [[e["source"], e["source_sha256"]] for e in previous["images"]] == fingerprint
+        except (D2TurbError, KeyError, TypeError):
             same = False
-        if same == fingerprint and old.get("excluded_test_folders") == excluded:
+        if same:  # ... made from the same sources with the same options: nothing to do
             shutil.rmtree(staging, ignore_errors=True)
-            return _summary(out, old, up_to_date=True)
+            return _summary(out, previous, up_to_date=True)
     rungs = [r for r in LADDER if max_side is None or (r is not None and r <= max_side)]
     if max_side is not None and max_side not in rungs:
         rungs.insert(0, max_side)
@@ -301,8 +302,8 @@ def make_pack(
         shutil.copyfile(path, target)
     write_text(build / MANIFEST, _dump(manifest))
     if out.exists():
-        old = staging / "old"
-        os.replace(out, old)
+        shutil.rmtree(staging / "old", ignore_errors=True)
+        os.replace(out, staging / "old")
     os.replace(build, out)
     shutil.rmtree(staging, ignore_errors=True)
     return _summary(out, manifest, up_to_date=False)

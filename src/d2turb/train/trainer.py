@@ -558,6 +558,8 @@ class Trainer:
         from d2turb.data import crop_sample
         from d2turb.eval.metrics import psnr, ssim
 
+        if self.val_loader is None:
+            raise D2TurbError("no validation set: set val.pairs or val.pack")
         crop = self.cfg.val.crop if self.cfg.val.pairs is not None else None
         model = self.eval_model
         was_training = model.training
