@@ -1,6 +1,7 @@
 """d2turb.train: the multi-stage objective (Sec. 3.3), YAML configs and the (DDP) training loop."""
 
-from d2turb.train.config import DEFAULTS, load_config
+from d2turb.train.config import DEFAULTS, Config, load_config
+from d2turb.train.ema import EMA
 from d2turb.train.losses import (
     NATIVE_LOSS,
     NATIVE_LOSSES,
@@ -10,10 +11,12 @@ from d2turb.train.losses import (
     l1_loss,
     psnr_loss,
 )
-from d2turb.train.trainer import Trainer, init_distributed
+from d2turb.train.trainer import Trainer, init_distributed, read_status
 
 __all__ = [
     "DEFAULTS",
+    "Config",
+    "EMA",
     "load_config",
     "MultiStageLoss",
     "PerceptualLoss",
@@ -24,4 +27,5 @@ __all__ = [
     "NATIVE_LOSSES",
     "Trainer",
     "init_distributed",
+    "read_status",
 ]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import os
-import sys
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -110,15 +110,17 @@ class MultiStageLoss(nn.Module):
 
 
 def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True) -> MultiStageLoss:
-    """The loss of a config's ``loss`` section. No ``vgg_weights``: the perceptual term is disabled with one
-    warning line on stderr (``warn``); a given path that does not exist is an error. Never downloads."""
+    """The loss of a config's ``loss`` section (a mapping of :class:`d2turb.train.config.LossConfig`'s fields).
+
+    No ``vgg_weights``: the perceptual term is disabled with one ``UserWarning`` (``warn``); a given path that does
+    not exist is an error. Never downloads."""
     perceptual = None
     if loss_cfg.get("vgg", 0) > 0:
         path = loss_cfg.get("vgg_weights")
         if path:
             perceptual = PerceptualLoss.from_file(path).to(device)
         elif warn:
-            print("warning: loss.vgg_weights not set; the VGG perceptual term (λ_vgg) is disabled", file=sys.stderr)
+            warnings.warn("loss.vgg_weights not set; the VGG perceptual term (λ_vgg) is disabled", stacklevel=2)
     return MultiStageLoss(
         deblur=loss_cfg.get("deblur", 1.0),
         flow=loss_cfg.get("flow", 5.0),
