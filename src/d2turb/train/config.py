@@ -17,7 +17,13 @@ DEFAULTS: dict = {
     "data": {
         "pairs": None,  # PairDataset folder (random `patch` crop + flips)
         "clean": None,  # list of clean image folders/files for on-the-fly synthesis
-        "on_the_fly": {"bins": ["weak", "medium", "strong"], "depth": "prior", "length": None, "params": {}},
+        "on_the_fly": {
+            "bins": ["weak", "medium", "strong"],
+            "depth": "prior",
+            "length": None,
+            "params": {},
+            "geometry": "fixed",  # d2turb.sim.geometry.GEOMETRIES name; one geometry drawn per batch
+        },
         "patch": 256,
         "hflip": True,
         "vflip": False,

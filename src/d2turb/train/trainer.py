@@ -151,16 +151,16 @@ class Trainer:
                 data["pairs"], crop=min(crop, probe.patch), hflip=data["hflip"], vflip=data["vflip"]
             ), None
         from d2turb.data import CleanCropDataset, OnTheFlySynthesis
-        from d2turb.data.generate import simulator_params
         from d2turb.sim import Simulator
+        from d2turb.sim.geometry import geometry_bank
 
         otf = data["on_the_fly"]
         dataset = CleanCropDataset(
             data["clean"], patch=data["patch"], depth_spec=otf["depth"], length=otf["length"], hflip=data["hflip"]
         )
-        params, _ = simulator_params(otf["params"] or {})
+        sims = [Simulator(p, self.device) for p in geometry_bank(otf["geometry"], otf["params"] or {})]
         synthesis = OnTheFlySynthesis(
-            Simulator(params, self.device),
+            sims,
             bins=tuple(otf["bins"]),
             device=self.device,
             seed=self.cfg["train"]["seed"] + self.rank,
