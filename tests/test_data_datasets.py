@@ -10,10 +10,11 @@ from PIL import Image
 from scipy import stats
 
 from d2turb.data import CleanCropDataset, OnTheFlySynthesis, PairDataset, crop_sample, flip_sample
-from d2turb.data.layout import BIN_NAMES, BIN_RANGES, bin_of, write_depth_png
+from d2turb.data.layout import BIN_NAMES, write_depth_png
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image, write_image, write_json, write_npy
 from d2turb.ops import warp
+from d2turb.sim import BINS, dr0_bin
 
 P = 48
 
@@ -36,7 +37,7 @@ def handmade(tmp_path):
             "patch": P,
             "split": "train",
             "bins": list(BIN_NAMES),
-            "bin_ranges": {k: list(v) for k, v in BIN_RANGES.items()},
+            "bin_ranges": {k: list(v) for k, v in BINS.items()},
         },
     )
     lines = []
@@ -51,7 +52,7 @@ def handmade(tmp_path):
         write_image(root / "gt" / f"{sid}.png", gt)
         write_npy(root / "flow" / f"{sid}.npy", flow.numpy().astype(np.float16))
         write_depth_png(root / "depth" / f"{sid}.png", torch.linspace(0, 1, P).view(1, P, 1).expand(1, P, P))
-        lines.append(json.dumps({"id": sid, "index": k, "dr0": dr0, "bin": bin_of(dr0)}) + "\n")
+        lines.append(json.dumps({"id": sid, "index": k, "dr0": dr0, "bin": dr0_bin(dr0)}) + "\n")
     (root / "meta.jsonl").write_text("".join(lines))
     return root
 

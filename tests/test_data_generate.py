@@ -18,9 +18,10 @@ from scipy import stats
 
 from d2turb.cli import main
 from d2turb.data import check_dataset, plan_sample
-from d2turb.data.generate import crop_box, resize_up, sample_dr0_union
-from d2turb.data.layout import BIN_RANGES, FILES, bin_of, read_depth_png
+from d2turb.data.generate import crop_box, resize_up
+from d2turb.data.layout import FILES, read_depth_png
 from d2turb.io import read_image
+from d2turb.sim import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
 pytest.importorskip("d2turb.ops.splat")
 sim = pytest.importorskip("d2turb.sim")
@@ -94,7 +95,7 @@ def test_test_split_is_balanced_and_inside_bins():
     plans = [plan_sample(i, 3, "test", bins, n_sources=5) for i in range(60)]
     assert [p.bin for p in plans] == [bins[i % 3] for i in range(60)]
     for p in plans:
-        lo, hi = BIN_RANGES[p.bin]
+        lo, hi = BINS[p.bin]
         assert lo <= p.dr0 <= hi
         assert p.source == (p.index // 3) % 5
         assert 0 <= p.crop_u < 1 and 0 <= p.crop_v < 1
@@ -102,13 +103,13 @@ def test_test_split_is_balanced_and_inside_bins():
 
 def test_train_dr0_is_uniform_over_union_of_bins():
     rng = np.random.default_rng(0)
-    values = np.array([sample_dr0_union(rng, ("weak", "strong"), BIN_RANGES) for _ in range(3000)])
+    values = dr0_from_uniform(rng.random(3000), bin_spans(("weak", "strong")))
     assert ((values >= 1.0) & (values <= 2.25) | (values >= 3.75) & (values <= 5.0)).all()
     folded = np.where(values <= 2.25, values - 1.0, values - 3.75 + 1.25)  # union mapped onto [0, 2.5)
     assert stats.kstest(folded, stats.uniform(0, 2.5).cdf).pvalue > 1e-3
     plans = [plan_sample(i, 0, "train", ("weak", "strong"), n_sources=4) for i in range(200)]
     assert {p.bin for p in plans} == {"weak", "strong"}
-    assert all(p.bin == bin_of(p.dr0) for p in plans)
+    assert all(p.bin == dr0_bin(p.dr0) for p in plans)
 
 
 def test_plan_depends_only_on_seed_and_index():

@@ -19,12 +19,12 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
     assert models["nafnet"] == count_parameters(create_model("nafnet"))
     assert {b["name"]: b["guide_channels"] for b in listing["backbones"]} == {"restormer": 96, "nafnet": 16}
     assert main(["models"]) == 0
-    assert "31.88 M" in capsys.readouterr().out
+    assert "31.82 M" in capsys.readouterr().out
 
 
 def test_bench_model_json(tmp_path, capsys):
     out = tmp_path / "b.json"
-    cfg = json.dumps({"backbone_cfg": TINY_NAFNET, "rectifier_cfg": {"width": 8, "mults": [1, 1, 2, 2], "depth": 3}})
+    cfg = json.dumps({"backbone_cfg": TINY_NAFNET, "rectifier_cfg": {"widths": [8, 8, 16, 16]}})
     assert (
         main(
             [
@@ -67,8 +67,8 @@ def test_bench_all_writes_markdown_table(tmp_path):
     out = tmp_path / "table.md"
     assert main(["bench", "model", "--all", "--no-latency", "--out", str(out)]) == 0
     text = out.read_text()
-    assert "| restormer | 26.11 | 154.88 | 140.99 |" in text  # conv GMACs = Restormer's published 140.99
-    assert "| d2turb (backbone=restormer, injection=aspi) | 31.88 |" in text
+    assert "| restormer | 26.13 | 154.88 | 140.99 |" in text  # conv GMACs = Restormer's published 140.99
+    assert "| d2turb (backbone=restormer, injection=aspi) | 31.82 |" in text
     assert text.count("\n| ") >= 7
 
 

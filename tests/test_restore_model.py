@@ -17,7 +17,8 @@ def tiny_model():
     model = create_model(
         "d2turb",
         backbone="nafnet",
-        injection="aspi",
+        injection="aspi_cosine",
+        rectifier="unet",
         backbone_cfg={"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1]},
         rectifier_cfg={"width": 8, "mults": [1, 1, 2, 2], "depth": 3},
     )

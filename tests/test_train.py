@@ -21,7 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 TINY_MODEL = {
     "name": "d2turb",
     "backbone": "nafnet",
-    "injection": "aspi",
+    "injection": "aspi_cosine",
+    "rectifier": "unet",
     "backbone_cfg": {"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1], "middle_blocks": 1},
     "rectifier_cfg": {"width": 8, "mults": [1, 2, 2, 2], "depth": 3},
 }

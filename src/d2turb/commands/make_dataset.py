@@ -50,6 +50,13 @@ def register(sub):
     p.add_argument(
         "--param", action="append", default=[], metavar="KEY=VALUE", help="simulator parameter override (repeatable)"
     )
+    p.add_argument(
+        "--geometry",
+        default="fixed",
+        metavar="NAME",
+        help="imaging geometry: fixed (TurbulenceParams defaults + --param) or field (apertures, ranges and depth "
+        "offsets drawn per chunk of --batch samples; docs/datasets.md)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -74,6 +81,7 @@ def run(args):
         batch=args.batch,
         device=args.device,
         params=params,
+        geometry=args.geometry,
     )
     stats = generate_dataset(cfg, progress=not args.no_progress)
     if stats["rank"] == 0:

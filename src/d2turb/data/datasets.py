@@ -9,9 +9,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import BIN_NAMES, bin_of, bin_ranges, file_path, read_config, read_depth_png, read_meta
+from d2turb.data.layout import BIN_NAMES, file_path, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
+from d2turb.sim.params import bin_spans, dr0_bin, dr0_from_uniform
 
 
 def flip_sample(sample: dict, horizontal: bool = True) -> dict:
@@ -167,9 +168,10 @@ class CleanCropDataset(Dataset):
 
 
 class OnTheFlySynthesis:
-    """Applied to a collated CleanCropDataset batch on the training device: draws D/r0 uniformly over
-    the union of ``bins``, runs the simulator batched (new turbulence on every call) and returns the same
-    dict as PairDataset, with ``flow`` the backward flow (``backward_flow`` of the simulator's forward flow).
+    """Applied to a collated CleanCropDataset batch on the training device: draws D/r0 uniformly over the union of
+    ``bins`` per sample and one imaging geometry per batch (``simulator`` is one Simulator or a list, e.g. one per
+    geometry of :func:`d2turb.sim.geometry.geometry_bank`), runs the simulator batched (new turbulence on every call)
+    and returns the same dict as PairDataset, with ``flow`` the backward flow of the simulator's forward flow.
     """
 
     def __init__(
@@ -180,13 +182,11 @@ class OnTheFlySynthesis:
         seed: int | None = None,
         use_depth: bool = True,
     ):
-        ranges = bin_ranges()
-        unknown = [b for b in bins if b not in ranges]
-        if not bins or unknown:
-            raise D2TurbError(
-                f"unknown bin {unknown[0]!r}; choose from {','.join(ranges)}" if unknown else "no bins given"
-            )
-        self.simulator, self.bins, self.ranges = simulator, tuple(bins), ranges
+        self.spans = bin_spans(bins)
+        self.simulators = list(simulator) if isinstance(simulator, (list, tuple)) else [simulator]
+        if not self.simulators:
+            raise D2TurbError("OnTheFlySynthesis needs at least one simulator")
+        self.bins = tuple(bins)
         self.device = torch.device(device)
         self.use_depth = use_depth
         self.generator = torch.Generator(device=self.device)
@@ -195,14 +195,16 @@ class OnTheFlySynthesis:
         else:
             self.generator.manual_seed(seed)
 
+    @property
+    def simulator(self):
+        return self.simulators[0]
+
+    def _uniform(self, n: int) -> torch.Tensor:
+        return torch.rand(n, generator=self.generator, device=self.device, dtype=torch.float64).cpu()
+
     def sample_dr0(self, n: int) -> torch.Tensor:
-        """n values uniform over the union of the bins (Eq.-free: uniform in D/r0 as in the train split)."""
-        spans = torch.tensor([self.ranges[b] for b in self.bins], dtype=torch.float64)
-        widths = spans[:, 1] - spans[:, 0]
-        t = torch.rand(n, generator=self.generator, device=self.device, dtype=torch.float64).cpu() * widths.sum()
-        edges = torch.cumsum(widths, 0)
-        k = torch.searchsorted(edges, t, right=False).clamp(max=len(self.bins) - 1)
-        return (spans[k, 0] + t - (edges[k] - widths[k])).float()
+        """n values uniform over the union of the bins (as in the train split of make-dataset)."""
+        return torch.from_numpy(dr0_from_uniform(self._uniform(n).numpy(), self.spans)).float()
 
     def __call__(self, batch: dict) -> dict:
         from d2turb.ops.splat import backward_flow
@@ -213,10 +215,14 @@ class OnTheFlySynthesis:
         depth = batch.get("depth")
         depth = depth.to(self.device, non_blocking=True) if (depth is not None and self.use_depth) else None
         dr0 = self.sample_dr0(gt.shape[0])
+        g = (
+            min(int(self._uniform(1)[0] * len(self.simulators)), len(self.simulators) - 1)
+            if len(self.simulators) > 1
+            else 0
+        )
         with torch.no_grad():
-            res = self.simulator(gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
+            res = self.simulators[g](gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
             flow = backward_flow(res.flow)
-        names = [bin_of(float(v), self.ranges) for v in dr0]
         return {
             "turb": res.turb,
             "tilt": res.tilt,
@@ -224,6 +230,7 @@ class OnTheFlySynthesis:
             "flow": flow,
             "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
             "dr0": dr0.to(self.device),
-            "bin": torch.tensor([bin_index(n) for n in names], device=self.device),
+            "bin": torch.tensor([bin_index(dr0_bin(float(v))) for v in dr0], device=self.device),
+            "geometry": torch.full((gt.shape[0],), g, device=self.device),
             "id": batch.get("id"),
         }

@@ -9,7 +9,6 @@ seed, batch size and device the output does not depend on the number of processe
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import json
 import logging
@@ -30,8 +29,6 @@ from d2turb.data.layout import (
     META_NAME,
     SHARD_DIR,
     append_line,
-    bin_of,
-    bin_ranges,
     file_path,
     parse_meta_lines,
     sample_id,
@@ -40,6 +37,8 @@ from d2turb.data.layout import (
 )
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image, write_image, write_json, write_npy, write_text
+from d2turb.sim.geometry import footprint_px, geometry_bank
+from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +59,7 @@ class DatasetConfig:
     batch: int = 8
     device: str = "auto"
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
+    geometry: str = "fixed"  # a d2turb.sim.geometry.GEOMETRIES name; one geometry per chunk of `batch` samples
 
 
 @dataclass
@@ -74,18 +74,13 @@ class SamplePlan:
 
 
 def validate(cfg: DatasetConfig) -> None:
-    ranges = bin_ranges()
     if cfg.pairs < 1:
         raise D2TurbError(f"--pairs must be at least 1, got {cfg.pairs}")
     if cfg.patch < 16:
         raise D2TurbError(f"--patch must be at least 16 px, got {cfg.patch}")
     if cfg.split not in SPLITS:
         raise D2TurbError(f"--split must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
-    if not cfg.bins or len(set(cfg.bins)) != len(cfg.bins):
-        raise D2TurbError(f"--bins must list distinct bins, got {','.join(cfg.bins) or 'nothing'}")
-    unknown = [b for b in cfg.bins if b not in ranges]
-    if unknown:
-        raise D2TurbError(f"unknown bin {unknown[0]!r}; choose from {','.join(ranges)}")
+    bin_spans(cfg.bins)
     if cfg.batch < 1:
         raise D2TurbError(f"--batch must be at least 1, got {cfg.batch}")
 
@@ -94,37 +89,30 @@ def _rng(*key: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(k) for k in key]))
 
 
+def chunk_geometry(seed: int, chunk: int, n_geometries: int) -> int:
+    """Index of the imaging geometry of chunk ``chunk`` (from (seed, chunk) only)."""
+    return int(_rng(seed, 2, chunk).integers(n_geometries)) if n_geometries > 1 else 0
+
+
 def chunk_seed(seed: int, chunk: int) -> int:
     """Simulator seed of chunk ``chunk`` (63-bit, from (seed, chunk) only)."""
     return int(np.random.SeedSequence([int(seed), 1, int(chunk)]).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
-def sample_dr0_union(rng: np.random.Generator, bins: tuple[str, ...], ranges) -> float:
-    """D/r0 uniform over the union of the chosen bins (train split)."""
-    spans = [ranges[b] for b in bins]
-    t = rng.uniform(0.0, sum(hi - lo for lo, hi in spans))
-    for lo, hi in spans:
-        if t <= hi - lo:
-            return float(lo + t)
-        t -= hi - lo
-    return float(spans[-1][1])
-
-
-def plan_sample(index: int, seed: int, split: str, bins: tuple[str, ...], n_sources: int, ranges=None) -> SamplePlan:
+def plan_sample(index: int, seed: int, split: str, bins: tuple[str, ...], n_sources: int) -> SamplePlan:
     """Everything random about sample ``index`` except the simulator noise, from (seed, index) only.
 
     test: bin = bins[i % n_bins], D/r0 uniform inside it, source = (i // n_bins) % n_sources (each image
     appears once per bin before any repeats); train: D/r0 uniform over the union of bins, random source.
     """
-    ranges = ranges or bin_ranges()
     rng = _rng(seed, 0, index)
     if split == "test":
         name = bins[index % len(bins)]
-        dr0 = float(rng.uniform(*ranges[name]))
+        dr0 = float(dr0_from_uniform(rng.random(), bin_spans([name])))
         source = (index // len(bins)) % n_sources
     else:
-        dr0 = sample_dr0_union(rng, bins, ranges)
-        name = bin_of(dr0, ranges)
+        dr0 = float(dr0_from_uniform(rng.random(), bin_spans(bins)))
+        name = dr0_bin(dr0)
         source = int(rng.integers(n_sources))
     u, v = rng.random(2)
     return SamplePlan(index, sample_id(index), source, dr0, name, float(u), float(v))
@@ -174,16 +162,16 @@ def resolve_device(name: str, local_rank: int = 0) -> torch.device:
         raise D2TurbError(f"unknown device {name!r} (use auto, cpu or cuda)") from None
 
 
+def params_record(params) -> dict:
+    """TurbulenceParams as a JSON-ready dict (with the derived r0 and tilt footprint) for the metadata."""
+    full = {**params.to_dict(), "footprint_px": footprint_px(params)}
+    return json.loads(json.dumps(full, default=str))
+
+
 def simulator_params(overrides: dict):
     """TurbulenceParams with the user's overrides, and the full parameter dict for the metadata."""
-    from d2turb.sim import TurbulenceParams
-
-    try:
-        params = TurbulenceParams(**overrides)
-    except TypeError as exc:
-        raise D2TurbError(f"bad simulator parameter: {exc}") from exc
-    full = params.to_dict() if hasattr(params, "to_dict") else dataclasses.asdict(params)
-    return params, json.loads(json.dumps(full, default=str))
+    (params,) = geometry_bank("fixed", overrides)
+    return params, params_record(params)
 
 
 class SourceCache:
@@ -278,12 +266,13 @@ def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: 
         "patch": cfg.patch,
         "split": cfg.split,
         "bins": list(cfg.bins),
-        "bin_ranges": {b: list(bin_ranges()[b]) for b in cfg.bins},
+        "bin_ranges": {b: list(BINS[b]) for b in cfg.bins},
         "seed": cfg.seed,
         "batch": cfg.batch,
         "depth": cfg.depth,
         "depth_is_disparity": cfg.depth_is_disparity,
         "params": params_full,
+        "geometry": cfg.geometry,
         "clean": [str(c) for c in cfg.clean],
         "sources": len(sources),
         "files": {k: f"{k}/<id>{s}" for k, s in FILES.items()},
@@ -297,7 +286,7 @@ def check_same_config(root: Path, record: dict) -> None:
     if not path.is_file():
         return
     old = json.loads(path.read_text())
-    keys = ["version", "pairs", "patch", "split", "bins", "seed", "batch", "depth", "params", "sources"]
+    keys = ["version", "pairs", "patch", "split", "bins", "seed", "batch", "depth", "params", "geometry", "sources"]
     diff = [k for k in keys if old.get(k) != record.get(k)]
     if diff:
         raise D2TurbError(f"{root} holds a dataset made with different settings ({', '.join(diff)}); use a new --out")
@@ -335,7 +324,8 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     info = dist_info()
     root = Path(cfg.out)
     sources = expand_inputs(list(cfg.clean))
-    params, params_full = simulator_params(cfg.params)
+    bank = geometry_bank(cfg.geometry, cfg.params)
+    params_full = params_record(bank[0]) if cfg.geometry == "fixed" else [params_record(p) for p in bank]
     record = dataset_config_record(cfg, sources, params_full)
     check_same_config(root, record)  # every rank checks, so a mismatch fails all of them before any barrier
     initialized_here = False
@@ -349,7 +339,7 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
                 write_json(root / CONFIG_NAME, record)
             remove_temp_files(root)
         _barrier(info)
-        stats = _generate_rank(cfg, info, root, sources, params, params_full, progress)
+        stats = _generate_rank(cfg, info, root, sources, bank, progress)
         _barrier(info)
         if info.rank == 0:
             stats["total"] = merge_meta(root)
@@ -360,12 +350,11 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     return stats
 
 
-def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> dict:
+def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
     from d2turb.ops.splat import backward_flow
     from d2turb.sim import Simulator
 
     device = resolve_device(cfg.device, info.local_rank)
-    ranges = bin_ranges()
     done = set(collect_records(root))
     n_chunks = (cfg.pairs + cfg.batch - 1) // cfg.batch
     my_chunks = [
@@ -384,7 +373,7 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
     truncate_partial_line(shard)
     for kind in FILES:
         (root / kind).mkdir(parents=True, exist_ok=True)
-    sim = Simulator(params, device=str(device))
+    sims: dict[int, Simulator] = {}
     cache = SourceCache(sources, cfg.patch, make_depth_fn(cfg.depth, device, cfg.depth_is_disparity))
     bar = None
     if progress and info.rank == 0:
@@ -395,7 +384,11 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
     with torch.inference_mode():
         for c in my_chunks:
             indices = range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
-            plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources), ranges) for i in indices]
+            plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources)) for i in indices]
+            g = chunk_geometry(cfg.seed, c, len(bank))
+            if g not in sims:
+                sims[g] = Simulator(bank[g], device=str(device))
+            sim, params_full = sims[g], params_record(bank[g])
             clean, depth, metas = [], [], []
             for plan in plans:
                 k, image, dmap = cache.get(plan.source)
@@ -417,6 +410,7 @@ def _generate_rank(cfg, info, root, sources, params, params_full, progress) -> d
                         "sim_seed": chunk_seed(cfg.seed, c),
                         "depth": cfg.depth,
                         "params": params_full,
+                        "geometry": g,
                     }
                 )
             clean_t = torch.stack(clean).to(device)

@@ -29,21 +29,7 @@ FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "flow": ".npy", "depth": 
 META_NAME = "meta.jsonl"
 CONFIG_NAME = "dataset.json"
 SHARD_DIR = ".meta"
-BIN_RANGES = dict(BINS)  # D/r0 bins of the benchmark (docs/physics.md §5), from the simulator
-BIN_NAMES = tuple(BIN_RANGES)
-
-
-def bin_ranges() -> dict[str, tuple[float, float]]:
-    return {name: (float(lo), float(hi)) for name, (lo, hi) in BIN_RANGES.items()}
-
-
-def bin_of(dr0: float, ranges: dict[str, tuple[float, float]] | None = None) -> str | None:
-    """Bin of a D/r0 value: weak < 2.25 ≤ medium ≤ 3.75 < strong (docs/physics.md §5); None outside all bins."""
-    ranges = ranges or bin_ranges()
-    hits = [name for name, (lo, hi) in ranges.items() if lo <= dr0 <= hi]
-    if len(hits) > 1:  # on a boundary: the closed middle bin wins
-        return "medium" if "medium" in hits else hits[0]
-    return hits[0] if hits else None
+BIN_NAMES = tuple(BINS)  # D/r0 strength bins, defined once in d2turb.sim.params
 
 
 def sample_id(index: int) -> str:

@@ -14,8 +14,8 @@ from d2turb.models.complexity import (
 )
 from d2turb.models.d2turb import BackboneRestorer, D2Turb
 from d2turb.models.hub import load_pretrained, save_pretrained
-from d2turb.models.injection import ASPI
-from d2turb.models.rectifier import TiltRectifier
+from d2turb.models.injection import ASPI, CosineASPI
+from d2turb.models.rectifier import TiltRectifier, UNetRectifier
 from d2turb.models.registry import (
     create_backbone,
     create_model,
@@ -35,7 +35,9 @@ __all__ = [
     "D2Turb",
     "BackboneRestorer",
     "TiltRectifier",
+    "UNetRectifier",
     "ASPI",
+    "CosineASPI",
     "save_pretrained",
     "load_pretrained",
     "count_parameters",

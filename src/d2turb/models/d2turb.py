@@ -7,7 +7,8 @@ import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
-from d2turb.models.rectifier import TiltRectifier
+from d2turb.models.common import pad_to_multiple
+from d2turb.models.rectifier import create_rectifier
 from d2turb.models.registry import create_backbone, register_model
 from d2turb.ops.warp import warp
 
@@ -22,14 +23,23 @@ def _check_input(image: torch.Tensor) -> None:
 
 @register_model("d2turb")
 class D2Turb(nn.Module):
-    """forward(image (B,3,H,W)) -> {"deblurred": Î_tilt, "restored": Î_clean, "flow": V̂ (B,2,H,W) pixels x,y,
-    "guide": F_guide}.
+    """D²Turb. forward(image (B,3,H,W)) -> {"deblurred": Î_tilt, "restored": Î_clean, "flow": V̂ (B,2,H,W) in pixels,
+    x then y, "pixel_flow": the same tensor (the authors' name), "guide": F_guide}.
 
-    backbone: a registered backbone name, configured by ``backbone_cfg``; injection: "aspi" | "concat" | "none",
-    configured by ``injection_cfg``; ``rectifier_cfg``: TiltRectifier keywords (width, mults, depth,
-    residual_bottleneck, flow_mode). Defaults = paper configuration (Restormer + ASPI: 31.88 M parameters;
-    paper 31.82 M).
+    Defaults = the paper configuration, exactly the authors' model (31,823,767 parameters): ``restormer`` backbone
+    (LayerNorm with bias, 26,126,644), the authors' rectifier (``rectifier="authors"``) and ASPI
+    (``injection="aspi"``). The whole pipeline runs on the input padded at the bottom/right to a multiple of 32
+    (reflect when the pad is smaller than the side, else replicate): backbone, rectifier and the warp see the padded
+    image, and every output is cropped back to H×W.
+
+    Args:
+        backbone: a registered backbone name, configured by ``backbone_cfg``.
+        injection: "aspi" (authors') | "aspi_cosine" | "concat" | "none", configured by ``injection_cfg``.
+        rectifier: "authors" (``rectifier_cfg``: ``widths``) | "unet" (``width``, ``mults``, ``depth``,
+            ``residual_bottleneck``, ``flow_mode``).
     """
+
+    multiple = 32  # the authors' padding of the whole pipeline
 
     def __init__(
         self,
@@ -38,25 +48,36 @@ class D2Turb(nn.Module):
         backbone_cfg: dict | None = None,
         rectifier_cfg: dict | None = None,
         injection_cfg: dict | None = None,
+        rectifier: str = "authors",
     ):
         super().__init__()
         self.backbone = create_backbone(backbone, **(backbone_cfg or {}))
         try:
-            self.rectifier = TiltRectifier(
-                self.backbone.guide_channels, injection=injection, injection_cfg=injection_cfg, **(rectifier_cfg or {})
+            self.rectifier = create_rectifier(
+                rectifier, self.backbone.guide_channels, injection, injection_cfg, **(rectifier_cfg or {})
             )
         except (TypeError, ValueError) as exc:
             raise D2TurbError(f"d2turb: bad rectifier/injection config ({exc})") from None
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         _check_input(image)
-        deblurred, guide = self.backbone(image)  # Eq. 8
-        flow = self.rectifier(deblurred, guide)
-        # Eq. 9. Sampled in float64: bf16 cannot hold pixel coordinates beyond 256, and float32 round-off in the
-        # pixel → grid → pixel conversion alone shifts samples by ~1e-5 px (zero flow must be exactly the identity).
+        h, w = image.shape[-2:]
+        x, _ = pad_to_multiple(image, self.multiple)
+        deblurred, guide = self.backbone(x)  # Eq. 8
+        flow = self.rectifier(deblurred, guide, size=(h, w))
+        # Eq. 9, on the padded image. Sampled in float64: bf16 cannot hold pixel coordinates beyond 256, and float32
+        # round-off in the pixel → grid → pixel conversion alone shifts samples by ~1e-5 px (zero flow must be
+        # exactly the identity).
         wide = torch.float32 if deblurred.device.type == "mps" else torch.float64
         restored = warp(deblurred.to(wide), flow.to(wide)).to(deblurred.dtype)
-        return {"deblurred": deblurred, "restored": restored, "flow": flow, "guide": guide}
+        flow = flow[..., :h, :w]
+        return {
+            "deblurred": deblurred[..., :h, :w],
+            "restored": restored[..., :h, :w],
+            "flow": flow,
+            "pixel_flow": flow,
+            "guide": guide[..., :h, :w],
+        }
 
 
 class BackboneRestorer(nn.Module):
@@ -69,17 +90,23 @@ class BackboneRestorer(nn.Module):
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor | None]:
         _check_input(image)
         out, guide = self.backbone(image)
-        return {"deblurred": out, "restored": out, "flow": None, "guide": guide}
+        return {"deblurred": out, "restored": out, "flow": None, "pixel_flow": None, "guide": guide}
 
 
 @register_model("d2turb_lite")
 def d2turb_lite(
     backbone: str = "nafnet",
-    injection: str = "aspi",
+    injection: str = "aspi_cosine",
     backbone_cfg: dict | None = None,
     rectifier_cfg: dict | None = None,
     injection_cfg: dict | None = None,
+    rectifier: str = "unet",
 ) -> D2Turb:
-    """CPU-friendly preset: the tiny NAFNet backbone and a narrow 4-level rectifier."""
-    rect = {"width": 16, "mults": (1, 2, 4, 4, 8), "depth": 4, **(rectifier_cfg or {})}
-    return D2Turb(backbone, injection, backbone_cfg, rect, injection_cfg)
+    """CPU-friendly preset (1.90 M parameters): the default tiny NAFNet backbone, our variants ``rectifier="unet"``
+    (width 16, mults (1, 2, 4, 4, 8), depth 4) and ``injection="aspi_cosine"``; not the authors' architecture."""
+    rect = (
+        {"width": 16, "mults": (1, 2, 4, 4, 8), "depth": 4, **(rectifier_cfg or {})}
+        if rectifier == "unet"
+        else rectifier_cfg
+    )
+    return D2Turb(backbone, injection, backbone_cfg, rect, injection_cfg, rectifier)

@@ -1,6 +1,12 @@
 """Weights I/O. ``save_pretrained`` writes one .safetensors file whose metadata holds the model config
 (``d2turb_config``: JSON of ``model.config``) and ``d2turb_sha256``: a SHA-256 over the tensors (name, dtype, shape,
-bytes, in name order). ``load_pretrained`` rebuilds the model, verifies the checksum and loads strictly."""
+bytes, in name order). ``load_pretrained`` rebuilds the model, verifies the checksum and loads strictly.
+
+It also reads the authors' checkpoints (HertzDot222/D2Turb): a ``.pth``/``.pt``/``.ckpt``/``.bin`` file (read with
+``torch.load(weights_only=True)``) or a plain ``.safetensors`` file holding a state dict, possibly nested under
+``params_ema``, ``params``, ``state_dict`` or ``model`` and with ``module.`` prefixes; its keys are renamed by
+:func:`convert_official_state_dict`. Every load is strict (missing, unexpected and mis-shaped keys are listed in one
+:class:`~d2turb.errors.D2TurbError`, nothing is loaded) and refuses non-finite (NaN/Inf) weights."""
 
 from __future__ import annotations
 
@@ -15,6 +21,9 @@ from torch import nn
 from d2turb.errors import D2TurbError
 from d2turb.io import atomic_path
 from d2turb.models.registry import create_model
+
+PICKLE_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin")
+NESTING_KEYS = ("params_ema", "params", "state_dict", "model")  # in order of preference
 
 CONFIG_KEY, CHECKSUM_KEY = "d2turb_config", "d2turb_sha256"
 
@@ -45,32 +54,223 @@ def save_pretrained(model: nn.Module, path: str | os.PathLike) -> Path:
     return path
 
 
-def load_pretrained(path: str | os.PathLike, device="cpu") -> nn.Module:
-    """Rebuild the model saved by :func:`save_pretrained`, verify its checksum, load strictly; returns it in eval
-    mode."""
-    from safetensors import safe_open
+# The authors' key names (left) → ours (right). Prefix rules, first match wins; the block rules apply to backbone keys.
+_OFFICIAL_PREFIXES = [
+    ("restormer.embed_conv.", "backbone.patch_embed."),
+    ("restormer.encoders.0.", "backbone.encoder_level1."),
+    ("restormer.encoders.1.", "backbone.encoder_level2."),
+    ("restormer.encoders.2.", "backbone.encoder_level3."),
+    ("restormer.encoders.3.", "backbone.latent."),
+    ("restormer.downs.0.body.", "backbone.down1_2."),
+    ("restormer.downs.1.body.", "backbone.down2_3."),
+    ("restormer.downs.2.body.", "backbone.down3_4."),
+    ("restormer.ups.0.body.", "backbone.up4_3."),
+    ("restormer.ups.1.body.", "backbone.up3_2."),
+    ("restormer.ups.2.body.", "backbone.up2_1."),
+    ("restormer.reduces.0.", "backbone.reduce_chan_level3."),
+    ("restormer.reduces.1.", "backbone.reduce_chan_level2."),
+    ("restormer.decoders.0.", "backbone.decoder_level3."),
+    ("restormer.decoders.1.", "backbone.decoder_level2."),
+    ("restormer.decoders.2.", "backbone.decoder_level1."),
+    ("restormer.", "backbone."),
+    ("rectifier.aspi.", "rectifier.inject."),
+]
+_OFFICIAL_BLOCK = [
+    (".attention.qkv_conv.", ".attn.qkv_dwconv."),
+    (".attention.", ".attn."),
+    (".feed_forward.conv.", ".ffn.dwconv."),
+    (".feed_forward.", ".ffn."),
+]
 
+
+def _rename(key: str, prefixes, block) -> str:
+    for old, new in prefixes:
+        if key.startswith(old):
+            key = new + key[len(old) :]
+            if new.startswith(("backbone.", "restormer.")):
+                for b_old, b_new in block:
+                    key = key.replace(b_old, b_new)
+            return key
+    return key
+
+
+def official_key(key: str) -> str:
+    """Our key → the authors' name for it (for messages)."""
+    return _rename(key, [(n, o) for o, n in _OFFICIAL_PREFIXES], [(n, o) for o, n in _OFFICIAL_BLOCK])
+
+
+def is_official_layout(state_dict: dict) -> bool:
+    return any(k.startswith(("restormer.", "rectifier.aspi.")) for k in state_dict)
+
+
+def convert_official_state_dict(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Rename the authors' D²Turb keys to ours (``restormer.*`` → ``backbone.*``, ``rectifier.aspi.*`` →
+    ``rectifier.inject.*``; the rectifier's other keys are the same) and reshape the Restormer temperatures
+    (1, heads, 1, 1) → (heads, 1, 1). Keys already in our layout pass through unchanged."""
+    out = {}
+    for key, value in state_dict.items():
+        new = _rename(key, _OFFICIAL_PREFIXES, _OFFICIAL_BLOCK)
+        if key.startswith("restormer.") and new.endswith(".attn.temperature") and value.ndim == 4:
+            value = value.reshape(value.shape[1:])
+        out[new] = value
+    return out
+
+
+def _unwrap(obj, path: Path, key: str | None) -> dict:
+    """The state dict inside a checkpoint: nested under ``key`` or one of NESTING_KEYS, ``module.`` prefixes
+    stripped."""
+    while isinstance(obj, dict) and not (obj and all(isinstance(v, torch.Tensor) for v in obj.values())):
+        found = [k for k in ([key] if key else NESTING_KEYS) if k in obj and isinstance(obj[k], dict)]
+        if not found:
+            keys = ", ".join(map(str, list(obj)[:10])) or "none"
+            want = repr(key) if key else " / ".join(NESTING_KEYS)
+            raise D2TurbError(f"{path}: no state dict found under {want} (top-level keys: {keys})")
+        obj, key = obj[found[0]], None
+    if not isinstance(obj, dict):
+        raise D2TurbError(f"{path}: not a state dict (found {type(obj).__name__})")
+    out = {}
+    for k, v in obj.items():
+        k = str(k)
+        while k.startswith("module."):
+            k = k[len("module.") :]
+        out[k] = v
+    return out
+
+
+def read_state_dict(path: str | os.PathLike, key: str | None = None) -> dict[str, torch.Tensor]:
+    """A state dict from a ``.safetensors`` file (metadata ignored) or a ``.pth``/``.pt``/``.ckpt``/``.bin`` file
+    (``torch.load(weights_only=True)``, on CPU), unwrapped from ``key`` (default: the first of ``params_ema``,
+    ``params``, ``state_dict``, ``model`` present) with ``module.`` prefixes stripped."""
     path = Path(path)
     if not path.is_file():
         raise D2TurbError(f"{path}: weights file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".safetensors":
+        return _unwrap(_read_safetensors(path)[0], path, None)
+    if suffix not in PICKLE_SUFFIXES:
+        raise D2TurbError(f"{path}: unknown weights format (use .safetensors or {', '.join(PICKLE_SUFFIXES)})")
+    try:
+        obj = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as exc:  # unpickling refused (weights_only) or a corrupt archive
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise D2TurbError(f"{path}: cannot read checkpoint ({exc.__class__.__name__}: {first})") from None
+    return _unwrap(obj, path, key)
+
+
+def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    from safetensors import safe_open
+
     try:
         with safe_open(str(path), framework="pt") as f:
             metadata = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except Exception as exc:  # safetensors raises its own error types for truncated / garbage files
         raise D2TurbError(f"{path}: corrupt weights file ({exc.__class__.__name__})") from None
-    if CONFIG_KEY not in metadata or CHECKSUM_KEY not in metadata:
-        raise D2TurbError(f"{path}: not a d2turb weights file (no config or checksum in its metadata)")
-    if tensors_sha256(tensors) != metadata[CHECKSUM_KEY]:
-        raise D2TurbError(f"{path}: checksum mismatch, the weights file is corrupt or was modified")
-    try:
-        config = dict(json.loads(metadata[CONFIG_KEY]))
-        name = config.pop("name")
-    except (ValueError, KeyError, TypeError):
-        raise D2TurbError(f"{path}: unreadable model config in its metadata") from None
-    model = create_model(name, **config)
-    try:
-        model.load_state_dict(tensors, strict=True)
-    except RuntimeError as exc:
-        raise D2TurbError(f"{path}: weights do not match model {name!r} ({str(exc).splitlines()[0]})") from None
-    return model.to(device).eval()
+    return tensors, metadata
+
+
+def _listing(names: list[str], limit: int = 8) -> str:
+    shown = ", ".join(names[:limit])
+    return shown + (f" (and {len(names) - limit} more)" if len(names) > limit else "")
+
+
+def load_state_dict_strict(model: nn.Module, state_dict: dict, source: str, display=None) -> None:
+    """Load ``state_dict`` into ``model`` only if its keys and shapes match exactly and every tensor is finite;
+    otherwise raise one D2TurbError listing the missing, unexpected, mis-shaped or non-finite tensors (``display``
+    maps our key names to the names shown, e.g. :func:`official_key`). Nothing is loaded on error."""
+    display = display or (lambda k: k)
+    expected = model.state_dict()
+    bad_type = sorted(k for k, v in state_dict.items() if not isinstance(v, torch.Tensor))
+    if bad_type:
+        raise D2TurbError(f"{source}: entries that are not tensors: {_listing([display(k) for k in bad_type])}")
+    name = getattr(model, "config", {}).get("name", type(model).__name__)
+    if not set(expected) & set(state_dict):
+        raise D2TurbError(
+            f"{source}: not weights of model {name!r} (none of its {len(state_dict)} keys matches, e.g. "
+            f"{_listing(sorted(state_dict), 3) or 'no keys'})"
+        )
+    missing = sorted(set(expected) - set(state_dict))
+    unexpected = sorted(set(state_dict) - set(expected))
+    shapes = sorted(
+        f"{display(k)} {tuple(state_dict[k].shape)} vs {tuple(expected[k].shape)}"
+        for k in set(expected) & set(state_dict)
+        if state_dict[k].shape != expected[k].shape
+    )
+    problems = [
+        f"{label}: {_listing(names)}"
+        for label, names in (
+            ("missing", [display(k) for k in missing]),
+            ("unexpected", [display(k) for k in unexpected]),
+            ("mis-shaped (file vs model)", shapes),
+        )
+        if names
+    ]
+    if problems:
+        raise D2TurbError(f"{source}: weights do not match model {name!r}; " + "; ".join(problems))
+    nonfinite = sorted(
+        display(k) for k, v in state_dict.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())
+    )
+    if nonfinite:
+        raise D2TurbError(f"{source}: non-finite weights (NaN/Inf) in {_listing(nonfinite)}")
+    if any(t.is_meta for t in expected.values()):
+        # built on the meta device: adopt fresh copies (own, aligned storage; the model's dtypes)
+        state_dict = {
+            k: v.to(dtype=expected[k].dtype, memory_format=torch.contiguous_format, copy=True)
+            for k, v in state_dict.items()
+        }
+        model.load_state_dict(state_dict, strict=True, assign=True)
+    else:
+        model.load_state_dict(state_dict, strict=True)
+
+
+def _build_for_loading(name: str, config: dict) -> nn.Module:
+    """The model on the meta device (no random initialisation: loading replaces every tensor), unless it has
+    tensors outside its state dict (non-persistent buffers), which need a real initialisation."""
+    with torch.device("meta"):
+        net = create_model(name, **config)
+    if sum(1 for _ in net.parameters()) + sum(1 for _ in net.buffers()) != len(net.state_dict()):
+        net = create_model(name, **config)
+    return net
+
+
+def load_pretrained(
+    path: str | os.PathLike,
+    device="cpu",
+    model: str = "d2turb",
+    config: dict | None = None,
+    key: str | None = None,
+) -> nn.Module:
+    """Load weights strictly and return the model in eval mode on ``device``.
+
+    A file written by :func:`save_pretrained` rebuilds its own model from its metadata (checksum verified;
+    ``model``/``config``/``key`` are ignored). Any other file (the authors' ``.pth`` or a plain ``.safetensors``
+    state dict, see :func:`read_state_dict`) is converted by :func:`convert_official_state_dict` and loaded into
+    ``create_model(model, **config)``, by default the paper configuration of D²Turb.
+
+    Raises:
+        D2TurbError: missing/corrupt file, checksum mismatch, missing/unexpected/mis-shaped keys, NaN/Inf weights.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise D2TurbError(f"{path}: weights file not found")
+    metadata = {}
+    if path.suffix.lower() == ".safetensors":
+        tensors, metadata = _read_safetensors(path)
+    if CONFIG_KEY in metadata or CHECKSUM_KEY in metadata:
+        if CONFIG_KEY not in metadata or CHECKSUM_KEY not in metadata:
+            raise D2TurbError(f"{path}: not a d2turb weights file (no config or checksum in its metadata)")
+        if tensors_sha256(tensors) != metadata[CHECKSUM_KEY]:
+            raise D2TurbError(f"{path}: checksum mismatch, the weights file is corrupt or was modified")
+        try:
+            config = dict(json.loads(metadata[CONFIG_KEY]))
+            name = config.pop("name")
+        except (ValueError, KeyError, TypeError):
+            raise D2TurbError(f"{path}: unreadable model config in its metadata") from None
+        net = _build_for_loading(name, config)
+        load_state_dict_strict(net, tensors, str(path))
+    else:
+        state = read_state_dict(path, key)
+        official = is_official_layout(state)
+        net = _build_for_loading(model, dict(config or {}))
+        load_state_dict_strict(net, convert_official_state_dict(state), str(path), official_key if official else None)
+    return net.to(device).eval()

@@ -1,7 +1,8 @@
 """Restormer (Zamir et al., CVPR 2022) as a D²Turb deblurring backbone: forward(image) -> (Î_tilt, F_guide)
 (Eq. 8), F_guide being the refinement feature right before the output projection.
 Default = the paper configuration: widths 48/96/192/384, blocks 4/6/6/8, heads 1/2/4/8, 4 refinement blocks,
-FFN expansion 2.66, bias-free LayerNorm, no conv biases (26.13 M parameters)."""
+FFN expansion 2.66, LayerNorm with bias (Restormer's "WithBias", as in the authors' D²Turb), no conv biases:
+26,126,644 parameters (``norm_bias=False``, the BiasFree LayerNorm: 26,111,668)."""
 
 from __future__ import annotations
 
@@ -83,7 +84,7 @@ class Restormer(nn.Module):
         num_refinement_blocks: int = 4,
         ffn_expansion: float = 2.66,
         bias: bool = False,
-        norm_bias: bool = False,
+        norm_bias: bool = True,
         in_channels: int = 3,
     ):
         super().__init__()

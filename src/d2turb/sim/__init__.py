@@ -4,8 +4,10 @@ from d2turb.sim.params import (
     BINS,
     MODULATIONS,
     TurbulenceParams,
+    bin_spans,
     depth_modulation,
     dr0_bin,
+    dr0_from_uniform,
     fried_r0_spherical,
     sample_dr0,
 )
@@ -20,6 +22,8 @@ __all__ = [
     "simulate",
     "sample_dr0",
     "dr0_bin",
+    "dr0_from_uniform",
+    "bin_spans",
     "depth_modulation",
     "fried_r0_spherical",
 ]

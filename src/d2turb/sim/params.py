@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
@@ -121,21 +122,50 @@ class TurbulenceParams:
 
 
 def dr0_bin(x: float) -> str:
-    """Strength bin of D/r0: weak < 2.25 <= medium <= 3.75 < strong (docs/physics.md §5)."""
+    """Strength bin of D/r0 (paper Sec. 4.1): weak < 2.25 <= medium <= 3.75 < strong (docs/physics.md §5)."""
     x = float(x)
     if not math.isfinite(x) or x <= 0:
         raise D2TurbError(f"D/r0 must be positive and finite, got {x!r}")
-    return "weak" if x < 2.25 else ("medium" if x <= 3.75 else "strong")
+    return "weak" if x < BINS["medium"][0] else ("medium" if x <= BINS["medium"][1] else "strong")
 
 
-def sample_dr0(n: int, low: float, high: float, generator: torch.Generator | None = None) -> torch.Tensor:
-    """n values of D/r0 drawn uniformly in [low, high] (float32, CPU)."""
-    low, high = _positive("dr0 low", low), _positive("dr0 high", high)
-    if high < low:
-        raise D2TurbError(f"dr0 range is empty: low={low} > high={high}")
-    if high > MAX_DR0:
-        raise D2TurbError(f"dr0 high = {high} is beyond the supported range (0, {MAX_DR0:g}]")
-    return low + (high - low) * torch.rand(int(n), generator=generator, dtype=torch.float64).float()
+def bin_spans(bins) -> list[tuple[float, float]]:
+    """The D/r0 ranges of named bins, e.g. ``bin_spans(("weak", "strong"))``."""
+    bins = tuple(bins)
+    unknown = [b for b in bins if b not in BINS]
+    if not bins or unknown or len(set(bins)) != len(bins):
+        what = f"unknown bin {unknown[0]!r}" if unknown else f"bins must be distinct and non-empty, got {bins}"
+        raise D2TurbError(f"{what}; choose from {','.join(BINS)}")
+    return [BINS[b] for b in bins]
+
+
+def dr0_from_uniform(u, spans) -> np.ndarray:
+    """Map u in [0, 1) to D/r0 uniform over the union of ``spans`` [(low, high), ...] (float64 array).
+
+    The one definition of D/r0 sampling: callers draw u from their own generator (numpy or torch)."""
+    lo = np.array([a for a, _ in spans], dtype=np.float64)
+    width = np.array([b - a for a, b in spans], dtype=np.float64)
+    edges = np.cumsum(width)
+    t = np.asarray(u, dtype=np.float64) * edges[-1]
+    k = np.minimum(np.searchsorted(edges, t, side="left"), len(spans) - 1)
+    return lo[k] + t - (edges[k] - width[k])
+
+
+def sample_dr0(
+    n: int, low: float | None = None, high: float | None = None, generator: torch.Generator | None = None, bins=None
+) -> torch.Tensor:
+    """n values of D/r0 uniform in [low, high], or over the union of ``bins`` (float32, CPU)."""
+    if bins is not None:
+        spans = bin_spans(bins)
+    else:
+        low, high = _positive("dr0 low", low), _positive("dr0 high", high)
+        if high < low:
+            raise D2TurbError(f"dr0 range is empty: low={low} > high={high}")
+        if high > MAX_DR0:
+            raise D2TurbError(f"dr0 high = {high} is beyond the supported range (0, {MAX_DR0:g}]")
+        spans = [(low, high)]
+    u = torch.rand(int(n), generator=generator, dtype=torch.float64)
+    return torch.from_numpy(dr0_from_uniform(u.numpy(), spans)).float()
 
 
 def depth_modulation(

@@ -26,6 +26,7 @@ class OnTheFlyConfig:
     depth: str = "prior"  # none | prior | DIR | anything:PATH
     length: int | None = None  # crops per epoch (default: one per image)
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
+    geometry: str = "fixed"  # d2turb.sim.geometry.GEOMETRIES name; one imaging geometry drawn per batch
 
 
 @dataclass
@@ -264,6 +265,12 @@ def validate(cfg: Config) -> None:
         raise D2TurbError(f"config: data.on_the_fly.bins must be a non-empty list of bin names, got {otf.bins!r}")
     if otf.length is not None and not _positive_int(otf.length):
         raise D2TurbError(f"config: data.on_the_fly.length must be a positive integer, got {otf.length!r}")
+    from d2turb.sim.geometry import GEOMETRIES
+
+    if otf.geometry not in GEOMETRIES:
+        raise D2TurbError(
+            f"config: data.on_the_fly.geometry must be one of {', '.join(GEOMETRIES)}, got {otf.geometry!r}"
+        )
     if (train.epochs is None) == (train.iterations is None):
         raise D2TurbError("config: give exactly one of train.epochs or train.iterations")
     for key in ("epochs", "iterations", "batch"):

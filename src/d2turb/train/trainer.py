@@ -212,15 +212,14 @@ class Trainer:
     def _make_synthesis(self, bins, seed: int):
         """On-the-fly synthesis on the training device (one place, for training and pack validation)."""
         from d2turb.data import OnTheFlySynthesis
-        from d2turb.data.generate import simulator_params
         from d2turb.sim import Simulator
+        from d2turb.sim.geometry import geometry_bank
 
         otf = self.cfg.data.on_the_fly
-        if getattr(self, "_simulator", None) is None:
-            params, _ = simulator_params(otf.params or {})
-            self._simulator = Simulator(params, self.device)
+        if getattr(self, "_simulators", None) is None:
+            self._simulators = [Simulator(p, self.device) for p in geometry_bank(otf.geometry, otf.params or {})]
         return OnTheFlySynthesis(
-            self._simulator, bins=tuple(bins), device=self.device, seed=seed, use_depth=otf.depth != "none"
+            self._simulators, bins=tuple(bins), device=self.device, seed=seed, use_depth=otf.depth != "none"
         )
 
     def _build_data(self) -> None:
