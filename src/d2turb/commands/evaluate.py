@@ -29,7 +29,8 @@ def register(sub):
         "--metrics",
         default=None,
         help="comma-separated metrics (default: psnr,ssim,lpips with --data, LPIPS skipped with a note "
-        "when its weights are missing; niqe,piqe with --real)",
+        "when its weights are missing; --data also offers epe (flow end-point error, px) and psnr_tilt "
+        "(deblurred vs I_tilt); niqe,piqe with --real)",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")

@@ -110,7 +110,7 @@ class CleanCropDataset(Dataset):
 
     ``length`` items per epoch (default: one per image); item i uses image i % n_images and a fresh
     random crop (torch global RNG). Images smaller than the patch are resized up, as in make-dataset.
-    Full-image depth maps are cached per worker (``cache`` entries).
+    Images and their full-image depth maps are cached per worker (``cache`` entries; None = all).
     """
 
     def __init__(
@@ -120,7 +120,7 @@ class CleanCropDataset(Dataset):
         depth_spec: str = "prior",
         length: int | None = None,
         hflip: bool = True,
-        cache: int = 32,
+        cache: int | None = None,
     ):
         from d2turb.data.generate import make_depth_fn
 
@@ -149,7 +149,7 @@ class CleanCropDataset(Dataset):
             depth = self.depth_fn(image, self.paths[k]).float().reshape(1, *image.shape[-2:])
         item = (resize_up(image, self.patch), resize_up(depth, self.patch))
         self._cache[k] = item
-        if len(self._cache) > self.cache_size:
+        if self.cache_size is not None and len(self._cache) > self.cache_size:
             self._cache.popitem(last=False)
         return item
 

@@ -15,6 +15,8 @@ METRIC_INFO = {  # display name, higher is better, decimals
     "psnr": ("PSNR", True, 3),
     "ssim": ("SSIM", True, 3),
     "lpips": ("LPIPS", False, 3),
+    "epe": ("EPE px", False, 3),  # flow end-point error vs the true backward flow ("input" = zero flow)
+    "psnr_tilt": ("PSNR(Î_tilt)", True, 3),  # deblurring stage vs I_tilt
 }
 GROUPS = BINS + ("avg",)
 

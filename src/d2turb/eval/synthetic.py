@@ -20,8 +20,8 @@ from d2turb.errors import D2TurbError
 
 logger = logging.getLogger(__name__)
 
-ALL_METRICS = ("psnr", "ssim", "lpips")
-DEFAULT_METRICS = ALL_METRICS
+ALL_METRICS = ("psnr", "ssim", "lpips", "epe", "psnr_tilt")
+DEFAULT_METRICS = ("psnr", "ssim", "lpips")
 
 
 def _quantise(x: torch.Tensor) -> torch.Tensor:
@@ -136,7 +136,8 @@ def evaluate_synthetic(
         record = {"id": item["id"], "bin": bin_name, "dr0": round(float(item["dr0"]), 6), "values": {}}
         outputs = []
         for name, restorer in zip(names, restorers):
-            pred = _quantise(restorer.restore(turb))
+            details = restorer.restore_with_details(turb)
+            pred = _quantise(details["restored"])
             values = {}
             if "psnr" in metrics:
                 values["psnr"] = float(psnr(pred, gt))
@@ -145,6 +146,10 @@ def evaluate_synthetic(
             if "lpips" in metrics:
                 with torch.no_grad():
                     values["lpips"] = float(lpips_model(pred[None].to(device), gt[None].to(device))[0])
+            if "epe" in metrics:  # both flows are backward flows: warp(tilt, flow) ≈ gt
+                values["epe"] = float((details["flow"] - item["flow"]).norm(dim=0).mean())
+            if "psnr_tilt" in metrics:
+                values["psnr_tilt"] = float(psnr(_quantise(details["deblurred"]), item["tilt"]))
             record["values"][name] = values
             outputs.append(pred)
         samples.append(record)
