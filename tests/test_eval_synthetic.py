@@ -164,3 +164,19 @@ def test_explicit_lpips_without_weights_is_an_error(tmp_path, no_lpips, monkeypa
     with pytest.raises(D2TurbError, match="not a d2turb dataset"):
         evaluate_synthetic(["input"], tmp_path, tmp_path / "out")
     assert not (tmp_path / "out").exists()  # nothing half-written on failure
+
+
+def test_flow_to_rgb_colour_wheel():
+    from d2turb.eval.report import flow_to_rgb
+
+    flow = torch.zeros(2, 1, 6)
+    flow[:, 0, 1] = torch.tensor([2.0, 0.0])  # +x at the maximum magnitude: pure red
+    flow[:, 0, 2] = torch.tensor([-2.0, 0.0])  # −x: cyan
+    flow[:, 0, 3] = torch.tensor([0.0, 2.0])  # +y (down): hue 1/4 = (0.5, 1, 0)
+    flow[:, 0, 4] = torch.tensor([1.0, 0.0])  # half the maximum to the right: half-saturated red
+    flow[:, 0, 5] = torch.tensor([0.0, -2.0])  # −y: hue 3/4 = (0.5, 0, 1)
+    rgb = flow_to_rgb(flow)[:, 0].T
+    expected = torch.tensor(
+        [[1, 1, 1], [1, 0, 0], [0, 1, 1], [0.5, 1, 0], [1, 0.5, 0.5], [0.5, 0, 1]], dtype=torch.float32
+    )
+    torch.testing.assert_close(rgb, expected, atol=1e-6, rtol=0)

@@ -97,6 +97,25 @@ def latex_table(table: dict, metrics: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def flow_to_rgb(flow: torch.Tensor, max_px: float | None = None) -> torch.Tensor:
+    """Colour-wheel picture of a flow field: hue = direction (+x red, +y chartreuse, −x cyan, −y violet),
+    saturation = magnitude / ``max_px`` (default: the largest magnitude), white = no motion.
+
+    Shape: flow (2, H, W) in pixels, x then y -> (3, H, W) float in [0, 1].
+    """
+    from matplotlib.colors import hsv_to_rgb
+
+    if flow.ndim != 3 or flow.shape[0] != 2:
+        raise ValueError(f"flow_to_rgb: expected a (2, H, W) flow, got {tuple(flow.shape)}")
+    f = flow.detach().float().cpu()
+    mag = f.norm(dim=0)
+    scale = float(mag.max()) if max_px is None else float(max_px)
+    hue = (torch.atan2(f[1], f[0]) / (2 * math.pi)) % 1.0
+    sat = (mag / scale).clamp(0, 1) if scale > 0 else torch.zeros_like(mag)
+    hsv = torch.stack([hue, sat, torch.ones_like(mag)], dim=-1).numpy()
+    return torch.from_numpy(hsv_to_rgb(hsv)).permute(2, 0, 1).float()
+
+
 def fit_cell(image: torch.Tensor, cell: int) -> torch.Tensor:
     """(3,H,W) in [0,1] → resized (area) so that its longer side is ``cell`` (never enlarged)."""
     h, w = image.shape[-2:]
