@@ -1,12 +1,13 @@
 """`d2turb models` and `d2turb bench model` (tiny configs; FLOPs counted on the meta device)."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
 from d2turb.cli import main
-from d2turb.models import count_parameters, create_model, flop_counts
+from d2turb.models import count_parameters, create_model, flop_counts, load_pretrained
 
 TINY_NAFNET = {"width": 8, "enc_blocks": [1, 1], "middle_blocks": 1, "dec_blocks": [1, 1]}
 
@@ -85,3 +86,60 @@ def test_bench_errors_are_one_line(capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+FIXTURE = Path(__file__).resolve().parents[1] / ".." / "shared" / "fixtures" / "official_d2turb"
+
+
+def test_convert_authors_checkpoint(tmp_path, capsys):
+    """A random state dict with the authors' full layout (../shared fixture: every key and shape of their model),
+    nested under params_ema with DDP's module. prefixes: refused while one key is missing (error names it, nothing
+    written), then converted and loaded as the paper model (31,823,767 parameters) with its values."""
+    if not FIXTURE.is_dir():
+        pytest.skip(f"fixture folder {FIXTURE} is absent")
+    layout = json.loads((FIXTURE / "official_state_dict_layout.json").read_text())["keys"]
+    gen = torch.Generator().manual_seed(0)
+    state = {k: torch.randn(shape, generator=gen).half() for k, shape in layout.items()}  # fp16, as released
+    src, dst = tmp_path / "net_g_latest.pth", tmp_path / "d2turb_paper.safetensors"
+    dropped = state.pop("rectifier.decode_2.body.0.bias")
+    torch.save({"params_ema": {f"module.{k}": v for k, v in state.items()}}, src)
+    assert main(["convert", str(src), str(dst)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "missing: rectifier.decode_2.body.0.bias\n" in err
+    assert not dst.exists() and not list(tmp_path.glob(".*tmp*"))
+    state["rectifier.decode_2.body.0.bias"] = dropped
+    torch.save({"params_ema": {f"module.{k}": v for k, v in state.items()}}, src)
+    assert main(["convert", str(src), str(dst)]) == 0
+    assert "31,823,767 parameters" in capsys.readouterr().out
+    model = load_pretrained(dst)
+    assert model.config == {"name": "d2turb"} and count_parameters(model) == 31_823_767
+    weights = model.state_dict()
+    assert torch.equal(weights["rectifier.decode_2.body.0.bias"], dropped.float())
+    assert torch.equal(
+        weights["backbone.encoder_level2.5.attn.project_out.weight"],
+        state["restormer.encoders.1.5.attention.project_out.weight"].float(),
+    )
+
+
+@pytest.mark.parametrize(
+    "make, dst, message",
+    [
+        (lambda p: torch.save({"w": torch.ones(2)}, p), "out.pt", "must end in .safetensors"),
+        (None, "out.safetensors", "weights file not found"),
+        (lambda p: p.write_bytes(b"not a zip"), "out.safetensors", "cannot read checkpoint"),
+        (
+            lambda p: torch.save({"optimizer": {"lr": 1.0}}, p),
+            "out.safetensors",
+            "no state dict found under params_ema",
+        ),
+        (lambda p: torch.save({"params": {"w": torch.ones(2)}}, p), "out.safetensors", "not weights of model 'd2turb'"),
+    ],
+)
+def test_convert_errors_are_one_line(tmp_path, capsys, make, dst, message):
+    src = tmp_path / "in.pth"
+    if make:
+        make(src)
+    assert main(["convert", str(src), str(tmp_path / dst)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+    assert not (tmp_path / dst).exists()
