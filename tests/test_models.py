@@ -226,6 +226,28 @@ def test_corrupt_weights_are_refused(tmp_path):
         load_pretrained(tmp_path / "missing.safetensors")
 
 
+def test_files_written_before_format_2_load_with_their_old_defaults(tmp_path):
+    """A file from before the authors' architecture became the default (no ``d2turb_format`` in its metadata): its
+    config {"backbone": "restormer", "injection": "aspi"} then meant Restormer's bias-free LayerNorm, the U-Net
+    rectifier and the cosine ASPI, and it must load as exactly that model."""
+    from safetensors.torch import save_file
+
+    from d2turb.models.hub import tensors_sha256
+
+    old = {"backbone": "restormer", "injection": "aspi", "backbone_cfg": TINY_RESTORMER, "rectifier_cfg": TINY_UNET}
+    then = dict(old, injection="aspi_cosine", rectifier="unet", backbone_cfg=dict(TINY_RESTORMER, norm_bias=False))
+    torch.manual_seed(0)
+    model = create_model("d2turb", **then).eval()
+    tensors = {k: v.contiguous() for k, v in model.state_dict().items()}
+    meta = {"d2turb_config": json.dumps({"name": "d2turb", **old}), "d2turb_sha256": tensors_sha256(tensors)}
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=meta)
+    loaded = load_pretrained(tmp_path / "old.safetensors")
+    assert loaded.config == json.loads(json.dumps({"name": "d2turb", **then}))
+    x = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(loaded(x)["restored"], model(x)["restored"])
+
+
 def test_bad_names_and_inputs_raise_clear_errors():
     with pytest.raises(D2TurbError, match="unknown model 'nope'; available: d2turb"):
         create_model("nope")
