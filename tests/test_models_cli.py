@@ -19,8 +19,12 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
     assert {"d2turb", "d2turb_lite", "restormer", "nafnet"} <= set(models)
     assert models["nafnet"] == count_parameters(create_model("nafnet"))
     assert {b["name"]: b["guide_channels"] for b in listing["backbones"]} == {"restormer": 96, "nafnet": 16}
+    # the paper's 31.82 M / 26.13 M, exactly the authors' released model definition
+    assert models["d2turb"] == 31_823_767 and models["restormer"] == 26_126_644
+    assert {b["name"]: b["params"] for b in listing["backbones"]}["restormer"] == 26_126_644
     assert main(["models"]) == 0
-    assert "31.82 M" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "d2turb            31.82 M" in out and "restormer         26.13 M" in out
 
 
 def test_bench_model_json(tmp_path, capsys):
@@ -56,6 +60,19 @@ def test_bench_model_json(tmp_path, capsys):
     assert r["flops"] == flop_counts(model, 32)["total"] and r["gmacs"] == pytest.approx(r["flops"] / 2e9)
     assert r["latency_s"] > 0 and r["config"]["injection"] == "concat"
     assert "| d2turb (" in capsys.readouterr().out
+
+
+def test_bench_model_d2turb_reports_the_paper_model(tmp_path, capsys):
+    """Acceptance: `d2turb bench model d2turb` is the paper's model: 31,823,767 parameters (31.82 M), Restormer
+    26,126,644 (26.13 M) and 140.99 G convolution MACs at 256² (the Restormer paper's figure)."""
+    out = tmp_path / "d2turb.json"
+    assert main(["bench", "model", "d2turb", "--no-latency", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["params"] == 31_823_767
+    assert "| d2turb | 31.82 |" in capsys.readouterr().out
+    assert main(["bench", "model", "restormer", "--no-latency", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["params"] == 26_126_644 and r["conv_gmacs"] == pytest.approx(140.99, abs=0.005)
+    assert "| restormer | 26.13 | 154.88 | 140.99 |" in capsys.readouterr().out
 
 
 def test_flops_of_a_single_conv_match_the_formula():
