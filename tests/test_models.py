@@ -255,6 +255,12 @@ def test_bad_names_and_inputs_raise_clear_errors():
         create_model("d2turb", backbone="focalnet")
     with pytest.raises(D2TurbError, match="unknown injection"):
         create_model("d2turb", injection="film", backbone="nafnet")
+    with pytest.raises(D2TurbError, match="unknown rectifier 'raft'; available: authors, unet"):
+        create_model("d2turb", rectifier="raft", backbone="nafnet")
+    with pytest.raises(D2TurbError, match="bad rectifier/injection config.*widths"):
+        create_model("d2turb", backbone="nafnet", rectifier_cfg={"widths": [32]})
+    with pytest.raises(D2TurbError, match="bad rectifier/injection config"):
+        create_model("d2turb", backbone="nafnet", rectifier_cfg={"width": 8})  # a unet keyword for the authors' one
     with pytest.raises(D2TurbError, match="bad config"):
         create_backbone("nafnet", widht=8)
     with pytest.raises(D2TurbError, match=r"\(B, 3, H, W\)"):
