@@ -107,15 +107,15 @@ def test_tiny_inputs_pad_by_replication(size):
 
 @pytest.mark.parametrize("case_id", CASES)
 def test_every_parameter_gets_a_gradient(case_id):
-    """Three SGD steps. Zero-initialised parameters (flow head, NAFNet's β/γ, the authors' ASPI γ) block the gradient
-    of what lies behind them until they have moved: the flow head moves on step 1, ASPI's γ on step 2, so on step 3
-    every parameter must receive a finite, nonzero gradient."""
+    """Zero-initialised parameters (flow head, NAFNet's β/γ, the authors' ASPI γ) block the gradient of what lies
+    behind them until they have moved: the flow head moves on step 1 and the authors' ASPI γ on step 2, so on the
+    last of two SGD steps (three with the authors' ASPI) every parameter must receive a finite, nonzero gradient."""
     model = build(case_id)
     opt = torch.optim.SGD(model.parameters(), lr=0.1)
     gen = torch.Generator().manual_seed(1)
     x, target = torch.rand(2, 1, 3, 27, 35, generator=gen)
     target_flow = torch.randn(1, 2, 27, 35, generator=gen)
-    for _ in range(3):
+    for _ in range(3 if any(isinstance(m, ASPI) for m in model.modules()) else 2):
         opt.zero_grad()
         out = model(x)
         loss = F.l1_loss(out["restored"], target) + F.l1_loss(out["deblurred"], target)
