@@ -17,7 +17,7 @@ from d2turb.models import (
     parameter_count,
     save_pretrained,
 )
-from d2turb.models.injection import CosineASPI
+from d2turb.models.injection import ASPI, CosineASPI
 
 TINY_RESTORMER = {"dim": 8, "num_blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "num_refinement_blocks": 1}
 TINY_NAFNET = {"width": 8, "enc_blocks": [1, 1], "middle_blocks": 1, "dec_blocks": [1, 1]}
@@ -107,15 +107,15 @@ def test_tiny_inputs_pad_by_replication(size):
 
 @pytest.mark.parametrize("case_id", CASES)
 def test_every_parameter_gets_a_gradient(case_id):
-    """Three SGD steps. Zero-initialised parameters (flow head, NAFNet's β/γ, the authors' ASPI γ) block the gradient
-    of what lies behind them until they have moved: the flow head moves on step 1, ASPI's γ on step 2, so on step 3
-    every parameter must receive a finite, nonzero gradient."""
+    """Zero-initialised parameters (flow head, NAFNet's β/γ, the authors' ASPI γ) block the gradient of what lies
+    behind them until they have moved: the flow head moves on step 1 and the authors' ASPI γ on step 2, so on the
+    last of two SGD steps (three with the authors' ASPI) every parameter must receive a finite, nonzero gradient."""
     model = build(case_id)
     opt = torch.optim.SGD(model.parameters(), lr=0.1)
     gen = torch.Generator().manual_seed(1)
     x, target = torch.rand(2, 1, 3, 27, 35, generator=gen)
     target_flow = torch.randn(1, 2, 27, 35, generator=gen)
-    for _ in range(3):
+    for _ in range(3 if any(isinstance(m, ASPI) for m in model.modules()) else 2):
         opt.zero_grad()
         out = model(x)
         loss = F.l1_loss(out["restored"], target) + F.l1_loss(out["deblurred"], target)
@@ -226,6 +226,28 @@ def test_corrupt_weights_are_refused(tmp_path):
         load_pretrained(tmp_path / "missing.safetensors")
 
 
+def test_files_written_before_format_2_load_with_their_old_defaults(tmp_path):
+    """A file from before the authors' architecture became the default (no ``d2turb_format`` in its metadata): its
+    config {"backbone": "restormer", "injection": "aspi"} then meant Restormer's bias-free LayerNorm, the U-Net
+    rectifier and the cosine ASPI, and it must load as exactly that model."""
+    from safetensors.torch import save_file
+
+    from d2turb.models.hub import tensors_sha256
+
+    old = {"backbone": "restormer", "injection": "aspi", "backbone_cfg": TINY_RESTORMER, "rectifier_cfg": TINY_UNET}
+    then = dict(old, injection="aspi_cosine", rectifier="unet", backbone_cfg=dict(TINY_RESTORMER, norm_bias=False))
+    torch.manual_seed(0)
+    model = create_model("d2turb", **then).eval()
+    tensors = {k: v.contiguous() for k, v in model.state_dict().items()}
+    meta = {"d2turb_config": json.dumps({"name": "d2turb", **old}), "d2turb_sha256": tensors_sha256(tensors)}
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=meta)
+    loaded = load_pretrained(tmp_path / "old.safetensors")
+    assert loaded.config == json.loads(json.dumps({"name": "d2turb", **then}))
+    x = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(loaded(x)["restored"], model(x)["restored"])
+
+
 def test_bad_names_and_inputs_raise_clear_errors():
     with pytest.raises(D2TurbError, match="unknown model 'nope'; available: d2turb"):
         create_model("nope")
@@ -233,6 +255,12 @@ def test_bad_names_and_inputs_raise_clear_errors():
         create_model("d2turb", backbone="focalnet")
     with pytest.raises(D2TurbError, match="unknown injection"):
         create_model("d2turb", injection="film", backbone="nafnet")
+    with pytest.raises(D2TurbError, match="unknown rectifier 'raft'; available: authors, unet"):
+        create_model("d2turb", rectifier="raft", backbone="nafnet")
+    with pytest.raises(D2TurbError, match="bad rectifier/injection config.*widths"):
+        create_model("d2turb", backbone="nafnet", rectifier_cfg={"widths": [32]})
+    with pytest.raises(D2TurbError, match="bad rectifier/injection config"):
+        create_model("d2turb", backbone="nafnet", rectifier_cfg={"width": 8})  # a unet keyword for the authors' one
     with pytest.raises(D2TurbError, match="bad config"):
         create_backbone("nafnet", widht=8)
     with pytest.raises(D2TurbError, match=r"\(B, 3, H, W\)"):
@@ -256,27 +284,112 @@ def test_restormer_macs_match_the_published_figure():
     assert model_cost("d2turb", size=256)["conv_gmacs"] == pytest.approx(150.5, rel=0.01)
 
 
-def test_aspi_is_resolution_invariant(astronaut):
-    """The same content at 256² and 1024² (4× bicubic upsampling) must give ASPI attention matrices (channels ×
-    channels) that agree and attention outputs whose per-channel std over pixels agree within 10 %.
-    Features are a fixed random pointwise embedding of the image, so they scale with the content exactly.
-    Contrast: unnormalised QKᵀ/√d logits grow with the pixel count (16×), which this design avoids."""
+def _attention_reference(q, k, temperature, heads):
+    """Cosine channel attention, written out in float64: each channel's q and k are divided by their L2 norm over
+    the pixels, logits = q̂·k̂ · τ (per head), softmax over the key channels."""
+    b, c = q.shape[:2]
+    q, k = (t.double().reshape(b, heads, c // heads, -1) for t in (q, k))
+    q = q / q.pow(2).sum(-1, keepdim=True).sqrt()
+    k = k / k.pow(2).sum(-1, keepdim=True).sqrt()
+    logits = torch.einsum("bhip,bhjp->bhij", q, k) * temperature.double().reshape(1, heads, 1, 1)
+    return logits.softmax(-1)
+
+
+def test_cosine_aspi_is_resolution_invariant(astronaut):
+    """Variant aspi_cosine. The same content at 256² and 1024² (4× bicubic upsampling) must give attention matrices
+    (channels × channels) that agree (0.005) and attention outputs whose per-channel std over pixels agree (2 %).
+    Features are a fixed random pointwise embedding of the image, so they scale with the content exactly. The
+    attention equals a reference that normalises q and k over pixels, and is neither uniform nor saturated (a
+    saturated softmax would agree at any resolution)."""
     torch.manual_seed(0)
-    aspi = CosineASPI(16, 24, heads=4).eval()
+    heads = 4
+    aspi = CosineASPI(16, 24, heads=heads).eval()
     with torch.no_grad():
-        aspi.temperature.fill_(8.0)  # a sharp, trained-like temperature makes the test stricter
+        aspi.temperature.copy_(torch.tensor([2.0, 3.0, 2.5, 1.5]).reshape(heads, 1, 1))  # sharp, but not saturated
         embed_s, embed_g = torch.nn.Conv2d(3, 16, 1), torch.nn.Conv2d(3, 24, 1)
         big = F.interpolate(astronaut, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
-        (out_s, attn_s), (out_b, attn_b) = (
-            aspi.attend(torch.tanh(embed_s(img)), torch.tanh(embed_g(img)), return_attn=True)
+        feats = [(torch.tanh(embed_s(img)), torch.tanh(embed_g(img))) for img in (astronaut, big)]
+        (out_s, attn_s), (out_b, attn_b) = (aspi.attend(s, g, return_attn=True) for s, g in feats)
+        shallow, guide = feats[0]
+        q = aspi.to_q(aspi.norm_q(shallow))
+        k = aspi.to_kv(aspi.norm_kv(guide)).chunk(2, dim=1)[0]
+    assert big.shape[-1] == 1024
+    reference = _attention_reference(q, k, aspi.temperature, heads)  # float32 sums over 65k pixels: ~1e-4 round-off
+    torch.testing.assert_close(attn_s.double(), reference, atol=2e-4, rtol=0)
+    assert attn_s.max() > 1.5 / 4  # not uniform (4 channels per head), so the comparison is meaningful
+    assert attn_s.max() < 0.9 and attn_b.max() < 0.9  # not saturated: every row still mixes several channels
+    assert (attn_s - attn_b).abs().max() < 0.005
+    ratio = out_b.std(dim=(2, 3)) / out_s.std(dim=(2, 3))
+    assert ((ratio - 1).abs() < 0.02).all(), ratio
+
+
+def test_authors_aspi_is_eq10_with_sdpa_channel_attention():
+    """The authors' ASPI: F_fused = F_shallow + γ · SDPA(Q, K, V) over (B, C, H·W), one head (oracle:
+    torch's scaled_dot_product_attention, whose default scale is 1/√(H·W) here); γ = 0 gives F_shallow exactly."""
+    torch.manual_seed(0)
+    aspi = ASPI(8, 12)
+    shallow, guide = torch.randn(2, 8, 9, 11), torch.randn(2, 12, 9, 11)
+    with torch.no_grad():
+        assert aspi.gamma.item() == 0.0
+        assert torch.equal(aspi(shallow, guide), shallow)  # γ = 0 (initialisation): F_fused = F_shallow exactly
+        aspi.gamma.fill_(0.7)
+        fused = aspi(shallow, guide)
+        q = F.conv2d(shallow, aspi.query.weight).flatten(2)
+        k, v = (F.conv2d(guide, conv.weight).flatten(2) for conv in (aspi.key, aspi.value))
+    expected = shallow + 0.7 * F.scaled_dot_product_attention(q, k, v).reshape(2, 8, 9, 11)
+    torch.testing.assert_close(fused, expected, atol=1e-5, rtol=0)
+    assert (fused - shallow).abs().mean() > 0.05  # the attention term is not negligible
+
+
+def test_authors_aspi_sharpens_with_resolution(astronaut):
+    """The authors' scaling 1/√(H·W) is not resolution-free: for the same content at 4× the side (16× the pixels)
+    the inner products grow 16× and the scale shrinks 4×, so logit differences grow 4× (oracle: that arithmetic;
+    log-softmax differences are logit differences)."""
+    torch.manual_seed(0)
+    aspi = ASPI(16, 24)
+    with torch.no_grad():
+        embed_s, embed_g = torch.nn.Conv2d(3, 16, 1), torch.nn.Conv2d(3, 24, 1)
+        big = F.interpolate(astronaut, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
+        attn_s, attn_b = (
+            aspi.attend(0.3 * torch.tanh(embed_s(img)), 0.3 * torch.tanh(embed_g(img)), return_attn=True)[1]
             for img in (astronaut, big)
         )
-    assert big.shape[-1] == 1024
-    assert (attn_s - attn_b).abs().max() < 0.02
-    assert attn_s.max() > 1.5 / 4  # not uniform (4 channels per head), so the comparison is meaningful
-    ratio = out_b.std(dim=(2, 3)) / out_s.std(dim=(2, 3))
-    assert ((ratio - 1).abs() < 0.10).all(), ratio
-    with torch.no_grad():  # the naive alternative is not scale-free: logits grow with H·W
-        q = aspi.to_q(aspi.norm_q(torch.tanh(embed_s(astronaut)))).flatten(2)
-        q_big = aspi.to_q(aspi.norm_q(torch.tanh(embed_s(big)))).flatten(2)
-    assert (q_big @ q_big.transpose(1, 2)).abs().mean() / (q @ q.transpose(1, 2)).abs().mean() > 10
+    assert attn_b.max() < 0.99  # no probability underflows to 0, so log-softmax differences are exact
+    gap_s, gap_b = (a.log().amax(-1) - a.log().amin(-1) for a in (attn_s, attn_b))
+    assert gap_s.min() > 0.1  # the small-image logits are not flat, so the ratio is meaningful
+    torch.testing.assert_close(gap_b / gap_s, torch.full_like(gap_s, 4.0), atol=0.02, rtol=0)
+    assert attn_b.amax(-1).mean() > attn_s.amax(-1).mean() + 0.1  # sharper at full size
+
+
+@pytest.mark.parametrize("case_id, output", [("restormer", "output"), ("nafnet", "ending")])
+def test_backbone_global_residual(case_id, output):
+    """Î_tilt = Conv3×3(F_guide) + I_turb (the backbones' global residual), checked by value; with the output conv
+    zeroed the backbone is exactly the identity."""
+    backbone = build(case_id).backbone.eval()
+    image = torch.rand(1, 3, 32, 40)
+    conv = getattr(backbone, output)
+    with torch.no_grad():
+        deblurred, guide = backbone(image)
+        torch.testing.assert_close(deblurred, F.conv2d(guide, conv.weight, conv.bias, padding=1) + image)
+        conv.weight.zero_()
+        if conv.bias is not None:
+            conv.bias.zero_()
+        assert torch.equal(backbone(image)[0], image)
+
+
+@pytest.mark.parametrize("size, mode", [((40, 50), "reflect"), ((20, 70), "reflect"), ((9, 40), "replicate")])
+def test_whole_pipeline_runs_padded_to_32(size, mode):
+    """The authors' rule: the input is padded bottom/right to a multiple of 32 (reflect when each pad is smaller than
+    its side, else replicate); backbone, rectifier and the warp run on the padded image and the outputs are cropped.
+    Oracle: the model on the input padded by hand (a multiple of 32 already), cropped. A nonzero flow makes the warp
+    sample across the crop border, where warping the cropped image (border clamp) would differ."""
+    model = build("d2turb-restormer-aspi").eval()
+    with torch.no_grad():
+        model.rectifier.flow_head.bias.copy_(torch.tensor([2.5, 1.5]))
+        model.rectifier.inject.gamma.fill_(0.5)
+        x = torch.rand(1, 3, *size)
+        h, w = size
+        padded = F.pad(x, (0, (-w) % 32, 0, (-h) % 32), mode=mode)
+        out, ref = model(x), model(padded)
+    for key in ("deblurred", "restored", "flow", "guide"):
+        torch.testing.assert_close(out[key], ref[key][..., :h, :w], atol=1e-6, rtol=0)

@@ -1,12 +1,13 @@
 """`d2turb models` and `d2turb bench model` (tiny configs; FLOPs counted on the meta device)."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
 from d2turb.cli import main
-from d2turb.models import count_parameters, create_model, flop_counts
+from d2turb.models import count_parameters, create_model, flop_counts, load_pretrained
 
 TINY_NAFNET = {"width": 8, "enc_blocks": [1, 1], "middle_blocks": 1, "dec_blocks": [1, 1]}
 
@@ -18,8 +19,12 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
     assert {"d2turb", "d2turb_lite", "restormer", "nafnet"} <= set(models)
     assert models["nafnet"] == count_parameters(create_model("nafnet"))
     assert {b["name"]: b["guide_channels"] for b in listing["backbones"]} == {"restormer": 96, "nafnet": 16}
+    # the paper's 31.82 M / 26.13 M, exactly the authors' released model definition
+    assert models["d2turb"] == 31_823_767 and models["restormer"] == 26_126_644
+    assert {b["name"]: b["params"] for b in listing["backbones"]}["restormer"] == 26_126_644
     assert main(["models"]) == 0
-    assert "31.82 M" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "d2turb            31.82 M" in out and "restormer         26.13 M" in out
 
 
 def test_bench_model_json(tmp_path, capsys):
@@ -57,6 +62,19 @@ def test_bench_model_json(tmp_path, capsys):
     assert "| d2turb (" in capsys.readouterr().out
 
 
+def test_bench_model_d2turb_reports_the_paper_model(tmp_path, capsys):
+    """Acceptance: `d2turb bench model d2turb` is the paper's model: 31,823,767 parameters (31.82 M), Restormer
+    26,126,644 (26.13 M) and 140.99 G convolution MACs at 256² (the Restormer paper's figure)."""
+    out = tmp_path / "d2turb.json"
+    assert main(["bench", "model", "d2turb", "--no-latency", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["params"] == 31_823_767
+    assert "| d2turb | 31.82 |" in capsys.readouterr().out
+    assert main(["bench", "model", "restormer", "--no-latency", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["params"] == 26_126_644 and r["conv_gmacs"] == pytest.approx(140.99, abs=0.005)
+    assert "| restormer | 26.13 | 154.88 | 140.99 |" in capsys.readouterr().out
+
+
 def test_flops_of_a_single_conv_match_the_formula():
     """Independent oracle for the counter: a 3×3 conv C_in→C_out on H×W costs 2·C_in·C_out·9·H·W FLOPs."""
     conv = torch.nn.Conv2d(3, 5, 3, padding=1, bias=False)
@@ -85,3 +103,60 @@ def test_bench_errors_are_one_line(capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+FIXTURE = Path(__file__).resolve().parents[1] / ".." / "shared" / "fixtures" / "official_d2turb"
+
+
+def test_convert_authors_checkpoint(tmp_path, capsys):
+    """A random state dict with the authors' full layout (../shared fixture: every key and shape of their model),
+    nested under params_ema with DDP's module. prefixes: refused while one key is missing (error names it, nothing
+    written), then converted and loaded as the paper model (31,823,767 parameters) with its values."""
+    if not FIXTURE.is_dir():
+        pytest.skip(f"fixture folder {FIXTURE} is absent")
+    layout = json.loads((FIXTURE / "official_state_dict_layout.json").read_text())["keys"]
+    gen = torch.Generator().manual_seed(0)
+    state = {k: torch.randn(shape, generator=gen).half() for k, shape in layout.items()}  # fp16, as released
+    src, dst = tmp_path / "net_g_latest.pth", tmp_path / "d2turb_paper.safetensors"
+    dropped = state.pop("rectifier.decode_2.body.0.bias")
+    torch.save({"params_ema": {f"module.{k}": v for k, v in state.items()}}, src)
+    assert main(["convert", str(src), str(dst)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "missing: rectifier.decode_2.body.0.bias\n" in err
+    assert not dst.exists() and not list(tmp_path.glob(".*tmp*"))
+    state["rectifier.decode_2.body.0.bias"] = dropped
+    torch.save({"params_ema": {f"module.{k}": v for k, v in state.items()}}, src)
+    assert main(["convert", str(src), str(dst)]) == 0
+    assert "31,823,767 parameters" in capsys.readouterr().out
+    model = load_pretrained(dst)
+    assert model.config == {"name": "d2turb"} and count_parameters(model) == 31_823_767
+    weights = model.state_dict()
+    assert torch.equal(weights["rectifier.decode_2.body.0.bias"], dropped.float())
+    assert torch.equal(
+        weights["backbone.encoder_level2.5.attn.project_out.weight"],
+        state["restormer.encoders.1.5.attention.project_out.weight"].float(),
+    )
+
+
+@pytest.mark.parametrize(
+    "make, dst, message",
+    [
+        (lambda p: torch.save({"w": torch.ones(2)}, p), "out.pt", "must end in .safetensors"),
+        (None, "out.safetensors", "weights file not found"),
+        (lambda p: p.write_bytes(b"not a zip"), "out.safetensors", "cannot read checkpoint"),
+        (
+            lambda p: torch.save({"optimizer": {"lr": 1.0}}, p),
+            "out.safetensors",
+            "no state dict found under params_ema",
+        ),
+        (lambda p: torch.save({"params": {"w": torch.ones(2)}}, p), "out.safetensors", "not weights of model 'd2turb'"),
+    ],
+)
+def test_convert_errors_are_one_line(tmp_path, capsys, make, dst, message):
+    src = tmp_path / "in.pth"
+    if make:
+        make(src)
+    assert main(["convert", str(src), str(tmp_path / dst)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+    assert not (tmp_path / dst).exists()

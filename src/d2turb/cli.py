@@ -17,6 +17,7 @@ COMMANDS = [
     "check_dataset",
     "models",
     "bench",
+    "convert",
     "restore",
     "evaluate",
     "train",

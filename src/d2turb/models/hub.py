@@ -25,7 +25,8 @@ from d2turb.models.registry import create_model
 PICKLE_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin")
 NESTING_KEYS = ("params_ema", "params", "state_dict", "model")  # in order of preference
 
-CONFIG_KEY, CHECKSUM_KEY = "d2turb_config", "d2turb_sha256"
+CONFIG_KEY, CHECKSUM_KEY, FORMAT_KEY = "d2turb_config", "d2turb_sha256", "d2turb_format"
+FORMAT = "2"  # 2: the authors' architecture is the default (issue 8); files without the key are format 1
 
 
 def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
@@ -48,7 +49,12 @@ def save_pretrained(model: nn.Module, path: str | os.PathLike) -> Path:
     if not isinstance(config, dict) or "name" not in config:
         raise D2TurbError("save_pretrained: model has no .config (build it with d2turb.models.create_model)")
     tensors = {k: v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
-    metadata = {CONFIG_KEY: json.dumps(config), CHECKSUM_KEY: tensors_sha256(tensors), "format": "pt"}
+    metadata = {
+        CONFIG_KEY: json.dumps(config),
+        CHECKSUM_KEY: tensors_sha256(tensors),
+        FORMAT_KEY: FORMAT,
+        "format": "pt",
+    }
     with atomic_path(path) as tmp:
         save_file(tensors, str(tmp), metadata=metadata)
     return path
@@ -233,6 +239,21 @@ def _build_for_loading(name: str, config: dict) -> nn.Module:
     return net
 
 
+def legacy_config(name: str, config: dict) -> dict:
+    """The config of a file written before format 2 with its defaults spelled out: then Restormer's LayerNorm was
+    bias-free, ``d2turb`` used the U-Net rectifier and ``injection="aspi"`` meant the cosine variant."""
+    cfg = dict(config)
+    if name == "restormer":
+        cfg.setdefault("norm_bias", False)
+    elif name in ("d2turb", "d2turb_lite"):
+        if cfg.get("backbone", "restormer" if name == "d2turb" else "nafnet") == "restormer":
+            cfg["backbone_cfg"] = {"norm_bias": False, **(cfg.get("backbone_cfg") or {})}
+        cfg.setdefault("rectifier", "unet")
+        if cfg.get("injection", "aspi") == "aspi":
+            cfg["injection"] = "aspi_cosine"
+    return cfg
+
+
 def load_pretrained(
     path: str | os.PathLike,
     device="cpu",
@@ -243,9 +264,10 @@ def load_pretrained(
     """Load weights strictly and return the model in eval mode on ``device``.
 
     A file written by :func:`save_pretrained` rebuilds its own model from its metadata (checksum verified;
-    ``model``/``config``/``key`` are ignored). Any other file (the authors' ``.pth`` or a plain ``.safetensors``
-    state dict, see :func:`read_state_dict`) is converted by :func:`convert_official_state_dict` and loaded into
-    ``create_model(model, **config)``, by default the paper configuration of D²Turb.
+    ``model``/``config``/``key`` are ignored; files from before the authors' architecture became the default are
+    rebuilt with their old defaults, see :func:`legacy_config`). Any other file (the authors' ``.pth`` or a plain
+    ``.safetensors`` state dict, see :func:`read_state_dict`) is converted by :func:`convert_official_state_dict` and
+    loaded into ``create_model(model, **config)``, by default the paper configuration of D²Turb.
 
     Raises:
         D2TurbError: missing/corrupt file, checksum mismatch, missing/unexpected/mis-shaped keys, NaN/Inf weights.
@@ -266,6 +288,8 @@ def load_pretrained(
             name = config.pop("name")
         except (ValueError, KeyError, TypeError):
             raise D2TurbError(f"{path}: unreadable model config in its metadata") from None
+        if FORMAT_KEY not in metadata:
+            config = legacy_config(name, config)
         net = _build_for_loading(name, config)
         load_state_dict_strict(net, tensors, str(path))
     else:

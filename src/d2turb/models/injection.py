@@ -12,6 +12,7 @@ Every variant maps (F_shallow (B,C,H,W), F_guide (B,G,H,W)) -> F_fused (B,C,H,W)
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 
 import torch
 from torch import nn
@@ -34,9 +35,13 @@ def channel_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, return_
         (B, C, H, W) in the dtype of ``v`` (and the attention matrix when asked).
     """
     b, c, h, w = q.shape
-    qf, kf, vf = (t.reshape(b, t.shape[1], h * w).float() for t in (q, k, v))
-    attn = (qf @ kf.transpose(1, 2) / math.sqrt(h * w)).softmax(dim=-1)
-    out = (attn @ vf).reshape(b, -1, h, w).to(v.dtype)
+    device = q.device.type
+    autocast = torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device)
+    no_autocast = torch.autocast(device, enabled=False) if autocast else nullcontext()
+    with no_autocast:  # sums over all pixels: keep them in float32 under autocast too
+        qf, kf, vf = (t.reshape(b, t.shape[1], h * w).float() for t in (q, k, v))
+        attn = (qf @ kf.transpose(1, 2) / math.sqrt(h * w)).softmax(dim=-1)
+        out = (attn @ vf).reshape(b, -1, h, w).to(v.dtype)
     return (out, attn) if return_attn else out
 
 
