@@ -99,3 +99,24 @@ def test_demo_writes_grid(tmp_path):
     assert (out / "astronaut_strong_turb.png").is_file() and (out / "coffee_depth.png").is_file()
     meta = json.loads((out / "demo_meta.json").read_text())
     assert meta["levels"] == {"weak": 1.5, "medium": 3.0, "strong": 4.5}
+
+
+def test_demo_restores_with_given_weights(tmp_path):
+    import torch
+
+    from d2turb.models import create_model, save_pretrained
+
+    torch.manual_seed(0)
+    model = create_model("d2turb_small")
+    torch.nn.init.normal_(model.rectifier.flow_head.weight, std=1e-3)  # a non-zero predicted flow
+    weights = save_pretrained(model, tmp_path / "tiny.safetensors")
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--weights", str(weights)]) == 0
+    grid = Image.open(out / "restore.png")
+    assert grid.size[1] > 12 * 192  # 4 images x 3 bins, one row each
+    table = json.loads((out / "demo_meta.json").read_text())["restoration"]["table"]
+    assert sorted(table) == ["medium", "strong", "weak"]
+    for row in table.values():
+        assert row["epe_zero_flow_px"] > 0 and row["epe_px"] != row["epe_zero_flow_px"]
+    assert "| strong | 4.5 |" in (out / "demo_results.md").read_text()
+    assert (out / "chart_medium_restored.png").is_file()

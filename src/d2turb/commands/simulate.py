@@ -5,7 +5,7 @@ from __future__ import annotations
 from d2turb.errors import D2TurbError
 
 
-def add_physics_args(p):
+def add_physics_args(p, path_length_m: float = 1000.0):
     """Physical parameters shared by simulate and demo."""
     p.add_argument(
         "--aperture", type=float, default=0.1, metavar="M", help="aperture diameter D in metres (default 0.1)"
@@ -19,7 +19,11 @@ def add_physics_args(p):
         help="wavelength in metres, one value or three (R G B) (default 525e-9)",
     )
     p.add_argument(
-        "--path-length", type=float, default=1000.0, metavar="M", help="path length L in metres (default 1000)"
+        "--path-length",
+        type=float,
+        default=path_length_m,
+        metavar="M",
+        help=f"path length L in metres (default {path_length_m:g})",
     )
     p.add_argument(
         "--ifov", type=float, default=None, metavar="RAD", help="pixel angular size (default Nyquist λ/(2D))"
