@@ -61,6 +61,7 @@ CASES = {
             "rectifier_cfg": {"width": 4, "mults": [1, 1, 2, 2, 4, 4], "depth": 5, "residual_bottleneck": True},
         },
     ),
+    "d2turb_small": ("d2turb_small", {"backbone_cfg": TINY_NAFNET, "rectifier_cfg": {"widths": [8, 8, 16, 16]}}),
     "d2turb_lite-depth4-normalized": (
         "d2turb_lite",
         {
