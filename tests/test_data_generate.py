@@ -22,11 +22,6 @@ from d2turb.data.generate import crop_box, resize_up, sample_dr0_union
 from d2turb.data.layout import BIN_RANGES, FILES, bin_of, read_depth_png
 from d2turb.io import read_image
 
-pytest.importorskip("d2turb.ops.splat")
-sim = pytest.importorskip("d2turb.sim")
-if not hasattr(sim, "Simulator"):
-    pytest.skip("d2turb.sim.Simulator not available yet", allow_module_level=True)
-
 PATCH, PAIRS, BATCH = 64, 6, 2
 ENV = {**os.environ, "OMP_NUM_THREADS": "2", "PYTHONUNBUFFERED": "1"}
 

@@ -21,6 +21,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler, Sampler, Subset
 
+from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import atomic_path, write_text
 from d2turb.train.config import model_kwargs
@@ -58,8 +59,6 @@ def _env_int(name: str, default: int) -> int:
 
 def init_distributed(device_name: str) -> tuple[int, int, torch.device]:
     """(rank, world_size, device) from torchrun's RANK / WORLD_SIZE / LOCAL_RANK; nccl on CUDA, gloo on CPU."""
-    from d2turb.data.generate import resolve_device
-
     world, rank, local = _env_int("WORLD_SIZE", 1), _env_int("RANK", 0), _env_int("LOCAL_RANK", 0)
     device = resolve_device(device_name, local)
     if device.type == "cuda":
