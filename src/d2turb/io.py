@@ -23,7 +23,7 @@ from d2turb.errors import D2TurbError
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
 DEFAULT_MAX_PIXELS = 178_956_970  # Pillow's own decompression-bomb error limit (2 × Image.MAX_IMAGE_PIXELS)
-DEFAULT_PNG_LEVEL = 1  # zlib level for PNG outputs: ~4× faster than Pillow's 6, files ~10-20 % larger
+DEFAULT_PNG_LEVEL = 1  # zlib level of PNG outputs: ~3× faster than Pillow's 6 at 256², files ~15 % larger
 _limits = {"max_pixels": DEFAULT_MAX_PIXELS}
 
 

@@ -61,14 +61,14 @@ def register(sub):
 def run(args):
     from d2turb.commands.common import FileErrors, print_error
     from d2turb.device import resolve_device
-    from d2turb.io import check_output_dir
+    from d2turb.io import check_output_dir, remove_stale_temp_files
 
     if args.max_samples is not None and args.max_samples < 1:
         raise D2TurbError(f"--max-samples must be at least 1, got {args.max_samples}")
     if not args.real and not args.weights:
         raise D2TurbError("--data needs --weights (model files/names, or 'input' for the unrestored baseline)")
     device = str(resolve_device(args.device))
-    check_output_dir(args.out)
+    remove_stale_temp_files(check_output_dir(args.out) / "grids")
     if args.real:
         from d2turb.eval.real import evaluate_real, parse_metrics
 
