@@ -8,9 +8,11 @@ then the CLI in a child process on folders of SMALL and LARGE images. The CLI's 
 inside ``d2turb.cli.main`` over the LARGE folder divided by LARGE (reading, simulator construction and
 first-call set-up, simulation, writing; interpreter start-up and imports excluded); the child's wall time
 per image (start-up included) and the marginal wall cost (T(LARGE) - T(SMALL)) / (LARGE - SMALL) are
-reported too. Medians over rounds. ``--baseline-src`` times another source tree's CLI (e.g. the version
-before a change) in the same rounds. The images are natural-image crops (scikit-image samples), as PNG.
-Prints one JSON object (and writes it to --json FILE), with the PNG encoding cost per zlib level.
+reported too, and CPU time (all threads) next to wall time: on a machine shared with other jobs the
+scheduler shares the cores per thread, so wall times favour the process with more threads. Medians over
+rounds. ``--baseline-src`` times another source tree's CLI (e.g. the version before a change) in the same
+rounds. The images are natural-image crops (scikit-image samples), as PNG. Prints one JSON object (and
+writes it to --json FILE), with the PNG encoding cost per zlib level.
 """
 
 from __future__ import annotations
@@ -52,8 +54,8 @@ def make_images(folder: Path, count: int, size: int) -> list[Path]:
     return paths
 
 
-def time_in_process(paths: list[Path], batch: int) -> float:
-    """Seconds per image of Simulator alone (images already in memory), batches of ``batch``."""
+def time_in_process(paths: list[Path], batch: int) -> tuple[float, float]:
+    """(wall, CPU) seconds per image of Simulator alone (images already in memory), batches of ``batch``."""
     from d2turb.io import read_image
     from d2turb.sim import Simulator, TurbulenceParams
 
@@ -61,25 +63,26 @@ def time_in_process(paths: list[Path], batch: int) -> float:
     sim = Simulator(TurbulenceParams(dr0=3.0))
     gen = torch.Generator().manual_seed(0)
     sim(images[:batch], generator=gen)  # warm-up: cached field spectra
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for i in range(0, len(images), batch):
         sim(images[i : i + batch], generator=gen)
-    return (time.perf_counter() - start) / len(images)
+    return (time.perf_counter() - start) / len(images), (time.process_time() - cpu) / len(images)
 
 
 CHILD = """
 import contextlib, json, os, sys, time
 from d2turb.cli import main
 with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     rc = main(sys.argv[1:])
-    elapsed = time.perf_counter() - start
-print(json.dumps({"rc": rc, "main_s": elapsed}))
+    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu
+print(json.dumps({"rc": rc, "main_s": elapsed, "main_cpu_s": cpu}))
 """
 
 
-def time_cli(src: Path, folder: Path, out: Path, threads: int, extra: list[str]) -> tuple[float, float]:
-    """(wall seconds of the child process, seconds inside ``d2turb.cli.main``) for simulate over ``folder``."""
+def time_cli(src: Path, folder: Path, out: Path, threads: int, extra: list[str]) -> tuple[float, float, float]:
+    """(wall seconds of the child process, wall and CPU seconds inside ``d2turb.cli.main``) for simulate over
+    ``folder``; CPU = all threads of the process."""
     env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": str(threads)}
     argv = ["simulate", str(folder), "--out", str(out), "--dr0", "3", *extra]
     start = time.perf_counter()
@@ -88,7 +91,7 @@ def time_cli(src: Path, folder: Path, out: Path, threads: int, extra: list[str])
     result = json.loads(done.stdout.strip().splitlines()[-1])
     if result["rc"] != 0:
         raise RuntimeError(f"simulate failed: {done.stderr}")
-    return wall, result["main_s"]
+    return wall, result["main_s"], result["main_cpu_s"]
 
 
 def png_costs(size: int) -> dict:
@@ -136,29 +139,46 @@ def main(argv=None) -> int:
         for p in paths[:small]:
             (tmp / "small" / p.name).symlink_to(p)
         for r in range(args.rounds):
-            row = {"in_process_s_per_image": time_in_process(paths, args.batch), "load_avg_1min": os.getloadavg()[0]}
+            wall, cpu = time_in_process(paths, args.batch)
+            row = {
+                "in_process_s_per_image": wall,
+                "in_process_cpu_s_per_image": cpu,
+                "load_avg_1min": os.getloadavg()[0],
+            }
             for name, src in trees.items():
                 extra = ["--batch", str(args.batch)] if name == "this" else []
-                wall_small, _ = time_cli(src, tmp / "small", tmp / f"out-{name}-{r}-s", args.threads, extra)
-                wall_large, main_large = time_cli(src, tmp / "large", tmp / f"out-{name}-{r}-l", args.threads, extra)
+                wall_small, _, _ = time_cli(src, tmp / "small", tmp / f"out-{name}-{r}-s", args.threads, extra)
+                wall_large, main_large, cpu_large = time_cli(
+                    src, tmp / "large", tmp / f"out-{name}-{r}-l", args.threads, extra
+                )
                 row[name] = {
                     "main_s": main_large,
                     "main_s_per_image": main_large / large,
+                    "main_cpu_s_per_image": cpu_large / large,
                     "marginal_s_per_image": (wall_large - wall_small) / (large - small),
                     "wall_s_per_image": wall_large / large,
                 }
             rounds.append(row)
     inproc = statistics.median(r["in_process_s_per_image"] for r in rounds)
-    summary = {"in_process_ms_per_image": round(1000 * inproc, 1)}
+    inproc_cpu = statistics.median(r["in_process_cpu_s_per_image"] for r in rounds)
+    summary = {
+        "in_process_ms_per_image": round(1000 * inproc, 1),
+        "in_process_cpu_ms_per_image": round(1000 * inproc_cpu, 1),
+    }
     for name in trees:
         per_image = statistics.median(r[name]["main_s_per_image"] for r in rounds)
         marginal = statistics.median(r[name]["marginal_s_per_image"] for r in rounds)
         wall = statistics.median(r[name]["wall_s_per_image"] for r in rounds)
         ratios = [r[name]["main_s_per_image"] / r["in_process_s_per_image"] for r in rounds]
+        cpu = statistics.median(r[name]["main_cpu_s_per_image"] for r in rounds)
+        cpu_ratios = [r[name]["main_cpu_s_per_image"] / r["in_process_cpu_s_per_image"] for r in rounds]
         summary[name] = {
             "cli_ms_per_image": round(1000 * per_image, 1),
             "ratio_cli_to_in_process": round(statistics.median(ratios), 3),
             "ratio_per_round": [round(x, 3) for x in ratios],
+            "cli_cpu_ms_per_image": round(1000 * cpu, 1),
+            "cpu_ratio_cli_to_in_process": round(statistics.median(cpu_ratios), 3),
+            "cpu_ratio_per_round": [round(x, 3) for x in cpu_ratios],
             "cli_marginal_ms_per_image_from_wall": round(1000 * marginal, 1),
             "cli_wall_ms_per_image_incl_startup": round(1000 * wall, 1),
         }

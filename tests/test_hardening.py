@@ -256,6 +256,7 @@ def test_bad_device_is_one_line(command, device, message, tmp_path, capsys):
     rc, _, err = run_cli(capsys, _command(command, image, tmp_path / "out", image.parent) + ["--device", device])
     assert rc == 2
     one_error_line(err, message)
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
@@ -265,6 +266,7 @@ def test_cuda_without_cuda_is_one_line(command, tmp_path, capsys):
     rc, _, err = run_cli(capsys, _command(command, image, tmp_path / "out", image.parent) + ["--device", "cuda"])
     assert rc == 2
     one_error_line(err, "CUDA is not available", "--device cpu")
+    assert not (tmp_path / "out").exists()
 
 
 def test_resolve_device_rules(monkeypatch):
@@ -569,6 +571,7 @@ def test_depth_map_of_another_aspect_is_refused(tmp_path, capsys):
     )
     assert rc == 2
     one_error_line(err, "depth.npy", "24x24", "32x24", "aspect")
+    assert not (tmp_path / "o").exists()
     np.save(tmp_path / "depth.npy", np.ones((12, 16)))  # same aspect, other resolution: resized
     assert main(["simulate", str(image), "--out", str(tmp_path / "o"), "--depth", str(tmp_path / "depth.npy")]) == 0
 

@@ -134,6 +134,20 @@ def _batches(items, batch: int):
     yield from pending.values()
 
 
+def _check_depth_spec(spec: str) -> None:
+    """Refuse a --depth that cannot work for any image once, rather than once per image."""
+    from pathlib import Path
+
+    if spec in ("none", "prior"):
+        return
+    if spec.startswith("anything:"):
+        folder = Path(spec[len("anything:") :])
+        if not (folder / "config.json").is_file():
+            raise D2TurbError(f"--depth {spec}: {folder} is not a Depth Anything model folder (no config.json)")
+    elif not Path(spec).exists():
+        raise D2TurbError(f"--depth {spec}: no such depth file or folder (or use none, prior, anything:PATH)")
+
+
 def _write_outputs(out, name: str, turb, tilt, flow, meta: dict, png_level: int) -> None:
     from d2turb.io import write_image, write_json, write_npy
 
@@ -165,6 +179,7 @@ def run(args):
         raise D2TurbError(f"--batch must be at least 1, got {args.batch}")
     paths = expand_inputs(args.inputs)
     check_unique_stems(paths)
+    _check_depth_spec(args.depth)
     params = make_params(args, args.dr0)
     device = resolve_device(args.device)
     out = check_output_dir(args.out)

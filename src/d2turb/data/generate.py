@@ -401,6 +401,7 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or finish) the dataset in ``cfg.out``; returns counts and timing of this process."""
     validate(cfg)
     info = dist_info()
+    resolve_device(cfg.device, info.local_rank)  # a bad --device fails before anything is written
     root = check_output_dir(cfg.out)
     sources = expand_inputs(list(cfg.clean))
     check_patch_fits(sources, cfg.patch)
@@ -418,7 +419,8 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
             root.mkdir(parents=True, exist_ok=True)
             remove_temp_files(root)
             if write_config:
-                reset_unfinished(root)
+                if (root / CONFIG_NAME).is_file():  # other settings, but no finished sample: start afresh
+                    reset_unfinished(root)
                 write_json(root / CONFIG_NAME, record)
         _barrier(info)
         stats = _generate_rank(cfg, info, root, sources, params, params_full, progress)
