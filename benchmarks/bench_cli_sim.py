@@ -1,18 +1,20 @@
 """`d2turb simulate` over a folder against the in-process batched simulator, per image, measured in one run.
 
-    python3 benchmarks/bench_cli_sim.py [--images 16 64] [--size 256] [--rounds 3] [--threads 2]
+    python3 benchmarks/bench_cli_sim.py [--images 64] [--size 256] [--rounds 5] [--threads 2]
                                         [--baseline-src /path/to/older/src] [--json FILE]
 
-Each round, interleaved: the simulator in this process (batch 8, images in memory, after a warm-up call),
-then the CLI in a child process on folders of SMALL and LARGE images. The CLI's per-image cost is the time
-inside ``d2turb.cli.main`` over the LARGE folder divided by LARGE (reading, simulator construction and
-first-call set-up, simulation, writing; interpreter start-up and imports excluded); the child's wall time
-per image (start-up included) and the marginal wall cost (T(LARGE) - T(SMALL)) / (LARGE - SMALL) are
-reported too, and CPU time (all threads) next to wall time: on a machine shared with other jobs the
-scheduler shares the cores per thread, so wall times favour the process with more threads. Medians over
-rounds. ``--baseline-src`` times another source tree's CLI (e.g. the version before a change) in the same
-rounds. The images are natural-image crops (scikit-image samples), as PNG. Prints one JSON object (and
-writes it to --json FILE), with the PNG encoding cost per zlib level.
+Each round, back to back on the same folder of natural-image crops (scikit-image samples, PNG):
+1. ``sim``: the simulator alone in this process (batch 8, images already in memory, warm);
+2. ``cli``: ``d2turb.cli.main(["simulate", FOLDER, ...])`` in this process — the console command's code path
+   (reading, simulator construction and first-call set-up, simulation, background writing), without the
+   interpreter start-up;
+3. ``child``: the same command in a child process; its wall time per image includes start-up and imports;
+4. ``baseline`` (with ``--baseline-src``): another source tree's command in a child process (e.g. the version
+   before a change).
+Per-image wall and CPU times (CPU = all threads of the process; on a machine shared with other jobs the
+scheduler shares cores per thread, which skews wall times of multi-threaded steps). Ratios are taken within
+each round, then the median over rounds. Prints one JSON object (and writes it to --json FILE), with the
+PNG encoding cost per zlib level.
 """
 
 from __future__ import annotations
@@ -118,75 +120,77 @@ def png_costs(size: int) -> dict:
     return out
 
 
+def time_main(folder: Path, out: Path, batch: int) -> tuple[float, float]:
+    """(wall, CPU) seconds of ``d2turb.cli.main`` simulate over ``folder`` in this process."""
+    import contextlib
+
+    from d2turb.cli import main as cli_main
+
+    with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
+        start, cpu = time.perf_counter(), time.process_time()
+        rc = cli_main(["simulate", str(folder), "--out", str(out), "--dr0", "3", "--batch", str(batch)])
+        wall, cpu = time.perf_counter() - start, time.process_time() - cpu
+    if rc != 0:
+        raise RuntimeError("simulate failed")
+    return wall, cpu
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--images", type=int, nargs=2, default=[16, 64], metavar=("SMALL", "LARGE"))
+    ap.add_argument("--images", type=int, default=64)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--batch", type=int, default=8)
-    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--baseline-src", type=Path, default=None, help="another source tree's src/ to time too")
     ap.add_argument("--json", default=None, metavar="FILE")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    small, large = args.images
-    trees = {"this": SRC} | ({"baseline": args.baseline_src} if args.baseline_src else {})
+    n = args.images
     rounds = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        paths = make_images(tmp / "large", large, args.size)
-        (tmp / "small").mkdir()
-        for p in paths[:small]:
-            (tmp / "small" / p.name).symlink_to(p)
+        paths = make_images(tmp / "in", n, args.size)
         for r in range(args.rounds):
+            row = {"load_avg_1min": round(os.getloadavg()[0], 2)}
             wall, cpu = time_in_process(paths, args.batch)
-            row = {
-                "in_process_s_per_image": wall,
-                "in_process_cpu_s_per_image": cpu,
-                "load_avg_1min": os.getloadavg()[0],
-            }
-            for name, src in trees.items():
-                extra = ["--batch", str(args.batch)] if name == "this" else []
-                wall_small, _, _ = time_cli(src, tmp / "small", tmp / f"out-{name}-{r}-s", args.threads, extra)
-                wall_large, main_large, cpu_large = time_cli(
-                    src, tmp / "large", tmp / f"out-{name}-{r}-l", args.threads, extra
-                )
+            row["sim"] = {"wall_s_per_image": wall, "cpu_s_per_image": cpu}
+            wall, cpu = time_main(tmp / "in", tmp / f"cli-{r}", args.batch)
+            row["cli"] = {"wall_s_per_image": wall / n, "cpu_s_per_image": cpu / n}
+            children = {"child": (SRC, ["--batch", str(args.batch)])}
+            if args.baseline_src:
+                children["baseline"] = (args.baseline_src, [])
+            for name, (src, extra) in children.items():
+                total, wall, cpu = time_cli(src, tmp / "in", tmp / f"{name}-{r}", args.threads, extra)
                 row[name] = {
-                    "main_s": main_large,
-                    "main_s_per_image": main_large / large,
-                    "main_cpu_s_per_image": cpu_large / large,
-                    "marginal_s_per_image": (wall_large - wall_small) / (large - small),
-                    "wall_s_per_image": wall_large / large,
+                    "wall_s_per_image": wall / n,
+                    "cpu_s_per_image": cpu / n,
+                    "wall_s_per_image_incl_startup": total / n,
                 }
             rounds.append(row)
-    inproc = statistics.median(r["in_process_s_per_image"] for r in rounds)
-    inproc_cpu = statistics.median(r["in_process_cpu_s_per_image"] for r in rounds)
+
+    def med(values):
+        return round(statistics.median(values), 3)
+
     summary = {
-        "in_process_ms_per_image": round(1000 * inproc, 1),
-        "in_process_cpu_ms_per_image": round(1000 * inproc_cpu, 1),
+        "sim_ms_per_image": med(1000 * r["sim"]["wall_s_per_image"] for r in rounds),
+        "sim_cpu_ms_per_image": med(1000 * r["sim"]["cpu_s_per_image"] for r in rounds),
     }
-    for name in trees:
-        per_image = statistics.median(r[name]["main_s_per_image"] for r in rounds)
-        marginal = statistics.median(r[name]["marginal_s_per_image"] for r in rounds)
-        wall = statistics.median(r[name]["wall_s_per_image"] for r in rounds)
-        ratios = [r[name]["main_s_per_image"] / r["in_process_s_per_image"] for r in rounds]
-        cpu = statistics.median(r[name]["main_cpu_s_per_image"] for r in rounds)
-        cpu_ratios = [r[name]["main_cpu_s_per_image"] / r["in_process_cpu_s_per_image"] for r in rounds]
-        summary[name] = {
-            "cli_ms_per_image": round(1000 * per_image, 1),
-            "ratio_cli_to_in_process": round(statistics.median(ratios), 3),
-            "ratio_per_round": [round(x, 3) for x in ratios],
-            "cli_cpu_ms_per_image": round(1000 * cpu, 1),
-            "cpu_ratio_cli_to_in_process": round(statistics.median(cpu_ratios), 3),
-            "cpu_ratio_per_round": [round(x, 3) for x in cpu_ratios],
-            "cli_marginal_ms_per_image_from_wall": round(1000 * marginal, 1),
-            "cli_wall_ms_per_image_incl_startup": round(1000 * wall, 1),
+    for name in [k for k in ("cli", "child", "baseline") if k in rounds[0]]:
+        entry = {
+            "ms_per_image": med(1000 * r[name]["wall_s_per_image"] for r in rounds),
+            "cpu_ms_per_image": med(1000 * r[name]["cpu_s_per_image"] for r in rounds),
+            "ratio_to_sim": med(r[name]["wall_s_per_image"] / r["sim"]["wall_s_per_image"] for r in rounds),
+            "cpu_ratio_to_sim": med(r[name]["cpu_s_per_image"] / r["sim"]["cpu_s_per_image"] for r in rounds),
         }
+        if "wall_s_per_image_incl_startup" in rounds[0][name]:
+            entry["ms_per_image_incl_startup"] = med(1000 * r[name]["wall_s_per_image_incl_startup"] for r in rounds)
+        summary[name] = entry
     report = {
         "benchmark": "cli_sim",
         "size": args.size,
         "batch": args.batch,
-        "images": [small, large],
+        "images": n,
         "threads": args.threads,
         "torch": torch.__version__,
         "machine": platform.processor() or platform.machine(),
