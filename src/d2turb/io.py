@@ -375,9 +375,8 @@ class BackgroundWriter:
                 self._queue.task_done()
 
     def _raise_error(self) -> None:
-        if self._error is not None:
-            error, self._error = self._error, None
-            raise error
+        if self._error is not None:  # sticky: the jobs after a failed one stay dropped
+            raise self._error
 
     def submit(self, fn: Callable, *args, **kwargs) -> None:
         """Queue ``fn(*args, **kwargs)``; raises the error of an earlier job, if any."""
