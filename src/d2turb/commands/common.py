@@ -108,11 +108,13 @@ class FileErrors:
         self.failed.append(str(exc))
 
     def finish(self, command: str) -> int:
-        if not self.failed:
-            return 0
-        done = self.total - len(self.failed)
-        print(
-            f"{command}: {done} of {self.total} inputs done, {len(self.failed)} failed (see the error lines)",
-            file=sys.stderr,
-        )
-        return 1 if done else 2
+        return summary(command, self.total, len(self.failed))
+
+
+def summary(command: str, total: int, failed: int) -> int:
+    """The closing line of a batch with failed inputs, and the exit status (0 none, 1 some, 2 all failed)."""
+    if not failed:
+        return 0
+    done = total - failed
+    print(f"{command}: {done} of {total} inputs done, {failed} failed (see the error lines)", file=sys.stderr)
+    return 1 if done else 2

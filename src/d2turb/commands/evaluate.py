@@ -59,7 +59,7 @@ def register(sub):
 
 
 def run(args):
-    from d2turb.commands.common import FileErrors, print_error
+    from d2turb.commands.common import print_error, summary
     from d2turb.device import resolve_device
     from d2turb.io import check_output_dir, remove_stale_temp_files
 
@@ -107,6 +107,4 @@ def run(args):
         results = results or {}
         total = results.get("samples_evaluated", 0) + len(results.get("skipped", []))
     print(f"wrote {os.path.join(args.out, 'results.json')}")
-    errors = FileErrors(total)
-    errors.failed = [s["error"] for s in results.get("skipped", [])]
-    return errors.finish("evaluate")
+    return summary("evaluate", total, len(results.get("skipped", [])))
