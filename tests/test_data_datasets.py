@@ -137,11 +137,9 @@ def test_clean_crop_dataset_crops_image_and_depth_together(clean_dir):
 
 
 def _simulator():
-    sim = pytest.importorskip("d2turb.sim")
-    pytest.importorskip("d2turb.ops.splat")
-    if not hasattr(sim, "Simulator"):
-        pytest.skip("d2turb.sim.Simulator not available yet")
-    return sim.Simulator(sim.TurbulenceParams(), device="cpu")
+    from d2turb.sim import Simulator, TurbulenceParams
+
+    return Simulator(TurbulenceParams(), device="cpu")
 
 
 def test_sample_dr0_is_uniform_over_union():

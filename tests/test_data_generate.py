@@ -23,11 +23,6 @@ from d2turb.data.layout import FILES, read_depth_png
 from d2turb.io import read_image
 from d2turb.sim import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
-pytest.importorskip("d2turb.ops.splat")
-sim = pytest.importorskip("d2turb.sim")
-if not hasattr(sim, "Simulator"):
-    pytest.skip("d2turb.sim.Simulator not available yet", allow_module_level=True)
-
 PATCH, PAIRS, BATCH = 64, 6, 2
 ENV = {**os.environ, "OMP_NUM_THREADS": "2", "PYTHONUNBUFFERED": "1"}
 

@@ -10,6 +10,7 @@ import torch
 from PIL import Image
 
 from d2turb.cli import main
+from d2turb.commands.common import print_error
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
@@ -154,6 +155,8 @@ def test_cli_data_dispatches_to_synthetic_evaluator(tmp_path, monkeypatch):
             "max_samples": 3,
             "lpips_weights": "lin.pth",
             "lpips_backbone": "alexnet.pth",
+            "fail_fast": False,
+            "on_skip": print_error,
         },
     )
     assert (

@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import re
 import sys
 
 from d2turb import __version__
@@ -25,10 +27,20 @@ COMMANDS = [
 ]
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with two fixes: a negative number in scientific notation after a space (``--cn2 -1e-14``)
+    is a value, not an option; usage errors are one ``error:`` line, like every other error."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+    def error(self, message: str):
+        self.exit(2, f"error: {message} (see: {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="d2turb", description="Depth-aware atmospheric turbulence: simulate, restore, evaluate."
-    )
+    parser = Parser(prog="d2turb", description="Depth-aware atmospheric turbulence: simulate, restore, evaluate.")
     parser.add_argument("--version", action="version", version=f"d2turb {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
@@ -36,20 +48,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _end_progress_bars() -> None:
+    """Close live tqdm bars, so the next line starts on a line of its own, not inside a bar's line."""
+    tqdm_module = sys.modules.get("tqdm")
+    if tqdm_module is None:
+        return
+    for bar in list(getattr(tqdm_module.tqdm, "_instances", ())):
+        with contextlib.suppress(Exception):
+            bar.close()
+
+
 def main(argv: list[str] | None = None) -> int:
+    from d2turb.commands.common import log_to_stderr
+    from d2turb.io import DEFAULT_MAX_PIXELS, set_max_pixels
+
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error already printed in one line
+        return exc.code if isinstance(exc.code, int) else 0
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    log_to_stderr()
+    set_max_pixels(getattr(args, "max_pixels", DEFAULT_MAX_PIXELS))
     try:
         return int(args.func(args) or 0)
     except D2TurbError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        _end_progress_bars()
+        print("error: " + " ".join(str(exc).split()), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _end_progress_bars()
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        set_max_pixels(DEFAULT_MAX_PIXELS)
 
 
 if __name__ == "__main__":

@@ -1,12 +1,18 @@
-"""Image and file I/O: robust reading of odd images, atomic writes (temp name, then rename)."""
+"""Image and file I/O: robust reading of odd images, atomic writes (temp name, then rename) with the mode a
+normal write gets, output-folder checks, and a background writer for batch commands."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
-import tempfile
-from collections.abc import Iterator
+import queue
+import re
+import secrets
+import stat
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +22,9 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from d2turb.errors import D2TurbError
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
+DEFAULT_MAX_PIXELS = 178_956_970  # Pillow's own decompression-bomb error limit (2 × Image.MAX_IMAGE_PIXELS)
+DEFAULT_PNG_LEVEL = 1  # zlib level of PNG outputs: ~3× faster than Pillow's 6 at 256², files ~15 % larger
+_limits = {"max_pixels": DEFAULT_MAX_PIXELS}
 
 
 def cache_dir(*parts: str) -> Path:
@@ -63,21 +72,77 @@ def _to_float_array(img: Image.Image) -> np.ndarray:
     return np.clip(arr, 0.0, 1.0).astype(np.float32)
 
 
-def read_image(path: str | os.PathLike) -> torch.Tensor:
-    """Read an image as a float32 tensor (3, H, W) in [0, 1].
+def set_max_pixels(limit: int | None) -> None:
+    """Largest image (width × height) that :func:`read_image` decodes; None or 0 = no limit.
 
-    Grayscale is replicated to RGB, alpha is dropped, 16-bit is scaled by 65535, palette images are
-    expanded and EXIF orientation is applied. Corrupt or unreadable files raise ``D2TurbError``.
+    Bigger headers are refused before decoding (decompression bombs: a tiny file claiming 100000²
+    pixels). The CLI sets it from ``--max-pixels``; the default is Pillow's own limit.
+    """
+    if limit is not None and limit < 0:
+        raise D2TurbError(f"--max-pixels must be >= 0 (0 = no limit), got {limit}")
+    _limits["max_pixels"] = limit or None
+
+
+def open_image(path: str | os.PathLike, max_pixels: int | None = -1) -> Image.Image:
+    """Decode an image file with Pillow (EXIF orientation applied), refusing oversized headers.
+
+    Args:
+        path: image file.
+        max_pixels: pixel limit; -1 (default) = the limit of :func:`set_max_pixels`, None = no limit.
+
+    Returns:
+        The loaded PIL image (its file closed).
+
+    Raises:
+        D2TurbError: missing, unreadable or corrupt file, or a header larger than the limit.
     """
     path = Path(path)
     if not path.is_file():
         raise D2TurbError(f"{path}: no such file")
+    limit = _limits["max_pixels"] if max_pixels == -1 else max_pixels
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None  # the limit is applied below, with a message that names the file
     try:
         with Image.open(path) as img:
+            w, h = img.size
+            if limit and w * h > limit:
+                raise D2TurbError(
+                    f"{path}: image claims {w}x{h} pixels ({w * h / 1e6:.0f} megapixels), over the limit of "
+                    f"{limit / 1e6:.0f} megapixels (decompression-bomb guard); allow it with --max-pixels {w * h}"
+                )
             img.load()
-            img = ImageOps.exif_transpose(img)
-            arr = _to_float_array(img)
+            return ImageOps.exif_transpose(img)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) from an image file's header, without decoding it (EXIF orientation not applied)."""
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None  # only the header is read
+    try:
+        with Image.open(path) as img:
+            return img.size
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def read_image(path: str | os.PathLike) -> torch.Tensor:
+    """Read an image as a float32 tensor (3, H, W) in [0, 1].
+
+    Grayscale is replicated to RGB, alpha is dropped, 16-bit is scaled by 65535, palette images are
+    expanded and EXIF orientation is applied. Corrupt or unreadable files, and headers over the pixel
+    limit (:func:`set_max_pixels`), raise ``D2TurbError``.
+    """
+    path = Path(path)
+    img = open_image(path)
+    try:
+        arr = _to_float_array(img)
+    except (OSError, ValueError) as exc:
         raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
     if arr.shape[0] < 2 or arr.shape[1] < 2:
         raise D2TurbError(f"{path}: image is too small ({arr.shape[1]}x{arr.shape[0]})")
@@ -100,20 +165,121 @@ def check_image_tensor(x: torch.Tensor, name: str = "image", channels: int | Non
         raise D2TurbError(f"{name}: contains NaN or infinite values")
 
 
+# ------------------------------------------------------------------------------------------------ writing
+_TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<token>[A-Za-z0-9_-]+)\.tmp(?P<suffix>\.[^.]+)?$")
+
+
+def _reason(exc: OSError) -> str:
+    return exc.strerror or str(exc) or exc.__class__.__name__
+
+
+def _create_temp(path: Path) -> Path:
+    """An empty, new temp file next to ``path``: ``.NAME.<pid>-<random>.tmpSUFFIX``. Created with mode 0666, so
+    the kernel applies the umask exactly as for a normal write (mkstemp would make it 0600)."""
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{path.suffix}")
+        try:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+            return tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name next to {path}")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds."""
+    """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The file gets the mode a normal write would (0666 minus the umask). Failures to create, write or rename
+    (a full disk, a read-only folder, a parent that is a file) raise ``D2TurbError`` naming ``path``; the
+    temporary file never survives an exception. A SIGKILL can leave it: :func:`remove_stale_temp_files`.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        os.replace(tmp_path, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _create_temp(path)
+        mode = stat.S_IMODE(tmp.stat().st_mode)  # 0666 minus the umask, as the kernel applied it
+    except OSError as exc:
+        raise D2TurbError(f"cannot write {path}: {_reason(exc)}") from exc
+    try:
+        yield tmp
+        if stat.S_IMODE(tmp.stat().st_mode) != mode:  # a writer that replaced the file (safetensors: 0600)
+            os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise D2TurbError(f"cannot write {path}: {_reason(exc)}") from exc
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+
+
+def _owner_is_gone(token: str, mtime: float) -> bool:
+    """Whether the process that made a temp file (pid in its name) no longer runs. Names without a pid
+    (older versions) are always stale."""
+    m = re.fullmatch(r"(\d+)-[0-9a-f]+", token)
+    if m is None:
+        return True
+    pid = int(m.group(1))
+    if pid == os.getpid():
+        return False
+    if os.name != "posix":  # no cheap liveness probe: an hour without change means abandoned
+        return time.time() - mtime > 3600
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # EPERM: alive, another user's
+        return False
+    return False
+
+
+def remove_stale_temp_files(folder: str | os.PathLike) -> int:
+    """Delete the temporary files :func:`atomic_path` left in ``folder`` (not recursive) when its process was
+    killed; files of processes that still run are kept. Returns how many were removed."""
+    folder = Path(folder)
+    count = 0
+    if not folder.is_dir():
+        return 0
+    for p in folder.iterdir():
+        m = _TEMP_RE.match(p.name)
+        if m is None or (m.group("suffix") or "") != Path(m.group("name")).suffix:
+            continue
+        try:
+            if p.is_file() and _owner_is_gone(m.group("token"), p.stat().st_mtime):
+                p.unlink()
+                count += 1
+        except OSError:
+            continue
+    return count
+
+
+def check_output_dir(path: str | os.PathLike, option: str = "--out") -> Path:
+    """Check that ``path`` is, or can be created as, a writable folder, without creating it; remove stale
+    temporary files of ours inside it. Raises ``D2TurbError`` in one line otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise D2TurbError(f"{option} {path}: exists and is not a folder")
+    probe = path
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise D2TurbError(f"{option} {path}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise D2TurbError(f"{option} {path}: {probe} is not writable (permission denied)")
+    remove_stale_temp_files(path)
+    return path
+
+
+def check_unique_stems(paths: Iterable[str | os.PathLike]) -> None:
+    """Per-input outputs are named by the input's stem: refuse inputs that would write the same names
+    (``a.png a.jpg``; compared case-insensitively, as some file systems do)."""
+    seen: dict[str, list[str]] = {}
+    for p in paths:
+        seen.setdefault(Path(p).stem.casefold(), []).append(str(p))
+    clash = [names for names in seen.values() if len(names) > 1]
+    if clash:
+        listed = "; ".join(", ".join(names) for names in clash[:3]) + ("; ..." if len(clash) > 3 else "")
+        raise D2TurbError(f"several inputs would write the same output names ({listed}); rename or process apart")
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:
@@ -126,16 +292,25 @@ def to_uint8(image: torch.Tensor) -> np.ndarray:
     return np.round(arr * 255.0).astype(np.uint8)
 
 
-def write_image(path: str | os.PathLike, image: torch.Tensor) -> None:
-    """Write a (C, H, W) float tensor in [0, 1] as an 8-bit image, atomically."""
-    if image.ndim == 4:
-        if image.shape[0] != 1:
-            raise D2TurbError(f"write_image: expected one image, got a batch of {image.shape[0]}")
-        image = image[0]
-    arr = to_uint8(image)
+def write_pil(path: str | os.PathLike, img: Image.Image, png_level: int = DEFAULT_PNG_LEVEL) -> None:
+    """Save a PIL image atomically, in the format of the path's suffix (PNG when unknown)."""
     path = Path(path)
+    fmt = Image.registered_extensions().get(path.suffix.lower(), "PNG")
+    options = {"compress_level": png_level} if fmt == "PNG" else {}
     with atomic_path(path) as tmp:
-        Image.fromarray(arr).save(tmp, format=Image.registered_extensions().get(path.suffix.lower(), "PNG"))
+        img.save(tmp, format=fmt, **options)
+
+
+def write_image(path: str | os.PathLike, image: torch.Tensor | np.ndarray, png_level: int = DEFAULT_PNG_LEVEL) -> None:
+    """Write a (C, H, W) float tensor in [0, 1] (or an HxW[x3] uint8 array) as an 8-bit image, atomically.
+    ``png_level``: zlib level 0-9 for PNG (default 1: fast; 9: smallest files)."""
+    if isinstance(image, torch.Tensor):
+        if image.ndim == 4:
+            if image.shape[0] != 1:
+                raise D2TurbError(f"write_image: expected one image, got a batch of {image.shape[0]}")
+            image = image[0]
+        image = to_uint8(image)
+    write_pil(path, Image.fromarray(image), png_level)
 
 
 def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
@@ -152,3 +327,88 @@ def write_json(path: str | os.PathLike, obj) -> None:
 def write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def writer_threads() -> int:
+    """Background writer threads for this machine: one per two cores beyond the first, at most 4."""
+    return max(1, min(4, ((os.cpu_count() or 2) - 1) // 2))
+
+
+class BackgroundWriter:
+    """Run write jobs in background threads, so a batch command computes the next batch while earlier
+    outputs are encoded and written. Jobs should write atomically (``write_image`` etc.).
+
+    ``submit`` blocks while ``max_pending`` jobs wait (bounded memory). The first error of a job is raised
+    in the caller at the next ``submit`` or at ``close``; later jobs are dropped. Used as a context manager,
+    an exception in the block (Ctrl-C) drops the jobs not started and waits for the running ones.
+
+    Args:
+        max_pending: queue length.
+        threads: writer threads (Pillow's and numpy's encoders release the GIL).
+    """
+
+    def __init__(self, max_pending: int = 16, threads: int = 1):
+        self._queue: queue.Queue = queue.Queue(maxsize=max(1, max_pending))
+        self._error: BaseException | None = None
+        self._lock = threading.Lock()
+        self._threads = [
+            threading.Thread(target=self._work, name=f"d2turb-writer-{i}", daemon=True) for i in range(max(1, threads))
+        ]
+        for t in self._threads:
+            t.start()
+        self._closed = False
+
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            try:
+                if job is None:
+                    return
+                if self._error is None:
+                    fn, args, kwargs = job
+                    fn(*args, **kwargs)
+            except BaseException as exc:  # handed to the caller's thread
+                with self._lock:
+                    if self._error is None:
+                        self._error = exc
+            finally:
+                self._queue.task_done()
+
+    def _raise_error(self) -> None:
+        if self._error is not None:  # sticky: the jobs after a failed one stay dropped
+            raise self._error
+
+    def submit(self, fn: Callable, *args, **kwargs) -> None:
+        """Queue ``fn(*args, **kwargs)``; raises the error of an earlier job, if any."""
+        if self._closed:
+            raise RuntimeError("BackgroundWriter is closed")
+        self._raise_error()
+        self._queue.put((fn, args, kwargs))
+
+    def close(self, cancel: bool = False) -> None:
+        """Finish (or, with ``cancel``, drop) the queued jobs, stop the threads, raise a job's error."""
+        if self._closed:
+            return
+        self._closed = True
+        if cancel:
+            while True:
+                try:
+                    self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                self._queue.task_done()
+        for _ in self._threads:
+            self._queue.put(None)
+        for t in self._threads:
+            t.join()
+        self._raise_error()
+
+    def __enter__(self) -> BackgroundWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # the block's exception wins; a writer error would only hide it
+            with contextlib.suppress(Exception):
+                self.close(cancel=True)

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import cache_dir
 from d2turb.ops.warp import base_grid, sample_at
@@ -83,15 +84,6 @@ def load_restoration_model(weights, device: str | torch.device = "cpu") -> tuple
 
     model = load_pretrained(str(resolved), device=str(device))
     return model.to(device).eval(), Path(resolved).stem
-
-
-def _check_device(device) -> torch.device:
-    device = torch.device(device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise D2TurbError("device 'cuda' requested but CUDA is not available; use --device cpu")
-    if device.type not in ("cpu", "cuda"):
-        raise D2TurbError(f"unsupported device {str(device)!r}: use cpu or cuda")
-    return device
 
 
 def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
@@ -159,8 +151,9 @@ class Restorer:
 
     ``weights``: a .safetensors path from ``save_pretrained``, a weights name (see
     :func:`weights_search_path`), ``"input"`` (identity baseline) or an ``nn.Module`` returning the model
-    output dict (deblurred, restored, flow). Images larger than ``tile`` are processed in overlapping
-    tiles (``overlap`` pixels shared) and blended seamlessly; CUDA runs under bf16 autocast.
+    output dict (deblurred, restored, flow). ``device``: see :func:`d2turb.device.resolve_device`. Images
+    larger than ``tile`` are processed in overlapping tiles (``overlap`` pixels shared) and blended
+    seamlessly; CUDA runs under bf16 autocast. A model output with NaN/inf raises ``D2TurbError``.
     """
 
     def __init__(self, weights, device: str = "cpu", tile: int = 512, overlap: int = 64, progress: bool = False):
@@ -168,7 +161,7 @@ class Restorer:
             raise D2TurbError(f"tile size must be an integer >= 16, got {tile}")
         if not isinstance(overlap, int) or overlap < 0 or overlap > tile // 2:
             raise D2TurbError(f"overlap must be between 0 and tile/2 = {tile // 2}, got {overlap}")
-        self.device = _check_device(device)
+        self.device = resolve_device(device)
         self.tile, self.overlap, self.progress = tile, overlap, progress
         self.model, self.name = load_restoration_model(weights, self.device)
 
@@ -209,6 +202,10 @@ class Restorer:
             raise D2TurbError(f"model {self.name} did not return a dict with 'restored'/'deblurred'")
         deblurred = out.get("deblurred", out.get("restored"))
         flow = out.get("flow")
+        if not all(torch.isfinite(v).all() for v in (deblurred, flow, out.get("restored")) if v is not None):
+            raise D2TurbError(
+                f"model {self.name} produced NaN or infinite values; refusing to write them (corrupt weights?)"
+            )
         result = {"deblurred": deblurred.float().cpu()}
         if flow is not None:
             result["flow"] = flow.float().cpu()

@@ -20,7 +20,7 @@ def register(sub):
     m.add_argument("--injection", choices=["aspi", "concat", "none"], help="injection of a d2turb model")
     m.add_argument("--config", help="extra model config as JSON (string or path to a .json file)")
     m.add_argument("--size", type=int, default=256, help="square input size (default 256)")
-    m.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    m.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     m.add_argument("--warmup", type=int, default=1, help="untimed forwards first (default 1)")
     m.add_argument("--repeats", type=int, default=3, help="timed forwards, the median is reported (default 3)")
     m.add_argument("--no-latency", action="store_true", help="only params and FLOPs (no forward pass is run)")
@@ -52,8 +52,7 @@ def _config(args) -> dict:
 
 
 def run(args):
-    import torch
-
+    from d2turb.device import resolve_device
     from d2turb.io import write_json, write_text
     from d2turb.models.complexity import benchmark, efficiency_entries, markdown_table
 
@@ -65,12 +64,7 @@ def run(args):
         raise D2TurbError("bench model: need --size >= 8, --repeats >= 1, --warmup >= 0")
     if args.out and not args.out.endswith((".md", ".json")):
         raise D2TurbError(f"--out {args.out}: must end in .md or .json")
-    try:
-        device = torch.device(args.device)
-    except RuntimeError as exc:
-        raise D2TurbError(f"--device {args.device!r}: not a device (use cpu or cuda)") from exc
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise D2TurbError("--device cuda: CUDA is not available on this machine")
+    device = resolve_device(args.device)
     entries = efficiency_entries() if args.all else [(args.name, _config(args))]
     results = []
     for name, cfg in entries:

@@ -38,7 +38,7 @@ def _config(text: str | None) -> dict:
     try:
         cfg = json.loads(text)
     except ValueError as exc:
-        raise D2TurbError(f"--config: not valid JSON ({exc})") from None
+        raise D2TurbError(f"--config: not valid JSON ({exc})") from exc
     if not isinstance(cfg, dict):
         raise D2TurbError("--config: expected a JSON object")
     return cfg

@@ -11,6 +11,7 @@ DEMO_PATH_LENGTH_M = 3000.0  # D = 0.1 m at Nyquist: tilt footprint 12.7 px, ins
 
 
 def register(sub):
+    from d2turb.commands.common import add_seed_arg
     from d2turb.commands.simulate import add_physics_args
 
     p = sub.add_parser(
@@ -21,7 +22,7 @@ def register(sub):
         "DIR/demo_results.md (PSNR/SSIM per bin) and per-image PNGs.",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_seed_arg(p)
     p.add_argument(
         "--weights",
         default=DEFAULT_WEIGHTS,
@@ -72,22 +73,21 @@ def _label(tile, text):
 
 
 def run(args):
-    from pathlib import Path
-
     import numpy as np
     import torch
     from PIL import Image
 
     from d2turb.commands.simulate import make_params
     from d2turb.depth import estimate_depth_prior
-    from d2turb.io import atomic_path, to_uint8, write_image, write_json
+    from d2turb.device import resolve_device
+    from d2turb.io import atomic_path, check_output_dir, to_uint8, write_image, write_json
     from d2turb.sim import Simulator, depth_modulation
 
-    out = Path(args.out)
+    out = check_output_dir(args.out)
     images = sample_images()
     names = list(images)
     params = make_params(args)
-    sim = Simulator(params, device=args.device)
+    sim = Simulator(params, device=resolve_device(args.device))
     batch = torch.stack([images[n] for n in names])
     depth = estimate_depth_prior(batch)  # (B, 1, H, W), far = 1
     b = len(names)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
 from d2turb.errors import D2TurbError
 
 
@@ -13,7 +14,8 @@ def register(sub):
         help="evaluate restoration models (PSNR/SSIM/LPIPS with ground truth, NIQE/PIQE without)",
         description="With --data: full-reference metrics of each model on a synthetic dataset. With --real: "
         "no-reference metrics (NIQE, PIQE) of real images, after restoring them with each --weights "
-        "model ('input' = unrestored). Writes OUT/results.json and OUT/results.md.",
+        "model ('input' = unrestored). Writes OUT/results.json and OUT/results.md. Unreadable images "
+        "(samples) are reported, skipped and listed in results.json; the exit status is then 1.",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", metavar="DATASET_DIR", help="synthetic dataset folder (from make_dataset)")
@@ -33,7 +35,7 @@ def register(sub):
         "(deblurred vs I_tilt); niqe,piqe with --real)",
     )
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    add_device_arg(p, "cpu")
     p.add_argument("--max-samples", type=int, default=None, help="evaluate at most this many images")
     p.add_argument(
         "--lpips-weights",
@@ -52,12 +54,22 @@ def register(sub):
         help="MUSIQ checkpoint (IQA-PyTorch .pth or .safetensors); else "
         "$D2TURB_MUSIQ_WEIGHTS or ~/.cache/d2turb/musiq/",
     )
+    add_max_pixels_arg(p)
+    add_fail_fast_arg(p)
     p.set_defaults(func=run)
 
 
 def run(args):
+    from d2turb.commands.common import print_error, summary
+    from d2turb.device import resolve_device
+    from d2turb.io import check_output_dir, remove_stale_temp_files
+
     if args.max_samples is not None and args.max_samples < 1:
         raise D2TurbError(f"--max-samples must be at least 1, got {args.max_samples}")
+    if not args.real and not args.weights:
+        raise D2TurbError("--data needs --weights (model files/names, or 'input' for the unrestored baseline)")
+    device = str(resolve_device(args.device))
+    remove_stale_temp_files(check_output_dir(args.out) / "grids")
     if args.real:
         from d2turb.eval.real import evaluate_real, parse_metrics
 
@@ -66,29 +78,34 @@ def run(args):
             parse_metrics(args.metrics or "niqe,piqe"),
             args.out,
             weights=args.weights,
-            device=args.device,
+            device=device,
             max_samples=args.max_samples,
             musiq_weights=args.musiq_weights,
+            fail_fast=args.fail_fast,
+            on_skip=print_error,
         )
         for model, scores in results["models"].items():
             print(model + ": " + ", ".join(f"{m} {v['mean']:.4f}" for m, v in scores.items()))
+        total = len(results["images"]) + len(results["skipped"])
     else:
-        if not args.weights:
-            raise D2TurbError("--data needs --weights (model files/names, or 'input' for the unrestored baseline)")
         from d2turb.eval.real import parse_metrics
         from d2turb.eval.synthetic import evaluate_synthetic
 
         # metrics=None: the default set, where missing LPIPS weights only drop the LPIPS column with a note
         metrics = tuple(parse_metrics(args.metrics)) if args.metrics else None
-        evaluate_synthetic(
+        results = evaluate_synthetic(
             args.weights,
             args.data,
             args.out,
-            device=args.device,
+            device=device,
             metrics=metrics,
             max_samples=args.max_samples,
             lpips_weights=args.lpips_weights,
             lpips_backbone=args.lpips_backbone,
+            fail_fast=args.fail_fast,
+            on_skip=print_error,
         )
+        results = results or {}
+        total = results.get("samples_evaluated", 0) + len(results.get("skipped", []))
     print(f"wrote {os.path.join(args.out, 'results.json')}")
-    return 0
+    return summary("evaluate", total, len(results.get("skipped", [])))

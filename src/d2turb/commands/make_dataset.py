@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from d2turb.commands.common import add_device_arg, add_max_pixels_arg, add_png_level_arg, add_seed_arg
 from d2turb.errors import D2TurbError
 
 
@@ -44,9 +45,9 @@ def register(sub):
         action="store_true",
         help="maps in a --depth DIR hold disparity (inverse depth, near = large)",
     )
-    p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    add_seed_arg(p, "dataset seed (default 0)")
     p.add_argument("--batch", type=int, default=8, help="samples per simulator call (part of the seed; default 8)")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda (default auto)")
+    add_device_arg(p, "auto")
     p.add_argument(
         "--param", action="append", default=[], metavar="KEY=VALUE", help="simulator parameter override (repeatable)"
     )
@@ -58,6 +59,8 @@ def register(sub):
         "offsets drawn per chunk of --batch samples; docs/datasets.md)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_png_level_arg(p)
+    add_max_pixels_arg(p)
     p.set_defaults(func=run)
 
 
@@ -82,6 +85,7 @@ def run(args):
         device=args.device,
         params=params,
         geometry=args.geometry,
+        png_level=args.png_level,
     )
     stats = generate_dataset(cfg, progress=not args.no_progress)
     if stats["rank"] == 0:

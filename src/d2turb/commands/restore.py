@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg, add_png_level_arg
 from d2turb.errors import D2TurbError
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif"}
@@ -15,7 +16,8 @@ def register(sub):
         "restore",
         help="restore turbulence-degraded images (any size, tiled)",
         description="Restore images, folders of frames or a video. Writes NAME_restored.png "
-        "(and NAME_flow.npy / NAME_deblurred.png on request) into --out.",
+        "(and NAME_flow.npy / NAME_deblurred.png on request) into --out. Unreadable inputs are reported "
+        "(one error line each) and skipped; the exit status is then 1.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, or a video file")
     p.add_argument(
@@ -27,9 +29,12 @@ def register(sub):
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--tile", type=int, default=512, help="tile size in pixels (default 512)")
     p.add_argument("--overlap", type=int, default=64, help="pixels shared by neighbouring tiles (default 64)")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="cpu (default) or cuda (bf16 autocast)")
+    add_device_arg(p, "cpu")
     p.add_argument("--save-flow", action="store_true", help="also write NAME_flow.npy, float32 (2, H, W), x then y, px")
     p.add_argument("--save-intermediate", action="store_true", help="also write NAME_deblurred.png (Î_tilt)")
+    add_png_level_arg(p)
+    add_max_pixels_arg(p)
+    add_fail_fast_arg(p)
     p.set_defaults(func=run)
 
 
@@ -52,7 +57,7 @@ def _iter_video(path: Path):
 
 def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
     """(image files, video files) named on the command line; output names must be unique."""
-    from d2turb.io import expand_inputs
+    from d2turb.io import check_unique_stems, expand_inputs
 
     images, videos = [], []
     for item in inputs:
@@ -61,41 +66,65 @@ def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
             videos.append(p)
         else:
             images.extend(expand_inputs([item]))
-    stems = [p.stem for p in images + videos]
-    clash = sorted({s for s in stems if stems.count(s) > 1})
-    if clash:
-        raise D2TurbError(f"several inputs would write the same output name: {', '.join(clash)}")
+    check_unique_stems(images + videos)
     return images, videos
 
 
-def run(args) -> int:
+def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
     import numpy as np
-    import torch
+
+    from d2turb.io import write_image, write_npy
+
+    write_image(out_dir / f"{stem}_restored.png", details["restored"], png_level)
+    if save_flow:
+        write_npy(out_dir / f"{stem}_flow.npy", details["flow"].numpy().astype(np.float32))
+    if save_intermediate:
+        write_image(out_dir / f"{stem}_deblurred.png", details["deblurred"], png_level)
+
+
+def _named(path: Path, exc: D2TurbError) -> D2TurbError:
+    return exc if str(exc).startswith(str(path)) else D2TurbError(f"{path}: {exc}")
+
+
+def run(args) -> int:
     from tqdm import tqdm
 
-    from d2turb.io import read_image, write_image, write_npy
+    from d2turb.commands.common import FileErrors
+    from d2turb.device import resolve_device
+    from d2turb.io import BackgroundWriter, check_output_dir, read_image, writer_threads
     from d2turb.restore import Restorer
 
     images, videos = split_inputs(args.inputs)
-    restorer = Restorer(args.weights, device=args.device, tile=args.tile, overlap=args.overlap, progress=True)
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-
-    def save(stem: str, image: torch.Tensor) -> None:
-        details = restorer.restore_with_details(image)
-        write_image(out_dir / f"{stem}_restored.png", details["restored"])
-        if args.save_flow:
-            write_npy(out_dir / f"{stem}_flow.npy", details["flow"].numpy().astype(np.float32))
-        if args.save_intermediate:
-            write_image(out_dir / f"{stem}_deblurred.png", details["deblurred"])
-
+    out_dir = check_output_dir(args.out)
+    restorer = Restorer(
+        args.weights, device=resolve_device(args.device), tile=args.tile, overlap=args.overlap, progress=True
+    )
+    errors = FileErrors(len(images) + len(videos), args.fail_fast)
+    options = (args.save_flow, args.save_intermediate, args.png_level)
     count = 0
-    for path in tqdm(images, desc="restore", unit="img", disable=len(images) < 2):
-        save(path.stem, read_image(path))
-        count += 1
-    for video in videos:
-        for i, frame in tqdm(_iter_video(video), desc=video.name, unit="frame"):
-            save(f"{video.stem}_{i:06d}", frame)
+    with BackgroundWriter(max_pending=4, threads=writer_threads()) as writer:
+        for path in tqdm(images, desc="restore", unit="img", disable=len(images) < 2):
+            try:
+                details = restorer.restore_with_details(read_image(path))
+            except D2TurbError as exc:
+                errors.record(_named(path, exc))
+                continue
+            writer.submit(_save, out_dir, path.stem, details, *options)
             count += 1
+        for video in videos:
+            bar = tqdm(_iter_video(video), desc=video.name, unit="frame")
+            frames = iter(bar)
+            while True:
+                try:
+                    i, frame = next(frames, (None, None))
+                    if frame is None:
+                        break
+                    details = restorer.restore_with_details(frame)
+                except D2TurbError as exc:
+                    bar.close()
+                    errors.record(_named(video, exc))
+                    break
+                writer.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
+                count += 1
     print(f"restored {count} image(s) with {restorer.name} into {out_dir}")
-    return 0
+    return errors.finish("restore")

@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+from d2turb.commands.common import (
+    add_device_arg,
+    add_fail_fast_arg,
+    add_max_pixels_arg,
+    add_png_level_arg,
+    add_seed_arg,
+)
 from d2turb.errors import D2TurbError
+
+BATCH_PIXELS = 1 << 21  # pixels per simulator call (8 images of 512²): bounds the blur's FFT planes
 
 
 def add_physics_args(p, path_length_m: float = 1000.0):
@@ -35,15 +44,17 @@ def add_physics_args(p, path_length_m: float = 1000.0):
         help="depth modulation M (default power_offset)",
     )
     p.add_argument("--offset", type=float, default=0.5, metavar="S", help="baseline offset s of Eq. 1 (default 0.5)")
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_arg(p, "cpu")
 
 
 def register(sub):
     p = sub.add_parser(
         "simulate",
         help="simulate depth-aware atmospheric turbulence on images",
-        description="Writes NAME_turb.png, NAME_tilt.png, NAME_meta.json "
-        "(and NAME_flow.npy with --save-flow) per input.",
+        description="Writes NAME_turb.png, NAME_tilt.png (unless --no-tilt), NAME_meta.json "
+        "(and NAME_flow.npy with --save-flow) per input. Images of the same size are simulated in batches; "
+        "outputs are written in the background. Unreadable inputs are reported (one error line each) and "
+        "skipped; the exit status is then 1.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files or folders")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -73,12 +84,23 @@ def register(sub):
         action="store_true",
         help="depth maps hold disparity (inverse depth, near = large)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_seed_arg(p, "random seed (default 0); results depend on it, on --batch and on the input list")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=8,
+        metavar="N",
+        help=f"images of the same size per simulator call, at most {BATCH_PIXELS} pixels in all (default 8)",
+    )
     p.add_argument(
         "--save-flow",
         action="store_true",
         help="also write NAME_flow.npy: float32 (2,H,W) forward displacement px, x then y",
     )
+    p.add_argument("--no-tilt", action="store_true", help="do not write NAME_tilt.png")
+    add_png_level_arg(p)
+    add_max_pixels_arg(p)
+    add_fail_fast_arg(p)
     add_physics_args(p)
     p.set_defaults(func=run)
 
@@ -101,45 +123,124 @@ def make_params(args, dr0=None):
     )
 
 
-def run(args):
+def _batches(items, batch: int):
+    """Group (path, dr0, image, depth) items of the same image size into lists of at most ``batch`` images
+    and BATCH_PIXELS pixels, in input order per size; at most ~2 batches of images wait in memory."""
+    pending: dict[tuple[int, int], list] = {}
+    for item in items:
+        size = tuple(item[2].shape[-2:])
+        group = pending.setdefault(size, [])
+        group.append(item)
+        if len(group) >= max(1, min(batch, BATCH_PIXELS // (size[0] * size[1]))):
+            yield pending.pop(size)
+        elif sum(len(g) for g in pending.values()) > 2 * batch:
+            yield pending.pop(next(iter(pending)))  # the oldest size
+    yield from pending.values()
+
+
+def _check_depth_spec(spec: str) -> None:
+    """Refuse a --depth that cannot work for any image once, rather than once per image."""
     from pathlib import Path
 
+    if spec in ("none", "prior"):
+        return
+    if spec.startswith("anything:"):
+        folder = Path(spec[len("anything:") :])
+        if not (folder / "config.json").is_file():
+            raise D2TurbError(f"--depth {spec}: {folder} is not a Depth Anything model folder (no config.json)")
+    elif not Path(spec).exists():
+        raise D2TurbError(f"--depth {spec}: no such depth file or folder (or use none, prior, anything:PATH)")
+
+
+def _write_outputs(out, name: str, turb, tilt, flow, meta: dict, png_level: int) -> None:
+    from d2turb.io import write_image, write_json, write_npy
+
+    write_image(out / f"{name}_turb.png", turb, png_level)
+    if tilt is not None:
+        write_image(out / f"{name}_tilt.png", tilt, png_level)
+    if flow is not None:
+        write_npy(out / f"{name}_flow.npy", flow.numpy().astype("float32"))
+    write_json(out / f"{name}_meta.json", meta)
+
+
+def run(args):
     import torch
 
+    from d2turb.commands.common import FileErrors
     from d2turb.depth import depth_for_image
-    from d2turb.io import expand_inputs, read_image, write_image, write_json, write_npy
+    from d2turb.device import resolve_device
+    from d2turb.io import (
+        BackgroundWriter,
+        check_output_dir,
+        check_unique_stems,
+        expand_inputs,
+        read_image,
+        writer_threads,
+    )
     from d2turb.sim import Simulator, dr0_bin, sample_dr0
 
+    if args.batch < 1:
+        raise D2TurbError(f"--batch must be at least 1, got {args.batch}")
     paths = expand_inputs(args.inputs)
+    check_unique_stems(paths)
+    _check_depth_spec(args.depth)
     params = make_params(args, args.dr0)
-    out = Path(args.out)
-    sim = Simulator(params, device=args.device)
+    device = resolve_device(args.device)
+    out = check_output_dir(args.out)
+    sim = Simulator(params, device=device)
     gen = torch.Generator().manual_seed(args.seed)
     if args.dr0_range is not None:
         strengths = sample_dr0(len(paths), *args.dr0_range, generator=gen).tolist()
     else:
         strengths = [params.dr0] * len(paths)
-    for path, dr0 in zip(paths, strengths):
-        image = read_image(path)
-        depth = depth_for_image(args.depth, path, image, is_disparity=args.disparity, device=args.device)
-        res = sim(image[None], depth=None if depth is None else depth[None], dr0=dr0, generator=gen)
-        name = path.stem
-        write_image(out / f"{name}_turb.png", res.turb[0])
-        write_image(out / f"{name}_tilt.png", res.tilt[0])
-        if args.save_flow:
-            write_npy(out / f"{name}_flow.npy", res.flow[0].detach().cpu().numpy().astype("float32"))
-        meta = params.to_dict()
-        meta.update(
-            dr0=float(dr0),
-            r0_m=params.aperture_m / float(dr0),
-            bin=dr0_bin(dr0),
-            seed=args.seed,
-            input=str(path),
-            depth=args.depth,
-            height=image.shape[1],
-            width=image.shape[2],
-            mean_modulation=float(res.modulation.mean()),
-        )
-        write_json(out / f"{name}_meta.json", meta)
-        print(f"{path.name}: D/r0 = {dr0:.3g} ({dr0_bin(dr0)}) -> {out / (name + '_turb.png')}")
-    return 0
+    errors = FileErrors(len(paths), args.fail_fast)
+
+    def readable():
+        for path, dr0 in zip(paths, strengths):
+            try:
+                image = read_image(path)
+                depth = depth_for_image(args.depth, path, image, is_disparity=args.disparity, device=device)
+            except D2TurbError as exc:
+                errors.record(exc)
+                continue
+            yield path, dr0, image, depth
+
+    base_meta = params.to_dict()
+    with BackgroundWriter(max_pending=2 * args.batch, threads=writer_threads()) as writer:
+        for group in _batches(readable(), args.batch):
+            images = torch.stack([item[2] for item in group])
+            depths = (
+                None if group[0][3] is None else torch.stack([item[3].reshape(1, *images.shape[-2:]) for item in group])
+            )
+            dr0 = torch.tensor([item[1] for item in group], dtype=torch.float64)
+            res = sim(images, depth=depths, dr0=dr0, generator=gen)
+            turb = res.turb.float().cpu()
+            tilt = None if args.no_tilt else res.tilt.float().cpu()
+            flow = res.flow.float().cpu() if args.save_flow else None
+            modulation = res.modulation.flatten(1).mean(1).tolist()
+            for b, (path, value, image, _) in enumerate(group):
+                meta = dict(
+                    base_meta,
+                    dr0=float(value),
+                    r0_m=params.aperture_m / float(value),
+                    bin=dr0_bin(value),
+                    seed=args.seed,
+                    batch=args.batch,
+                    input=str(path),
+                    depth=args.depth,
+                    height=image.shape[1],
+                    width=image.shape[2],
+                    mean_modulation=float(modulation[b]),
+                )
+                writer.submit(
+                    _write_outputs,
+                    out,
+                    path.stem,
+                    turb[b],
+                    None if tilt is None else tilt[b],
+                    None if flow is None else flow[b],
+                    meta,
+                    args.png_level,
+                )
+                print(f"{path.name}: D/r0 = {value:.3g} ({dr0_bin(value)}) -> {out / (path.stem + '_turb.png')}")
+    return errors.finish("simulate")

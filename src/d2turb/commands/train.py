@@ -143,13 +143,6 @@ def print_status(run_dir: str) -> int:
     return 0
 
 
-class _StderrHandler(logging.Handler):
-    """Writes to the current ``sys.stderr`` (looked up at each record, so captured streams work)."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        print(self.format(record), file=sys.stderr)
-
-
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"warning: {message}", file=sys.stderr)
 
@@ -161,12 +154,10 @@ def run(args):
     _refuse_if_running(out)
     if args.detach:
         return _detach(args, out)
+    from d2turb.commands.common import log_to_stderr
     from d2turb.train import Trainer
 
-    logger = logging.getLogger("d2turb.train")
-    if not logger.handlers:
-        logger.addHandler(_StderrHandler())
-        logger.setLevel(logging.INFO)
+    log_to_stderr({"d2turb.train": logging.INFO})
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning  # one line per warning: "warning: ..."
         trainer = Trainer(cfg, out, resume=args.resume)

@@ -40,7 +40,7 @@ def _check_sample(root: Path, rec: dict, patch: int, decode: bool) -> list[str]:
                     problems.append(
                         f"{sid}: {kind} is {img.mode} {img.size[0]}x{img.size[1]}, expected RGB {patch}x{patch}"
                     )
-        except (OSError, SyntaxError, ValueError) as exc:
+        except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
             problems.append(f"{sid}: {kind} does not decode ({exc.__class__.__name__})")
     try:
         flow = np.load(file_path(root, "flow", sid), allow_pickle=False)
@@ -54,9 +54,24 @@ def _check_sample(root: Path, rec: dict, patch: int, decode: bool) -> list[str]:
         depth = read_depth_png(file_path(root, "depth", sid))
         if tuple(depth.shape) != (1, patch, patch):
             problems.append(f"{sid}: depth is {tuple(depth.shape[-2:])}, expected ({patch}, {patch})")
-    except (OSError, SyntaxError, ValueError, D2TurbError) as exc:
+    except (OSError, SyntaxError, ValueError, D2TurbError, Image.DecompressionBombError) as exc:
         problems.append(f"{sid}: depth does not decode ({exc.__class__.__name__})")
     return problems
+
+
+def _bin_ranges(value) -> dict[str, tuple[float, float]]:
+    """``bin_ranges`` of dataset.json: {name: [low, high]} with finite low <= high."""
+    if not isinstance(value, dict) or not value:
+        raise TypeError(f"bin_ranges must be an object of [low, high] pairs, got {json.dumps(value)}")
+    ranges = {}
+    for name, pair in value.items():
+        if not isinstance(pair, list) or len(pair) != 2 or not all(isinstance(v, (int, float)) for v in pair):
+            raise TypeError(f"bin_ranges[{name!r}] must be [low, high], got {json.dumps(pair)}")
+        lo, hi = float(pair[0]), float(pair[1])
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
+            raise ValueError(f"bin_ranges[{name!r}] = {pair} is not a finite range")
+        ranges[str(name)] = (lo, hi)
+    return ranges
 
 
 def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
@@ -69,8 +84,8 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
         raise D2TurbError(f"{root}: not a d2turb dataset (no {CONFIG_NAME})")
     try:
         cfg = json.loads((root / CONFIG_NAME).read_text())
-        patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), {k: tuple(v) for k, v in cfg["bin_ranges"].items()}
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), _bin_ranges(cfg["bin_ranges"])
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
         raise D2TurbError(f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})") from exc
     report = CheckReport(counts={b: 0 for b in sorted(ranges, key=lambda b: ranges[b][0])})
     problems = report.problems

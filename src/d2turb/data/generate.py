@@ -13,6 +13,7 @@ import datetime
 import json
 import logging
 import os
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -35,13 +36,26 @@ from d2turb.data.layout import (
     truncate_partial_line,
     write_depth_png,
 )
+from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
-from d2turb.io import expand_inputs, read_image, write_image, write_json, write_npy, write_text
+from d2turb.io import (
+    DEFAULT_PNG_LEVEL,
+    BackgroundWriter,
+    check_output_dir,
+    expand_inputs,
+    image_size,
+    read_image,
+    remove_stale_temp_files,
+    write_image,
+    write_json,
+    write_npy,
+    write_text,
+    writer_threads,
+)
 from d2turb.sim.geometry import footprint_px, geometry_bank
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
 logger = logging.getLogger(__name__)
-
 SPLITS = ("train", "test")
 
 
@@ -60,6 +74,7 @@ class DatasetConfig:
     device: str = "auto"
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
     geometry: str = "fixed"  # a d2turb.sim.geometry.GEOMETRIES name; one geometry per chunk of `batch` samples
+    png_level: int = DEFAULT_PNG_LEVEL  # zlib level of the PNG files (not part of the dataset's identity)
 
 
 @dataclass
@@ -83,6 +98,27 @@ def validate(cfg: DatasetConfig) -> None:
     bin_spans(cfg.bins)
     if cfg.batch < 1:
         raise D2TurbError(f"--batch must be at least 1, got {cfg.batch}")
+    if not 0 <= cfg.seed < 2**63:
+        raise D2TurbError(f"--seed must be between 0 and 2**63 - 1, got {cfg.seed}")
+
+
+def check_patch_fits(sources: list[Path], patch: int) -> None:
+    """Refuse a patch larger than every source image (all of them would be upsampled, often absurdly):
+    reads image headers until one source's short side reaches the patch."""
+    largest = 0
+    for path in sources:
+        try:
+            short = min(image_size(path))
+        except D2TurbError:  # unreadable: SourceCache reports it when the source is drawn
+            continue
+        if short >= patch:
+            return
+        largest = max(largest, short)
+    if largest:
+        raise D2TurbError(
+            f"--patch {patch} is larger than every source image (largest short side {largest} px); "
+            f"use --patch {largest} or less, or larger images"
+        )
 
 
 def _rng(*key: int) -> np.random.Generator:
@@ -149,29 +185,10 @@ def make_depth_fn(spec: str, device=None, is_disparity: bool = False):
     return depth_fn
 
 
-def resolve_device(name: str, local_rank: int = 0) -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda":
-        if not torch.cuda.is_available():
-            raise D2TurbError("--device cuda requested but no CUDA GPU is available")
-        return torch.device("cuda", local_rank % torch.cuda.device_count())
-    try:
-        return torch.device(name)
-    except RuntimeError:
-        raise D2TurbError(f"unknown device {name!r} (use auto, cpu or cuda)") from None
-
-
 def params_record(params) -> dict:
     """TurbulenceParams as a JSON-ready dict (with the derived r0 and tilt footprint) for the metadata."""
     full = {**params.to_dict(), "footprint_px": footprint_px(params)}
     return json.loads(json.dumps(full, default=str))
-
-
-def simulator_params(overrides: dict):
-    """TurbulenceParams with the user's overrides, and the full parameter dict for the metadata."""
-    (params,) = geometry_bank("fixed", overrides)
-    return params, params_record(params)
 
 
 class SourceCache:
@@ -181,6 +198,7 @@ class SourceCache:
         self.sources, self.patch, self.depth_fn, self.size = sources, patch, depth_fn, size
         self.cache: OrderedDict[int, tuple] = OrderedDict()
         self.bad: set[int] = set()
+        self.small: set[int] = set()  # sources already reported as smaller than the patch
 
     def get(self, index: int):
         """(source index actually used, image (3,H,W), depth (1,H,W) | None); a corrupt source is
@@ -195,9 +213,13 @@ class SourceCache:
             try:
                 image = read_image(self.sources[k])
             except D2TurbError as exc:
-                logger.warning("skipping corrupt source %s", exc)
+                logger.warning(f"skipping unreadable source {exc}")
                 self.bad.add(k)
                 continue
+            h, w = image.shape[-2:]
+            if min(h, w) < self.patch and k not in self.small:
+                self.small.add(k)
+                logger.warning(f"{self.sources[k]} is {w}x{h}, smaller than the {self.patch}-px patch: resized up")
             depth = (
                 None
                 if self.depth_fn is None
@@ -237,13 +259,8 @@ def collect_records(root: Path) -> dict[str, dict]:
 
 
 def remove_temp_files(root: Path) -> int:
-    """Temporary files a killed writer left behind (``.<name>.XXXX.tmp<suffix>``)."""
-    count = 0
-    for kind in FILES:
-        for p in (Path(root) / kind).glob(".*.tmp*"):
-            p.unlink(missing_ok=True)
-            count += 1
-    return count
+    """Temporary files a killed writer left in the dataset's folders (see ``d2turb.io.remove_stale_temp_files``)."""
+    return sum(remove_stale_temp_files(Path(root) / kind) for kind in (*FILES, SHARD_DIR, "."))
 
 
 def merge_meta(root: Path) -> int:
@@ -281,15 +298,51 @@ def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: 
     }
 
 
-def check_same_config(root: Path, record: dict) -> None:
+def check_same_config(root: Path, record: dict) -> bool:
+    """Whether ``dataset.json`` must be (re)written: it is absent, or the folder holds no finished sample yet
+    (a run that wrote no sample does not lock the folder to its settings). Raises ``D2TurbError`` when
+    finished samples were made with other settings."""
     path = Path(root) / CONFIG_NAME
     if not path.is_file():
-        return
-    old = json.loads(path.read_text())
+        return True
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        old = None
     keys = ["version", "pairs", "patch", "split", "bins", "seed", "batch", "depth", "params", "geometry", "sources"]
-    diff = [k for k in keys if old.get(k) != record.get(k)]
-    if diff:
-        raise D2TurbError(f"{root} holds a dataset made with different settings ({', '.join(diff)}); use a new --out")
+    diff = keys if not isinstance(old, dict) else [k for k in keys if old.get(k) != record.get(k)]
+    if not diff:
+        return False
+    if not collect_records(root):
+        return True
+    if not isinstance(old, dict):
+        raise D2TurbError(f"{path}: unreadable dataset config, but the folder holds samples; use a new --out")
+    raise D2TurbError(f"{root} holds a dataset made with different settings ({', '.join(diff)}); use a new --out")
+
+
+def reset_unfinished(root: Path) -> None:
+    """Remove what an earlier run that finished no sample left (its config, meta shards, sample files)."""
+    root = Path(root)
+    (root / CONFIG_NAME).unlink(missing_ok=True)
+    (root / META_NAME).unlink(missing_ok=True)
+    for p in shard_dir(root).glob("*.jsonl"):
+        p.unlink()
+    for kind, suffix in FILES.items():
+        for p in (root / kind).glob(f"{'[0-9]' * 7}{suffix}"):
+            p.unlink()
+
+
+def _discard_if_empty(root: Path, created_root: bool) -> None:
+    """After a failed single-process run: if no sample was finished, remove the config and empty folders
+    it made, so a corrected re-run starts afresh (nothing is removed once a sample exists)."""
+    if collect_records(root):
+        return
+    reset_unfinished(root)
+    for folder in [shard_dir(root), *(root / kind for kind in FILES), *([root] if created_root else [])]:
+        try:
+            folder.rmdir()  # only when empty
+        except OSError:
+            pass
 
 
 # ------------------------------------------------------------------------------------------ distributed
@@ -322,12 +375,16 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or finish) the dataset in ``cfg.out``; returns counts and timing of this process."""
     validate(cfg)
     info = dist_info()
-    root = Path(cfg.out)
+    resolve_device(cfg.device, info.local_rank)  # a bad --device fails before anything is written
+    root = check_output_dir(cfg.out)
     sources = expand_inputs(list(cfg.clean))
+    check_patch_fits(sources, cfg.patch)
     bank = geometry_bank(cfg.geometry, cfg.params)
     params_full = params_record(bank[0]) if cfg.geometry == "fixed" else [params_record(p) for p in bank]
     record = dataset_config_record(cfg, sources, params_full)
-    check_same_config(root, record)  # every rank checks, so a mismatch fails all of them before any barrier
+    # every rank checks, so a mismatch fails all of them before any barrier
+    write_config = check_same_config(root, record)
+    created_root = not root.exists()
     initialized_here = False
     if info.world > 1 and not torch.distributed.is_initialized():
         torch.distributed.init_process_group("gloo", timeout=datetime.timedelta(hours=2))
@@ -335,19 +392,35 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     try:
         if info.rank == 0:
             root.mkdir(parents=True, exist_ok=True)
-            if not (root / CONFIG_NAME).is_file():
-                write_json(root / CONFIG_NAME, record)
             remove_temp_files(root)
+            if write_config:
+                if (root / CONFIG_NAME).is_file():  # other settings, but no finished sample: start afresh
+                    reset_unfinished(root)
+                write_json(root / CONFIG_NAME, record)
         _barrier(info)
         stats = _generate_rank(cfg, info, root, sources, bank, progress)
         _barrier(info)
         if info.rank == 0:
             stats["total"] = merge_meta(root)
         _barrier(info)
+    except BaseException:
+        if info.world == 1 and root.is_dir():
+            _discard_if_empty(root, created_root)
+        raise
     finally:
         if initialized_here:
             torch.distributed.destroy_process_group()
     return stats
+
+
+def _write_sample(root: Path, sid: str, sample: dict, meta: dict, shard: Path, lock, png_level: int) -> None:
+    """The files of one sample, then its meta line: a sample is done once its line is in the shard."""
+    for kind in ("turb", "tilt", "gt"):
+        write_image(file_path(root, kind, sid), sample[kind], png_level)
+    write_npy(file_path(root, "flow", sid), sample["flow"].numpy().astype(np.float16))
+    write_depth_png(file_path(root, "depth", sid), sample["depth"])
+    with lock:
+        append_line(shard, meta)
 
 
 def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
@@ -381,7 +454,8 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
 
         bar = tqdm(total=todo, unit="pair", desc=f"make-dataset (rank 0 of {info.world})", dynamic_ncols=True)
     start, written = time.perf_counter(), 0
-    with torch.inference_mode():
+    shard_lock = threading.Lock()
+    with torch.inference_mode(), BackgroundWriter(max_pending=2 * cfg.batch, threads=writer_threads()) as writer:
         for c in my_chunks:
             indices = range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
             plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources)) for i in indices]
@@ -425,15 +499,14 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             for b, (plan, meta) in enumerate(zip(plans, metas)):
                 if plan.id in done:
                     continue
-                write_image(file_path(root, "turb", plan.id), turb[b])
-                write_image(file_path(root, "tilt", plan.id), tilt[b])
-                write_image(file_path(root, "gt", plan.id), clean[b])
-                write_npy(file_path(root, "flow", plan.id), flow[b].numpy().astype(np.float16))
-                write_depth_png(
-                    file_path(root, "depth", plan.id),
-                    depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
-                )
-                append_line(shard, meta)  # the meta line last: a sample is done once it is there
+                sample = {
+                    "turb": turb[b],
+                    "tilt": tilt[b],
+                    "gt": clean[b],
+                    "flow": flow[b],
+                    "depth": depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
+                }
+                writer.submit(_write_sample, root, plan.id, sample, meta, shard, shard_lock, cfg.png_level)
                 written += 1
                 if bar is not None:
                     bar.update(1)

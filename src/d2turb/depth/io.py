@@ -17,6 +17,7 @@ from d2turb.errors import D2TurbError
 
 DEPTH_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pgm")
 DEFAULT_MAX_DEPTH_RATIO = 100.0
+ASPECT_TOLERANCE = 0.01  # a depth map is stretched to its image only if their aspect ratios agree this well
 
 
 def read_depth_array(path: str | os.PathLike) -> np.ndarray:
@@ -38,7 +39,7 @@ def read_depth_array(path: str | os.PathLike) -> np.ndarray:
         with Image.open(path) as img:
             img.load()
             arr = np.asarray(img)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         raise D2TurbError(f"{path}: cannot read depth image ({exc.__class__.__name__}: {exc})") from exc
     if arr.ndim == 3:  # grey stored as RGB(A): accept only if the colour channels agree
         rgb = arr[..., :3]
@@ -122,6 +123,22 @@ def load_depth(
     return resize_depth(out, size) if size is not None else out
 
 
+def load_depth_for_image(path: str | os.PathLike, size: tuple[int, int], is_disparity: bool = False) -> torch.Tensor:
+    """:func:`load_depth` resized to an image of ``size=(H, W)``; refuses a map whose aspect ratio differs from
+    the image's by more than 1 % (a map of another image, or of the unrotated EXIF photo), which a resize would
+    silently stretch."""
+    depth = load_depth(path, is_disparity=is_disparity)
+    h, w = depth.shape[-2:]
+    height, width = size
+    mismatch = abs((w * height) / (h * width) - 1.0)
+    if mismatch > ASPECT_TOLERANCE:
+        raise D2TurbError(
+            f"{path}: depth map is {w}x{h} but its image is {width}x{height} (aspect ratios differ by "
+            f"{100 * mismatch:.1f} %, more than {100 * ASPECT_TOLERANCE:g} %); crop or pad the map to the image's shape"
+        )
+    return resize_depth(depth, size)
+
+
 def find_depth_file(folder: str | os.PathLike, image_path: str | os.PathLike) -> Path:
     """The depth file in ``folder`` with the same stem as ``image_path``."""
     folder, image_path = Path(folder), Path(image_path)
@@ -148,7 +165,7 @@ def depth_for_image(
 
     ``none`` | ``prior`` (weight-free estimate) | ``anything:PATH`` (local Depth Anything V2 folder) |
     FILE (a depth map for this image) | DIR (a folder with a depth file of the image's stem).
-    ``is_disparity`` applies to FILE/DIR maps.
+    ``is_disparity`` applies to FILE/DIR maps, whose aspect ratio must match the image's within 1 %.
     """
     if image.ndim == 4:
         if image.shape[0] != 1:
@@ -174,7 +191,7 @@ def depth_for_image(
     if p.is_dir():
         if image_path is None:
             raise D2TurbError(f"depth folder {p}: needs the image's file name to find its depth map")
-        return load_depth(find_depth_file(p, image_path), size=size, is_disparity=is_disparity)
+        return load_depth_for_image(find_depth_file(p, image_path), size, is_disparity)
     if p.is_file():
-        return load_depth(p, size=size, is_disparity=is_disparity)
+        return load_depth_for_image(p, size, is_disparity)
     raise D2TurbError(f"depth spec {spec!r}: expected none, prior, anything:PATH, or an existing depth file or folder")

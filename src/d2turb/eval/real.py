@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from d2turb.errors import D2TurbError
-from d2turb.io import list_images, read_image, write_image, write_json, write_text
+from d2turb.io import check_unique_stems, list_images, read_image, write_image, write_json, write_text
 
 IDENTITY = "input"
 NO_REFERENCE = ("niqe", "piqe", "musiq")
@@ -100,6 +100,9 @@ def _markdown(results: dict) -> str:
             lines.append(
                 f"| {name} | " + " | ".join(_fmt(results["models"][k][m]["per_image"][name]) for k in models) + " |"
             )
+    if results.get("skipped"):
+        lines += ["", "## Skipped (not in the means)", ""]
+        lines += [f"- `{s['file']}`: {s['error']}" for s in results["skipped"]]
     return "\n".join(lines) + "\n"
 
 
@@ -112,6 +115,8 @@ def evaluate_real(
     max_samples: int | None = None,
     restorer_factory: Callable[[str, str], Callable[[torch.Tensor], torch.Tensor]] | None = None,
     musiq_weights: str | None = None,
+    fail_fast: bool = False,
+    on_skip: Callable[[str], None] | None = None,
 ) -> dict:
     """Score the images of ``real_dir``; returns the dict written to ``out_dir/results.json``.
 
@@ -119,6 +124,10 @@ def evaluate_real(
     model per entry of ``weights`` (default ``["input"]``); ``results[metric]`` repeats the first model's
     entry. ``restorer_factory(weights, device)`` returns ``image (3,H,W) -> restored (3,H,W)``
     (default: ``d2turb.restore.Restorer(weights, device=device).restore``).
+
+    An image that cannot be read, restored or scored is skipped: ``on_skip(message)`` is called, it is
+    listed in ``results["skipped"]`` ({"file", "error"}) and left out of the means. With ``fail_fast``
+    (or a single image) its ``D2TurbError`` is raised instead; if every image fails, too.
     """
     metric_names = parse_metrics(metrics)
     scorers = {m: no_reference_metric(m, device, musiq_weights) for m in metric_names}
@@ -129,32 +138,52 @@ def evaluate_real(
         raise D2TurbError(f"{real_dir}: no images found")
     names = [p.name for p in paths]
     weights = list(weights) if weights else [IDENTITY]
+    if any(str(w) != IDENTITY for w in weights):
+        check_unique_stems(paths)  # grids/<stem>.png per image
     model_names = _model_names(weights)
     factory = restorer_factory or _default_restorer
     restorers = {n: (None if str(w) == IDENTITY else factory(str(w), device)) for n, w in zip(model_names, weights)}
 
     values = {n: {m: {} for m in metric_names} for n in model_names}
+    skipped: list[dict] = []
     out_dir = Path(out_dir)
     for path, name in zip(paths, names):
-        image = read_image(path)
-        outputs = {n: image if r is None else r(image).detach().float().cpu().clamp(0, 1) for n, r in restorers.items()}
-        for n, restored in outputs.items():
-            for m, score in scorers.items():
-                try:
-                    values[n][m][name] = score(restored)
-                except D2TurbError as exc:
-                    raise D2TurbError(f"{path.name} ({n}): {exc}") from exc
+        try:
+            image = read_image(path)
+            outputs = {}
+            for n, r in restorers.items():
+                outputs[n] = image if r is None else r(image).detach().float().cpu().clamp(0, 1)
+            scores = {}
+            for n, restored in outputs.items():
+                for m, score in scorers.items():
+                    try:
+                        scores[n, m] = score(restored)
+                    except D2TurbError as exc:
+                        raise D2TurbError(f"{path} ({n}, {m}): {exc}") from exc
+        except D2TurbError as exc:
+            if fail_fast or len(paths) == 1:
+                raise
+            skipped.append({"file": name, "error": str(exc)})
+            if on_skip is not None:
+                on_skip(str(exc))
+            continue
+        for (n, m), value in scores.items():
+            values[n][m][name] = value
         if any(r is not None for r in restorers.values()):
             write_image(
                 out_dir / "grids" / f"{path.stem}.png",
                 _grid([image, *[outputs[n] for n in model_names if restorers[n] is not None]]),
             )
+    if len(skipped) == len(paths):
+        raise D2TurbError(f"{real_dir}: none of the {len(paths)} images could be evaluated")
+    names = [n for n in names if n not in {s["file"] for s in skipped}]
 
     results = {
         "mode": "real",
         "data": str(real_dir),
         "metrics": metric_names,
         "images": names,
+        "skipped": skipped,
         "models": {
             n: {m: {"per_image": values[n][m], "mean": sum(values[n][m].values()) / len(names)} for m in metric_names}
             for n in model_names

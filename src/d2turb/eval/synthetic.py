@@ -75,6 +75,8 @@ def evaluate_synthetic(
     overlap: int = 64,
     grid_per_bin: int = 2,
     progress: bool = False,
+    fail_fast: bool = False,
+    on_skip=None,
 ) -> dict:
     """Evaluate models on a make-dataset folder; write results.json/.md/.tex and grids; return the results.
 
@@ -84,6 +86,8 @@ def evaluate_synthetic(
     (``lpips_weights``/``lpips_backbone`` or $D2TURB_LPIPS_WEIGHTS/$D2TURB_LPIPS_BACKBONE) makes missing
     LPIPS weights an error. Per-bin values are means over the bin's samples; "avg" is the mean over all
     samples (not the mean of the three bin means). Restored images are quantised to 8 bits first.
+    A sample whose files cannot be read (or whose restoration fails) is skipped: ``on_skip(message)`` is
+    called and it is listed in ``results["skipped"]``; with ``fail_fast`` its error is raised instead.
     """
     from PIL import Image
 
@@ -129,35 +133,51 @@ def evaluate_synthetic(
         from tqdm import tqdm
 
         indices = tqdm(indices, desc="evaluate", unit="img")
+    skipped = []
     for i in indices:
-        item = dataset[i]
-        bin_name = BIN_NAMES[int(item["bin"])] if 0 <= int(item["bin"]) < len(BIN_NAMES) else "unbinned"
-        turb, gt = item["turb"], item["gt"]
-        record = {"id": item["id"], "bin": bin_name, "dr0": round(float(item["dr0"]), 6), "values": {}}
-        outputs = []
-        for name, restorer in zip(names, restorers):
-            details = restorer.restore_with_details(turb)
-            pred = _quantise(details["restored"])
-            values = {}
-            if "psnr" in metrics:
-                values["psnr"] = float(psnr(pred, gt))
-            if "ssim" in metrics:
-                values["ssim"] = float(ssim(pred, gt))
-            if "lpips" in metrics:
-                with torch.no_grad():
-                    values["lpips"] = float(lpips_model(pred[None].to(device), gt[None].to(device))[0])
-            if "epe" in metrics:  # both flows are backward flows: warp(tilt, flow) ≈ gt
-                values["epe"] = float((details["flow"] - item["flow"]).norm(dim=0).mean())
-            if "psnr_tilt" in metrics:
-                values["psnr_tilt"] = float(psnr(_quantise(details["deblurred"]), item["tilt"]))
-            record["values"][name] = values
-            outputs.append(pred)
+        try:
+            try:
+                item = dataset[i]
+            except (OSError, ValueError, EOFError) as exc:  # a truncated .png / .npy of the dataset
+                raise D2TurbError(f"cannot read ({exc.__class__.__name__}: {exc})") from exc
+            bin_name = BIN_NAMES[int(item["bin"])] if 0 <= int(item["bin"]) < len(BIN_NAMES) else "unbinned"
+            turb, gt = item["turb"], item["gt"]
+            record = {"id": item["id"], "bin": bin_name, "dr0": round(float(item["dr0"]), 6), "values": {}}
+            outputs = []
+            for name, restorer in zip(names, restorers):
+                details = restorer.restore_with_details(turb)
+                pred = _quantise(details["restored"])
+                values = {}
+                if "psnr" in metrics:
+                    values["psnr"] = float(psnr(pred, gt))
+                if "ssim" in metrics:
+                    values["ssim"] = float(ssim(pred, gt))
+                if "lpips" in metrics:
+                    with torch.no_grad():
+                        values["lpips"] = float(lpips_model(pred[None].to(device), gt[None].to(device))[0])
+                if "epe" in metrics:  # both flows are backward flows: warp(tilt, flow) ≈ gt
+                    values["epe"] = float((details["flow"] - item["flow"]).norm(dim=0).mean())
+                if "psnr_tilt" in metrics:
+                    values["psnr_tilt"] = float(psnr(_quantise(details["deblurred"]), item["tilt"]))
+                record["values"][name] = values
+                outputs.append(pred)
+        except D2TurbError as exc:
+            sid = dataset.records[i]["id"]
+            message = f"{Path(data_dir)} sample {sid}: {exc}"
+            if fail_fast:
+                raise D2TurbError(message) from exc
+            skipped.append({"id": sid, "error": message})
+            if on_skip is not None:
+                on_skip(message)
+            continue
         samples.append(record)
         if bin_name in grids and len(grids[bin_name]) < grid_per_bin:
             grids[bin_name].append(
                 ([turb, gt] + [outputs[k] for k in grid_models], f"{item['id']}  D/r0={float(item['dr0']):.2f}")
             )
 
+    if not samples:
+        raise D2TurbError(f"{data_dir}: none of the {count} samples could be evaluated")
     table = {}
     for name in names:
         table[name] = {}
@@ -182,7 +202,8 @@ def evaluate_synthetic(
             grid_files[bin_name] = str(path.relative_to(out))
     results = {
         "data": str(Path(data_dir)),
-        "samples_evaluated": count,
+        "samples_evaluated": len(samples),
+        "skipped": skipped,
         "bin_counts": counts,
         "metrics": metrics,
         "models": names,
@@ -197,11 +218,14 @@ def evaluate_synthetic(
     bins_line = ", ".join(f"{b}: {counts[b]}" for b in BIN_NAMES)
     md = [
         "# Synthetic evaluation\n",
-        f"Dataset `{data_dir}` — {count} samples ({bins_line}); "
+        f"Dataset `{data_dir}` — {len(samples)} samples ({bins_line}); "
         "bins: weak D/r0 < 2.25 ≤ medium ≤ 3.75 < strong. Avg = mean over all samples.\n",
         markdown_table(table, metrics),
     ]
     md += [f"\n> **Note:** {n}\n" for n in notes]
+    if skipped:
+        md.append(f"\n## Skipped ({len(skipped)}, not in the means)\n")
+        md += [f"- `{s['id']}`: {s['error']}" for s in skipped]
     if grid_files:
         md.append("\n" + "\n".join(f"![{b}]({p})" for b, p in grid_files.items()) + "\n")
     write_text(out / "results.md", "\n".join(md))

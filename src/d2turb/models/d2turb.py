@@ -57,7 +57,7 @@ class D2Turb(nn.Module):
                 rectifier, self.backbone.guide_channels, injection, injection_cfg, **(rectifier_cfg or {})
             )
         except (TypeError, ValueError) as exc:
-            raise D2TurbError(f"d2turb: bad rectifier/injection config ({exc})") from None
+            raise D2TurbError(f"d2turb: bad rectifier/injection config ({exc})") from exc
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         _check_input(image)

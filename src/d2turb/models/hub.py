@@ -159,7 +159,7 @@ def read_state_dict(path: str | os.PathLike, key: str | None = None) -> dict[str
         obj = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:  # unpickling refused (weights_only) or a corrupt archive
         first = (str(exc).strip().splitlines() or [""])[0]
-        raise D2TurbError(f"{path}: cannot read checkpoint ({exc.__class__.__name__}: {first})") from None
+        raise D2TurbError(f"{path}: cannot read checkpoint ({exc.__class__.__name__}: {first})") from exc
     return _unwrap(obj, path, key)
 
 
@@ -171,7 +171,7 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
             metadata = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except Exception as exc:  # safetensors raises its own error types for truncated / garbage files
-        raise D2TurbError(f"{path}: corrupt weights file ({exc.__class__.__name__})") from None
+        raise D2TurbError(f"{path}: corrupt weights file ({exc.__class__.__name__})") from exc
     return tensors, metadata
 
 
@@ -286,8 +286,8 @@ def load_pretrained(
         try:
             config = dict(json.loads(metadata[CONFIG_KEY]))
             name = config.pop("name")
-        except (ValueError, KeyError, TypeError):
-            raise D2TurbError(f"{path}: unreadable model config in its metadata") from None
+        except (ValueError, KeyError, TypeError) as exc:
+            raise D2TurbError(f"{path}: unreadable model config in its metadata") from exc
         if FORMAT_KEY not in metadata:
             config = legacy_config(name, config)
         net = _build_for_loading(name, config)

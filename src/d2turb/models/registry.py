@@ -53,11 +53,11 @@ def _build(table: dict, kind: str, name: str, cfg: dict) -> nn.Module:
     try:
         json.dumps(cfg)
     except TypeError as exc:
-        raise D2TurbError(f"{kind} {name!r}: config must be JSON-serialisable ({exc})") from None
+        raise D2TurbError(f"{kind} {name!r}: config must be JSON-serialisable ({exc})") from exc
     try:
         return table[name](**cfg)
     except (TypeError, ValueError) as exc:  # unknown / missing keyword, inconsistent values
-        raise D2TurbError(f"{kind} {name!r}: bad config {cfg} ({exc})") from None
+        raise D2TurbError(f"{kind} {name!r}: bad config {cfg} ({exc})") from exc
 
 
 def create_backbone(name: str, **cfg) -> nn.Module:
@@ -77,7 +77,7 @@ def create_model(name: str, **cfg) -> nn.Module:
         try:
             json.dumps(cfg)
         except TypeError as exc:
-            raise D2TurbError(f"model {name!r}: config must be JSON-serialisable ({exc})") from None
+            raise D2TurbError(f"model {name!r}: config must be JSON-serialisable ({exc})") from exc
         model = BackboneRestorer(name, **cfg)
     else:
         model = _build(_MODELS, "model", name, cfg)

@@ -226,7 +226,7 @@ def load_config(
         try:
             user = yaml.safe_load(path.read_text()) or {}
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
-            raise D2TurbError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+            raise D2TurbError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from exc
         if not isinstance(user, dict):
             raise D2TurbError(f"{path}: the config must be a YAML mapping")
     user = _merge(DEFAULTS, user, "")

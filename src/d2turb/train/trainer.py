@@ -33,6 +33,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler, Sampler, Subset
 
 from d2turb.data.layout import BIN_NAMES
+from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import atomic_path, write_json, write_text
 from d2turb.train.config import Config, model_kwargs
@@ -68,14 +69,12 @@ class ResumableSampler(Sampler):
 def _env_int(name: str, default: int) -> int:
     try:
         return int(os.environ.get(name, default))
-    except ValueError:
-        raise D2TurbError(f"environment variable {name} must be an integer, got {os.environ[name]!r}") from None
+    except ValueError as exc:
+        raise D2TurbError(f"environment variable {name} must be an integer, got {os.environ[name]!r}") from exc
 
 
 def init_distributed(device_name: str) -> tuple[int, int, torch.device]:
     """(rank, world_size, device) from torchrun's RANK / WORLD_SIZE / LOCAL_RANK; nccl on CUDA, gloo on CPU."""
-    from d2turb.data.generate import resolve_device
-
     world, rank, local = _env_int("WORLD_SIZE", 1), _env_int("RANK", 0), _env_int("LOCAL_RANK", 0)
     device = resolve_device(device_name, local)
     if device.type == "cuda":
@@ -101,8 +100,8 @@ def read_status(run_dir: str | os.PathLike) -> dict:
         raise D2TurbError(f"{run_dir}: no {STATUS} (not a run folder, or training has not started yet)")
     try:
         status = json.loads(path.read_text())
-    except ValueError:
-        raise D2TurbError(f"{path}: unreadable") from None
+    except ValueError as exc:
+        raise D2TurbError(f"{path}: unreadable") from exc
     status["alive"] = None
     if status.get("state") == "running" and status.get("host") == socket.gethostname():
         try:
@@ -446,7 +445,7 @@ class Trainer:
             state = torch.load(path, map_location="cpu", weights_only=True)
             saved_cfg = json.loads(state["config"])
         except Exception as exc:  # truncated file, foreign pickle, missing keys
-            raise D2TurbError(f"{path}: unreadable checkpoint ({exc.__class__.__name__})") from None
+            raise D2TurbError(f"{path}: unreadable checkpoint ({exc.__class__.__name__})") from exc
         if saved_cfg.get("model") != self.cfg.model:
             raise D2TurbError(
                 f"{path}: checkpoint is for model {saved_cfg.get('model')}, not {self.cfg.model}; "

@@ -1,0 +1,147 @@
+"""Options and behaviour shared by the subcommands: seed range, device, image-size limit, PNG level, and the
+rule for folders with bad files (every readable file is processed, one ``error:`` line per bad file, a
+summary, exit status 1; ``--fail-fast`` stops at the first)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from d2turb.device import DEVICE_HELP
+from d2turb.errors import D2TurbError
+from d2turb.io import DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL
+
+SEED_MAX = 2**63 - 1  # torch generators and numpy SeedSequence both take [0, 2**63 - 1]
+
+
+def seed_type(text: str) -> int:
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 0 <= value <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 2**63 - 1, got {text}")
+    return value
+
+
+def _bounded_int(lo: int, hi: int | None = None):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(
+                f"must be {lo} or more, got {value}" if hi is None else f"must be between {lo} and {hi}, got {value}"
+            )
+        return value
+
+    return parse
+
+
+def add_seed_arg(p, help_text: str = "random seed (default 0)") -> None:
+    p.add_argument("--seed", type=seed_type, default=0, metavar="N", help=help_text)
+
+
+def add_device_arg(p, default: str = "cpu") -> None:
+    p.add_argument("--device", default=default, metavar="DEVICE", help=f"{DEVICE_HELP} (default {default})")
+
+
+def add_max_pixels_arg(p) -> None:
+    """Images whose header claims more pixels are refused before decoding (applied by ``d2turb.cli.main``)."""
+    p.add_argument(
+        "--max-pixels",
+        type=_bounded_int(0),
+        default=DEFAULT_MAX_PIXELS,
+        metavar="N",
+        help=f"refuse input images larger than N pixels, a guard against decompression bombs "
+        f"(default {DEFAULT_MAX_PIXELS}, Pillow's limit; 0 = no limit)",
+    )
+
+
+def add_png_level_arg(p) -> None:
+    p.add_argument(
+        "--png-compression",
+        dest="png_level",
+        type=_bounded_int(0, 9),
+        default=DEFAULT_PNG_LEVEL,
+        metavar="LEVEL",
+        help=f"zlib level of the PNG outputs, 0-9 (default {DEFAULT_PNG_LEVEL}: fast; 9: smallest files)",
+    )
+
+
+def add_fail_fast_arg(p) -> None:
+    p.add_argument(
+        "--fail-fast",
+        action="store_true",
+        help="stop at the first unreadable or failing input (default: report it, go on, exit 1 at the end)",
+    )
+
+
+def print_error(message: str) -> None:
+    """``error: message`` on stderr in one line, above any progress bar."""
+    message = " ".join(message.split())
+    if "tqdm" in sys.modules:
+        from tqdm import tqdm
+
+        tqdm.write(f"error: {message}", file=sys.stderr)
+    else:
+        print(f"error: {message}", file=sys.stderr, flush=True)
+
+
+class FileErrors:
+    """Per-input failures of a batch command.
+
+    ``record(exc)`` prints one ``error:`` line and goes on, or re-raises the error with ``fail_fast`` (and
+    when there is a single input, whose error then is the command's one line). ``finish`` prints the
+    summary and returns the exit status: 0 all done, 1 some inputs failed, 2 all failed.
+    """
+
+    def __init__(self, total: int, fail_fast: bool = False):
+        self.total, self.fail_fast = total, fail_fast or total == 1
+        self.failed: list[str] = []
+
+    def record(self, exc: D2TurbError) -> None:
+        if self.fail_fast:
+            raise exc
+        print_error(str(exc))
+        self.failed.append(str(exc))
+
+    def finish(self, command: str) -> int:
+        return summary(command, self.total, len(self.failed))
+
+
+def summary(command: str, total: int, failed: int) -> int:
+    """The closing line of a batch with failed inputs, and the exit status (0 none, 1 some, 2 all failed)."""
+    if not failed:
+        return 0
+    done = total - failed
+    print(f"{command}: {done} of {total} inputs done, {failed} failed (see the error lines)", file=sys.stderr)
+    return 1 if done else 2
+
+
+class StderrHandler(logging.Handler):
+    """One line per record on the current ``sys.stderr`` (looked up each time, so captured streams work), above
+    any live progress bar; warnings and errors start with ``warning:`` / ``error:``."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = self.format(record)
+        if record.levelno >= logging.WARNING:
+            text = f"{record.levelname.lower()}: {text}"
+        if "tqdm" in sys.modules:
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)
+        else:
+            print(text, file=sys.stderr)
+
+
+def log_to_stderr(level_of: dict[str, int] | None = None) -> None:
+    """Send the ``d2turb`` loggers' records to stderr (once per process); ``level_of`` lowers the level of
+    named child loggers (e.g. ``{"d2turb.train": logging.INFO}`` for training progress)."""
+    root = logging.getLogger("d2turb")
+    if not any(isinstance(h, StderrHandler) for h in root.handlers):
+        root.addHandler(StderrHandler())
+    for name, level in (level_of or {}).items():
+        logging.getLogger(name).setLevel(level)

@@ -1,0 +1,45 @@
+"""The one device resolver: every command, the restorer, the trainer and the dataset generator use it."""
+
+from __future__ import annotations
+
+import torch
+
+from d2turb.errors import D2TurbError
+
+DEVICE_HELP = "auto (a GPU when there is one), cpu, cuda or cuda:N"
+
+
+def resolve_device(name: str | torch.device | None = "auto", local_rank: int = 0) -> torch.device:
+    """A device name → ``torch.device``, refusing what this machine cannot run in one line.
+
+    Args:
+        name: ``"auto"`` (or None: CUDA when available, else CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+        local_rank: process index on this machine (``LOCAL_RANK`` under torchrun); ``auto``/``cuda`` without
+            an index pick GPU ``local_rank % device_count``.
+
+    Returns:
+        The device.
+
+    Raises:
+        D2TurbError: not a device name, a device type other than cpu/cuda, CUDA requested on a machine
+        (or torch build) without it, or a GPU index that does not exist.
+    """
+    text = "auto" if name is None else str(name).strip().lower()
+    if text == "auto":
+        text = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError) as exc:
+        raise D2TurbError(f"device {str(name)!r} is not a device name (use {DEVICE_HELP})") from exc
+    if device.type == "cpu":
+        return torch.device("cpu")
+    if device.type != "cuda":
+        raise D2TurbError(f"device {str(name)!r} is not supported (use {DEVICE_HELP})")
+    if not torch.cuda.is_available():
+        why = "this torch build has no CUDA support" if torch.version.cuda is None else "no GPU is visible"
+        raise D2TurbError(f"device {str(name)!r} requested but CUDA is not available ({why}); use --device cpu")
+    count = torch.cuda.device_count()
+    index = local_rank % count if device.index is None else device.index
+    if not 0 <= index < count:
+        raise D2TurbError(f"device {str(name)!r}: this machine has {count} GPU(s), cuda:0 to cuda:{count - 1}")
+    return torch.device("cuda", index)
