@@ -10,7 +10,18 @@ import sys
 from d2turb import __version__
 from d2turb.errors import D2TurbError
 
-COMMANDS = ["demo", "simulate", "make_dataset", "check_dataset", "models", "bench", "restore", "evaluate", "train"]
+COMMANDS = [
+    "demo",
+    "simulate",
+    "simulate_video",
+    "make_dataset",
+    "check_dataset",
+    "models",
+    "bench",
+    "restore",
+    "evaluate",
+    "train",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:

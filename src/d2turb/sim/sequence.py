@@ -51,7 +51,8 @@ def wind_speeds(wind, z_frac: np.ndarray) -> np.ndarray:
             else np.interp(z_frac, np.linspace(0, 1, values.size), values)
         )
     if not np.isfinite(v).all() or (v < 0).any():
-        raise D2TurbError(f"wind speeds must be finite and >= 0 m/s, got {np.round(v, 4).tolist()}")
+        given = "a function" if callable(wind) else np.atleast_1d(np.asarray(wind, dtype=np.float64)).tolist()
+        raise D2TurbError(f"wind speeds must be finite and >= 0 m/s, got {given}")
     return v
 
 
@@ -243,8 +244,8 @@ class FrozenFlow:
 
 
 def _frames(source) -> tuple[Callable[[int], object], bool]:
-    """A tensor → the same item every frame; a list/iterator of tensors → one per frame."""
-    if source is None or isinstance(source, torch.Tensor):
+    """A tensor (or a function of the frame) → the same every frame; a list/iterator → one per frame."""
+    if source is None or isinstance(source, torch.Tensor) or callable(source):
         return (lambda _t: source), False
     if isinstance(source, Sequence):
         items = list(source)
@@ -294,6 +295,8 @@ def _run(sim, get_image, get_depth, frames, fps, wind, wind_dir, boil, dr0, gene
         dep = get_depth(t)
         if dep is StopIteration:
             raise D2TurbError(f"depth ran out at frame {t}")
+        if callable(dep):
+            dep = dep(img[0] if img.ndim == 4 else img)
         if isinstance(img, torch.Tensor) and img.ndim == 3:
             img = img[None]
         if not isinstance(img, torch.Tensor) or img.ndim != 4:

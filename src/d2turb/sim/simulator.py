@@ -236,7 +236,8 @@ class Simulator:
             fps: frames per second. wind: m/s, one value, several (from the aperture to the object,
                 interpolated) or a function of z/L. wind_dir: drift direction in degrees (0 = +x, 90 = +y).
             boil: fraction of each layer's variance refreshed per frame (0 = pure frozen flow, 1 = independent).
-            depth: as for a single frame (a tensor for all frames, or an iterable, one per frame).
+            depth: as for a single frame: a tensor for all frames, an iterable (one per frame), or a
+                function of the (C, H, W) frame returning its depth.
             dr0, generator: as for a single frame; D/r0 is constant along the sequence.
         Returns:
             an iterator of :class:`SimResult`, one per frame, computed on demand (constant memory).
