@@ -114,24 +114,26 @@ def figure(params, temporal_result: dict, path: str) -> None:
 
     sim = Simulator(params)
     fps, wind = temporal_result["fps"], temporal_result["wind_m_s"]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.4), dpi=110)
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100)
     t = np.arange(300) / fps
-    for boil, style in ((0.0, "-"), (0.2, ":")):
+    scale = sim.tilt_std * sim.px_per_a2 * params.dr0 ** (5 / 6)
+    for boil, styles in ((0.2, ("0.75", None)), (0.0, ("C0", "C1"))):
         gen = torch.Generator().manual_seed(4)
         state = FrozenFlow(sim, 1, 1, 1, fps, wind, 0.0, boil, gen, high_waves=0)
-        scale = sim.tilt_std * sim.px_per_a2 * params.dr0 ** (5 / 6)
         xs = []
         for _ in range(len(t)):
             xs.append(state.tilt(1, 1, 1)[0, :, 0, 0].numpy() * scale)
             state.advance(gen)
         xs = np.array(xs)
-        label = "boil 0" if boil == 0 else f"boil {boil:g}"
-        ax[0].plot(t, xs[:, 0], "C0" + style, lw=1, label=f"Δx, along the wind ({label})")
-        ax[0].plot(t, xs[:, 1], "C1" + style, lw=1, label=f"Δy, across ({label})")
+        if boil:
+            ax[0].plot(t, xs[:, 0], color=styles[0], lw=0.8, label=f"Δx with boiling {boil:g}")
+        else:
+            ax[0].plot(t, xs[:, 0], color=styles[0], lw=1, label="Δx, along the wind")
+            ax[0].plot(t, xs[:, 1], color=styles[1], lw=1, label="Δy, across")
     ax[0].set_xlabel("time (s)")
     ax[0].set_ylabel("tilt of one pixel (px)")
     ax[0].set_title(f"D/r0 = {params.dr0:g}, wind {wind:g} m/s, {fps:g} frames/s", fontsize=9)
-    ax[0].legend(fontsize=7, ncol=2, loc="lower left")
+    ax[0].legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
     lags = np.geomspace(0.5, 80, 200)
     perp, par = temporal_theory(lags, wind, fps, params.aperture_m)
     ax[1].semilogx(lags, par, "C0-", label="theory c∥ (I0 − I2, path)")
@@ -150,8 +152,8 @@ def figure(params, temporal_result: dict, path: str) -> None:
     plt.close(fig)
 
 
-def animation(path: str, frames: int = 40, size: int = 128) -> None:
-    """Two scenes side by side (a photo and a chart of straight lines), D/r0 = 4, wind 2 m/s at 30 fps."""
+def animation(path: str, frames: int = 36, size: int = 120) -> None:
+    """Two scenes side by side (a photo and a chart of straight lines), D/r0 = 3, wind 1 m/s at 30 fps."""
     from PIL import Image
     from skimage import data, transform
 
@@ -161,12 +163,12 @@ def animation(path: str, frames: int = 40, size: int = 128) -> None:
         chart[i : i + 2, :] = 0.15
         chart[:, i : i + 2] = 0.15
     img = torch.from_numpy(np.concatenate([photo, chart], 1)).float().permute(2, 0, 1)
-    sim = Simulator(TurbulenceParams(dr0=4.0))
+    sim = Simulator(TurbulenceParams(dr0=3.0))
     gen = torch.Generator().manual_seed(0)
     out = []
-    for res in sim.sequence(img, frames=frames, fps=30, wind=2.0, wind_dir=20, generator=gen):
+    for res in sim.sequence(img, frames=frames, fps=30, wind=1.0, wind_dir=20, generator=gen):
         arr = (res.turb[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-        out.append(Image.fromarray(arr).convert("P", palette=Image.Palette.ADAPTIVE, colors=128))
+        out.append(Image.fromarray(arr).convert("P", palette=Image.Palette.ADAPTIVE, colors=96))
     out[0].save(path, save_all=True, append_images=out[1:], duration=1000 // 15, loop=0, optimize=True)
 
 
@@ -176,15 +178,20 @@ def main(argv=None) -> int:
     ap.add_argument("--figure", default="docs/images/video_tilt.png")
     ap.add_argument("--gif", default="docs/images/video_demo.gif")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--figures-from", default=None, metavar="JSON", help="only redraw the images from a report")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     params = TurbulenceParams(dr0=3.0)
     start = time.perf_counter()
-    report = {"benchmark": "video_physics", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
-    report["temporal"] = temporal(params, wind=1.0, fps=30.0)
-    print(json.dumps(report["temporal"], indent=1), flush=True)
-    report["spatial"] = [spatial(params, n) for n in (256, 512)]
-    print(json.dumps(report["spatial"], indent=1), flush=True)
+    if args.figures_from:
+        report = json.loads(open(args.figures_from).read())
+        args.json = None
+    else:
+        report = {"benchmark": "video_physics", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+        report["temporal"] = temporal(params, wind=1.0, fps=30.0)
+        print(json.dumps(report["temporal"], indent=1), flush=True)
+        report["spatial"] = [spatial(params, n) for n in (256, 512)]
+        print(json.dumps(report["spatial"], indent=1), flush=True)
     if args.figure:
         figure(params, report["temporal"], args.figure)
     if args.gif:
