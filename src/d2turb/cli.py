@@ -15,6 +15,7 @@ from d2turb.errors import D2TurbError
 COMMANDS = [
     "demo",
     "simulate",
+    "simulate_video",
     "make_dataset",
     "check_dataset",
     "models",

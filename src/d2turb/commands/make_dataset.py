@@ -58,6 +58,24 @@ def register(sub):
         help="imaging geometry: fixed (TurbulenceParams defaults + --param) or field (apertures, ranges and depth "
         "offsets drawn per chunk of --batch samples; docs/datasets.md)",
     )
+    p.add_argument(
+        "--frames", type=int, default=1, metavar="N", help="N > 1: turbulent clips of N frames per sample (filmstrips)"
+    )
+    p.add_argument("--fps", type=float, default=30.0, help="sequences: frames per second (default 30)")
+    p.add_argument(
+        "--wind",
+        type=float,
+        nargs="+",
+        default=[1.0],
+        metavar="V",
+        help="sequences: wind m/s, or speeds from aperture to object",
+    )
+    p.add_argument(
+        "--wind-dir", type=float, default=0.0, metavar="DEG", help="sequences: drift direction (default 0 = +x)"
+    )
+    p.add_argument(
+        "--boil", type=float, default=0.0, metavar="X", help="sequences: variance refreshed per frame (default 0)"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_png_level_arg(p)
     add_max_pixels_arg(p)
@@ -86,6 +104,17 @@ def run(args):
         params=params,
         geometry=args.geometry,
         png_level=args.png_level,
+        frames=args.frames,
+        sequence=(
+            dict(
+                fps=args.fps,
+                wind=args.wind[0] if len(args.wind) == 1 else args.wind,
+                wind_dir=args.wind_dir,
+                boil=args.boil,
+            )
+            if args.frames != 1
+            else {}
+        ),
     )
     stats = generate_dataset(cfg, progress=not args.no_progress)
     if stats["rank"] == 0:

@@ -3,6 +3,7 @@
 from d2turb.data.check import CheckReport, check_dataset
 from d2turb.data.datasets import CleanCropDataset, OnTheFlySynthesis, PairDataset, crop_sample, flip_sample
 from d2turb.data.generate import DatasetConfig, generate_dataset, plan_sample
+from d2turb.data.sequence import SequenceDataset
 
 __all__ = [
     "CheckReport",
@@ -10,6 +11,7 @@ __all__ = [
     "DatasetConfig",
     "OnTheFlySynthesis",
     "PairDataset",
+    "SequenceDataset",
     "check_dataset",
     "crop_sample",
     "flip_sample",

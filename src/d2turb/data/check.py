@@ -25,7 +25,8 @@ class CheckReport:
         return not self.problems
 
 
-def _check_sample(root: Path, rec: dict, patch: int, decode: bool) -> list[str]:
+def _check_sample(root: Path, rec: dict, patch: int, decode: bool, frames: int = 1) -> list[str]:
+    """``frames`` > 1: turb/tilt are filmstrips (frames·patch tall), flow is (frames, 2, patch, patch)."""
     sid, problems = rec["id"], []
     for kind in FILES:
         if not file_path(root, kind, sid).is_file():
@@ -33,19 +34,21 @@ def _check_sample(root: Path, rec: dict, patch: int, decode: bool) -> list[str]:
     if problems or not decode:
         return problems
     for kind in ("turb", "tilt", "gt"):
+        tall = patch * (frames if kind != "gt" else 1)
         try:
             with Image.open(file_path(root, kind, sid)) as img:
                 img.load()
-                if img.mode != "RGB" or img.size != (patch, patch):
+                if img.mode != "RGB" or img.size != (patch, tall):
                     problems.append(
-                        f"{sid}: {kind} is {img.mode} {img.size[0]}x{img.size[1]}, expected RGB {patch}x{patch}"
+                        f"{sid}: {kind} is {img.mode} {img.size[0]}x{img.size[1]}, expected RGB {patch}x{tall}"
                     )
         except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
             problems.append(f"{sid}: {kind} does not decode ({exc.__class__.__name__})")
     try:
         flow = np.load(file_path(root, "flow", sid), allow_pickle=False)
-        if flow.shape != (2, patch, patch) or flow.dtype != np.float16:
-            problems.append(f"{sid}: flow is {flow.dtype} {flow.shape}, expected float16 (2, {patch}, {patch})")
+        shape = (2, patch, patch) if frames == 1 else (frames, 2, patch, patch)
+        if flow.shape != shape or flow.dtype != np.float16:
+            problems.append(f"{sid}: flow is {flow.dtype} {flow.shape}, expected float16 {shape}")
         elif not np.isfinite(flow).all():
             problems.append(f"{sid}: flow contains NaN or infinite values")
     except (OSError, ValueError, EOFError) as exc:
@@ -85,6 +88,7 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
     try:
         cfg = json.loads((root / CONFIG_NAME).read_text())
         patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), _bin_ranges(cfg["bin_ranges"])
+        frames = int(cfg.get("frames", 1))
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
         raise D2TurbError(f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})") from exc
     report = CheckReport(counts={b: 0 for b in sorted(ranges, key=lambda b: ranges[b][0])})
@@ -119,7 +123,7 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
         else:
             report.counts[name] += 1
     for rec in records:
-        problems.extend(_check_sample(root, rec, patch, decode))
+        problems.extend(_check_sample(root, rec, patch, decode, frames))
     report.samples = len(records)
     if report.samples != pairs:
         problems.append(f"{report.samples} samples in {META_NAME}, expected {pairs}")

@@ -66,6 +66,8 @@ class PairDataset(Dataset):
         config = read_config(self.root)
         if split is not None and config.get("split") != split:
             raise D2TurbError(f"{self.root}: dataset split is {config.get('split')!r}, not {split!r}")
+        if int(config.get("frames", 1)) > 1:
+            raise D2TurbError(f"{self.root}: holds sequences (make-dataset --frames); use d2turb.data.SequenceDataset")
         self.records = sorted(read_meta(self.root), key=lambda r: r["index"])
         self.patch = int(config["patch"])
         if crop is not None and not 1 <= crop <= self.patch:

@@ -75,6 +75,8 @@ class DatasetConfig:
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
     geometry: str = "fixed"  # a d2turb.sim.geometry.GEOMETRIES name; one geometry per chunk of `batch` samples
     png_level: int = DEFAULT_PNG_LEVEL  # zlib level of the PNG files (not part of the dataset's identity)
+    frames: int = 1  # > 1: sequence samples (d2turb.data.sequence)
+    sequence: dict = field(default_factory=dict)  # fps, wind, wind_dir, boil
 
 
 @dataclass
@@ -100,6 +102,10 @@ def validate(cfg: DatasetConfig) -> None:
         raise D2TurbError(f"--batch must be at least 1, got {cfg.batch}")
     if not 0 <= cfg.seed < 2**63:
         raise D2TurbError(f"--seed must be between 0 and 2**63 - 1, got {cfg.seed}")
+    if cfg.frames != 1 or cfg.sequence:
+        from d2turb.data.sequence import sequence_settings
+
+        cfg.sequence = sequence_settings(cfg.frames, cfg.sequence)
 
 
 def check_patch_fits(sources: list[Path], patch: int) -> None:
@@ -277,7 +283,9 @@ def merge_meta(root: Path) -> int:
 
 
 def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
+    sequence = {"frames": cfg.frames, "sequence": cfg.sequence} if cfg.frames > 1 else {}
     return {
+        **sequence,
         "version": FORMAT_VERSION,
         "pairs": cfg.pairs,
         "patch": cfg.patch,
@@ -309,7 +317,7 @@ def check_same_config(root: Path, record: dict) -> bool:
         old = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         old = None
-    keys = ["version", "pairs", "patch", "split", "bins", "seed", "batch", "depth", "params", "geometry", "sources"]
+    keys = "version pairs patch split bins seed batch depth params geometry sources frames sequence".split()
     diff = keys if not isinstance(old, dict) else [k for k in keys if old.get(k) != record.get(k)]
     if not diff:
         return False
@@ -491,11 +499,18 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             depth_t = None if depth[0] is None else torch.stack(depth).to(device)
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
             generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
-            res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
-            flow = backward_flow(res.flow).float()
-            if not torch.isfinite(flow).all() or not torch.isfinite(res.turb).all():
+            if cfg.frames > 1:  # sequences: frames stacked vertically, flow (B, N, 2, H, W)
+                from d2turb.data.sequence import simulate_sequence_chunk
+
+                turb, tilt, flow = simulate_sequence_chunk(
+                    sim, clean_t, depth_t, dr0, generator, cfg.frames, cfg.sequence
+                )
+            else:
+                res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
+                turb, tilt, flow = res.turb, res.tilt, backward_flow(res.flow).float()
+            if not torch.isfinite(flow).all() or not torch.isfinite(turb).all():
                 raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
-            turb, tilt, flow = res.turb.float().cpu(), res.tilt.float().cpu(), flow.cpu()
+            turb, tilt, flow = turb.float().cpu(), tilt.float().cpu(), flow.cpu()
             for b, (plan, meta) in enumerate(zip(plans, metas)):
                 if plan.id in done:
                     continue

@@ -11,6 +11,7 @@ from d2turb.sim.params import (
     fried_r0_spherical,
     sample_dr0,
 )
+from d2turb.sim.sequence import FrozenFlow
 from d2turb.sim.simulator import SimResult, Simulator, simulate
 
 __all__ = [
@@ -19,6 +20,7 @@ __all__ = [
     "TurbulenceParams",
     "Simulator",
     "SimResult",
+    "FrozenFlow",
     "simulate",
     "sample_dr0",
     "dr0_bin",

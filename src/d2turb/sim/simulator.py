@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,10 +82,10 @@ class Simulator:
         """[(s at each pixel separation r, weight)] over the layers of the geometry (order of tilt_layers)."""
         return [(alpha * r_px, wk) for alpha, wk in self.tilt_layers()]
 
-    def tilt_layers(self) -> list[tuple[float, float]]:
+    def tilt_layers(self, n_layers: int = 48) -> list[tuple[float, float]]:
         """[(s per pixel of separation, weight)] of the layers of the geometry."""
         p = self.params
-        t, w = path_nodes(p.tilt_geometry, p.layer_z_frac)
+        t, w = path_nodes(p.tilt_geometry, p.layer_z_frac, n_layers)
         return [(p.ifov_rad * p.path_length_m * tk / (p.aperture_m * (1 - tk)), wk) for tk, wk in zip(t, w)]
 
     def tilt_sampler(self, height: int, width: int) -> VectorFieldSampler:
@@ -103,15 +104,20 @@ class Simulator:
             self._samplers[key] = ScalarFieldSampler(gh, gw, [corr_for(n) for n in self.high_orders], spacing)
         return self._samplers[key]
 
-    def tilt_fields(self, batch: int, height: int, width: int, dr0: torch.Tensor, generator=None) -> torch.Tensor:
-        """a2, a3 fields (B, 2, H, W) in rad at λ_ref."""
-        unit = self.tilt_sampler(height, width).sample(batch, generator, self.device)
+    def tilt_fields(
+        self, batch: int, height: int, width: int, dr0: torch.Tensor, generator=None, unit=None
+    ) -> torch.Tensor:
+        """a2, a3 fields (B, 2, H, W) in rad at λ_ref (from ``unit`` fields when given, else fresh ones)."""
+        if unit is None:
+            unit = self.tilt_sampler(height, width).sample(batch, generator, self.device)
         return unit * (self.tilt_std * dr0.to(unit).pow(5 / 6))[:, None, None, None]
 
-    def high_fields(self, tilt_at_nodes: torch.Tensor, dr0: torch.Tensor, spacing, generator=None) -> torch.Tensor:
+    def high_fields(
+        self, tilt_at_nodes: torch.Tensor, dr0: torch.Tensor, spacing, generator=None, unit=None
+    ) -> torch.Tensor:
         """a4..aJ (B, J-3, gh, gw) given a2, a3 at the nodes (B, 2, gh, gw); Noll's joint covariance."""
         b, _, gh, gw = tilt_at_nodes.shape
-        u = self.high_sampler(gh, gw, spacing).sample(b, generator, self.device)
+        u = self.high_sampler(gh, gw, spacing).sample(b, generator, self.device) if unit is None else unit
         scale = dr0.to(u).pow(5 / 6)[:, None, None, None]
         bt = torch.einsum("hk,bkyx->bhyx", self.high_from_tilt.to(u), tilt_at_nodes)
         return bt + scale * torch.einsum("hk,bkyx->bhyx", self.high_chol.to(u), u)
@@ -133,8 +139,15 @@ class Simulator:
         return v.clone()
 
     def __call__(
-        self, image: torch.Tensor, depth: torch.Tensor | None = None, dr0=None, generator: torch.Generator | None = None
+        self,
+        image: torch.Tensor,
+        depth: torch.Tensor | None = None,
+        dr0=None,
+        generator: torch.Generator | None = None,
+        fields=None,
     ) -> SimResult:
+        """One realisation; ``fields`` (a :class:`~d2turb.sim.sequence.FrozenFlow`) supplies the unit random
+        fields of the current frame of a sequence instead of fresh independent ones."""
         if isinstance(image, torch.Tensor) and image.ndim == 3:
             image = image[None]
         if not isinstance(image, torch.Tensor) or image.ndim != 4 or not image.is_floating_point():
@@ -158,7 +171,8 @@ class Simulator:
         if modulation is None:
             modulation = torch.ones(b, 1, h, w, device=self.device, dtype=image.dtype)
 
-        a_tilt = self.tilt_fields(b, h, w, dr0, generator)  # (B, 2, H, W)
+        unit = None if fields is None else fields.tilt(b, h, w)
+        a_tilt = self.tilt_fields(b, h, w, dr0, generator, unit)  # (B, 2, H, W)
         flow0 = a_tilt * self.px_per_a2  # Δ0 in pixels, x then y
 
         # exact PSFs on a coarse grid of nodes spanning the image corners
@@ -167,7 +181,8 @@ class Simulator:
         xs = torch.linspace(0, w - 1, gw, device=self.device).round().long()
         tilt_nodes = a_tilt[:, :, ys][:, :, :, xs]
         spacing = ((h - 1) / (gh - 1), (w - 1) / (gw - 1))
-        a_high = self.high_fields(tilt_nodes, dr0, spacing, generator)  # (B, J-3, gh, gw)
+        unit = None if fields is None else fields.high(gh, gw, spacing)
+        a_high = self.high_fields(tilt_nodes, dr0, spacing, generator, unit)  # (B, J-3, gh, gw)
         coeffs = a_high.permute(0, 2, 3, 1).reshape(b * gh * gw, -1)
         # window half-width (2.5·D/r0 + 3)·λ/D: ≥ 97 % of the energy of tilt-removed PSFs at D/r0 ≥ 1
         lam_px = max(p.wavelengths) / (p.aperture_m * p.ifov_rad)
@@ -200,6 +215,36 @@ class Simulator:
             dr0=dr0.float().to(self.device),
             blur=blurred,
         )
+
+    def sequence(
+        self,
+        image,
+        frames: int | None = None,
+        fps: float = 30.0,
+        wind=1.0,
+        wind_dir: float = 0.0,
+        boil: float = 0.0,
+        depth=None,
+        dr0=None,
+        generator: torch.Generator | None = None,
+    ) -> Iterator[SimResult]:
+        """Physically correlated frames: frozen-flow layers moved by the wind (``d2turb.sim.sequence``).
+
+        Args:
+            image: (B, C, H, W) or (C, H, W) still scene, or an iterable of such frames (a moving input).
+            frames: number of frames (default: as many as the iterable gives).
+            fps: frames per second. wind: m/s, one value, several (from the aperture to the object,
+                interpolated) or a function of z/L. wind_dir: drift direction in degrees (0 = +x, 90 = +y).
+            boil: fraction of each layer's variance refreshed per frame (0 = pure frozen flow, 1 = independent).
+            depth: as for a single frame: a tensor for all frames, an iterable (one per frame), or a
+                function of the (C, H, W) frame returning its depth.
+            dr0, generator: as for a single frame; D/r0 is constant along the sequence.
+        Returns:
+            an iterator of :class:`SimResult`, one per frame, computed on demand (constant memory).
+        """
+        from d2turb.sim.sequence import simulate_sequence
+
+        return simulate_sequence(self, image, frames, fps, wind, wind_dir, boil, depth, dr0, generator)
 
     def _check_depth(self, depth, b, h, w):
         if depth is None:

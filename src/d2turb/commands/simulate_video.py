@@ -1,0 +1,202 @@
+"""`d2turb simulate-video`: physically correlated turbulent frames (frozen-flow layers, wind, boiling)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from d2turb.commands.simulate import add_physics_args
+from d2turb.errors import D2TurbError
+
+VIDEO_HINT = "install the video extra for an mp4: pip install 'd2turb[video]'"
+
+
+def register(sub):
+    p = sub.add_parser(
+        "simulate-video",
+        help="simulate a turbulent clip: frozen-flow layers moved by the wind",
+        description="Writes DIR/turb/NNNNNN.png per frame, meta.json, turb.mp4 (with the video extra), "
+        "and with --save-tilt / --save-flow tilt/NNNNNN.png / flow/NNNNNN.npy. INPUT is a still image "
+        "(the scene stays, the air moves) or a video file / folder of frames (used frame by frame).",
+    )
+    p.add_argument("input", metavar="INPUT", help="image file, video file, or folder of frames")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--frames", type=int, default=None, metavar="N", help="frames (default: 64, or all input frames)")
+    p.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
+    p.add_argument(
+        "--wind",
+        type=float,
+        nargs="+",
+        default=[1.0],
+        metavar="V",
+        help="transverse wind in m/s (default 1); several values: speeds from the aperture to the object, "
+        "interpolated along the path",
+    )
+    p.add_argument(
+        "--wind-dir", type=float, default=0.0, metavar="DEG", help="drift direction in the image (0 = +x, 90 = +y)"
+    )
+    p.add_argument(
+        "--boil", type=float, default=0.0, metavar="X", help="fraction of each layer's variance refreshed per frame"
+    )
+    strength = p.add_mutually_exclusive_group()
+    strength.add_argument("--dr0", type=float, default=None, metavar="X", help="turbulence strength D/r0 (default 3)")
+    strength.add_argument("--cn2", type=float, default=None, metavar="CN2", help="Cn² (m^-2/3), constant on the path")
+    p.add_argument("--depth", default="none", metavar="SPEC", help="none | prior | FILE | anything:PATH (default none)")
+    p.add_argument("--depth-is-disparity", "--disparity", dest="disparity", action="store_true")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--save-tilt", action="store_true", help="also write tilt-only frames tilt/NNNNNN.png")
+    p.add_argument(
+        "--save-flow", action="store_true", help="also write flow/NNNNNN.npy: float32 (2,H,W) forward displacement px"
+    )
+    p.add_argument("--no-mp4", action="store_true", help="do not write turb.mp4")
+    add_physics_args(p)
+    p.set_defaults(func=run)
+
+
+def _input_frames(path: Path, frames: int | None):
+    """(iterator of (3,H,W) frames or a still tensor, number of frames or None, kind)."""
+    from d2turb.commands.restore import VIDEO_SUFFIXES, _iter_video
+    from d2turb.io import list_images, read_image
+
+    if path.is_dir():
+        files = list_images(path)
+        if not files:
+            raise D2TurbError(f"{path}: no images in the folder")
+        files = files[:frames] if frames else files
+        return (read_image(f) for f in files), len(files), "frames"
+    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
+        return (frame for _, frame in _iter_video(path)), frames, "video"
+    return read_image(path), frames or 64, "image"
+
+
+class _Mp4:
+    """Streams frames into an mp4 (H.264, yuv420p: odd sizes are padded by one edge row/column)."""
+
+    def __init__(self, path: Path, fps: float):
+        import imageio.v3 as iio
+
+        self.file = iio.imopen(path, "w", plugin="pyav")
+        self.file.init_video_stream("libx264", fps=fps)
+
+    def write(self, frame):
+        import numpy as np
+
+        h, w = frame.shape[:2]
+        self.file.write_frame(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+
+    def close(self):
+        self.file.close()
+
+
+def run(args):
+    import contextlib
+
+    import numpy as np
+    import torch
+    from tqdm import tqdm
+
+    from d2turb.commands.simulate import make_params
+    from d2turb.depth import depth_for_image
+    from d2turb.io import atomic_path, to_uint8, write_image, write_json, write_npy
+    from d2turb.sim import Simulator, dr0_bin
+    from d2turb.sim.sequence import check_sequence_args, wind_speeds
+    from d2turb.sim.tilt import path_nodes
+
+    src = Path(args.input)
+    if not src.exists():
+        raise D2TurbError(f"{src}: no such file or directory")
+    check_sequence_args(args.frames, args.fps, args.wind_dir, args.boil)
+    wind = args.wind[0] if len(args.wind) == 1 else list(args.wind)
+    params = make_params(args, args.dr0)
+    t, _ = path_nodes(params.tilt_geometry, params.layer_z_frac, 12)
+    speeds = wind_speeds(wind, t)
+    source, n_frames, kind = _input_frames(src, args.frames)
+    sim = Simulator(params, device=args.device)
+    gen = torch.Generator().manual_seed(args.seed)
+    out = Path(args.out)
+    mp4 = None
+    if not args.no_mp4:
+        try:
+            import av  # noqa: F401
+            import imageio.v3  # noqa: F401
+
+            mp4 = out / "turb.mp4"
+        except ImportError:
+            print(f"note: no mp4 written; {VIDEO_HINT}")
+
+    def depth_of(frame):
+        d = depth_for_image(args.depth, src if kind == "image" else None, frame, args.disparity, args.device)
+        return None if d is None else d[None]
+
+    if kind == "image":
+        image, depth = source[None], depth_of(source)
+    else:  # a moving input: depth (if any) per frame
+        image, depth = (f[None] for f in source), (None if args.depth == "none" else depth_of)
+    seq = sim.sequence(
+        image,
+        frames=n_frames,
+        fps=args.fps,
+        wind=wind,
+        wind_dir=args.wind_dir,
+        boil=args.boil,
+        depth=depth,
+        generator=gen,
+    )
+    written, size, mean_mod = 0, None, []
+    with contextlib.ExitStack() as stack:
+        writer = None
+        if mp4 is not None:
+            tmp = stack.enter_context(atomic_path(mp4))
+            writer = _Mp4(tmp, args.fps)
+        try:
+            for i, res in enumerate(tqdm(seq, total=n_frames, unit="frame", desc=src.name)):
+                write_image(out / "turb" / f"{i:06d}.png", res.turb[0])
+                if args.save_tilt:
+                    write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
+                if args.save_flow:
+                    write_npy(out / "flow" / f"{i:06d}.npy", res.flow[0].detach().cpu().numpy().astype(np.float32))
+                if writer is not None:
+                    writer.write(to_uint8(res.turb[0]))
+                size = tuple(res.turb.shape[-2:])
+                mean_mod.append(float(res.modulation.mean()))
+                written += 1
+        finally:
+            if writer is not None:
+                writer.close()
+        if written == 0:
+            raise D2TurbError(f"{src}: no frames to simulate")
+    p = sim.params
+    meta = p.to_dict()
+    ifov_l = p.ifov_rad * p.path_length_m  # m per px at the object
+    meta.update(
+        input=str(src),
+        input_kind=kind,
+        frames=written,
+        fps=args.fps,
+        wind_m_s=wind,
+        wind_dir_deg=args.wind_dir,
+        boil=args.boil,
+        layers=[
+            {
+                "z_frac": float(z),
+                "wind_m_s": float(v),
+                "s_per_frame": float(v / args.fps / (p.aperture_m * (1 - z))),
+                "px_per_frame": float(v / args.fps / (ifov_l * z)),
+            }
+            for z, v in zip(t, speeds)
+        ],
+        dr0=float(p.dr0),
+        bin=dr0_bin(p.dr0),
+        seed=args.seed,
+        depth=args.depth,
+        height=size[0],
+        width=size[1],
+        mean_modulation=float(np.mean(mean_mod)),
+        mp4=mp4.name if mp4 is not None else None,
+    )
+    write_json(out / "meta.json", meta)
+    speed = max(m["px_per_frame"] for m in meta["layers"])
+    print(
+        f"{src.name}: {written} frames of {size[1]}x{size[0]}, D/r0 = {p.dr0:.3g}, fastest layer "
+        f"{speed:.3g} px/frame -> {out}" + (f" ({mp4.name})" if mp4 else "")
+    )
+    return 0

@@ -1,0 +1,106 @@
+"""Sequence datasets: ``make-dataset --frames N`` writes turbulent clips of a still crop (frozen-flow
+turbulence, d2turb.sim.sequence), with the same restartable, sharded machinery as pairs.
+
+A sequence sample keeps the five files of a pair, so every resume / merge / check rule of the pair
+layout applies unchanged; the frames are stacked vertically ("filmstrip"):
+
+    turb/<id>.png    8-bit RGB, (N·H) × W: frame f is rows f·H … (f+1)·H − 1
+    tilt/<id>.png    same, tilt only
+    gt/<id>.png      the clean crop (H × W), the same scene for every frame
+    flow/<id>.npy    float16 (N, 2, H, W) backward flow per frame: warp(tilt_f, flow_f) ≈ gt
+    depth/<id>.png   16-bit depth of the crop (H × W)
+
+``dataset.json`` records ``frames`` and ``sequence`` (fps, wind, wind_dir, boil).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from d2turb.data.layout import file_path, read_config, read_depth_png, read_meta
+from d2turb.errors import D2TurbError
+from d2turb.io import read_image
+
+SEQUENCE_DEFAULTS = {"fps": 30.0, "wind": 1.0, "wind_dir": 0.0, "boil": 0.0}
+
+
+def sequence_settings(frames: int, sequence: dict) -> dict:
+    """Checked sequence settings (fps, wind m/s or list from aperture to object, wind_dir deg, boil)."""
+    from d2turb.sim.sequence import check_sequence_args, wind_speeds
+
+    if not isinstance(frames, int) or frames < 1:
+        raise D2TurbError(f"--frames must be a positive integer, got {frames!r}")
+    unknown = sorted(set(sequence) - set(SEQUENCE_DEFAULTS))
+    if unknown:
+        raise D2TurbError(f"unknown sequence setting {unknown[0]!r}; choose from {', '.join(SEQUENCE_DEFAULTS)}")
+    out = {**SEQUENCE_DEFAULTS, **sequence}
+    check_sequence_args(frames, out["fps"], out["wind_dir"], out["boil"])
+    wind = out["wind"]
+    wind = [float(v) for v in wind] if isinstance(wind, (list, tuple)) else float(wind)
+    wind_speeds(wind, np.linspace(0, 1, 3))
+    return {"fps": float(out["fps"]), "wind": wind, "wind_dir": float(out["wind_dir"]), "boil": float(out["boil"])}
+
+
+def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, settings: dict):
+    """One chunk of sequence samples: (turb (B,3,N·H,W), tilt (B,3,N·H,W), flow (B,N,2,H,W)) on the CPU.
+    ``flow`` is the backward flow of each frame, as for pairs."""
+    from d2turb.ops.splat import backward_flow
+
+    turb, tilt, flow = [], [], []
+    for res in sim.sequence(clean, frames=frames, depth=depth, dr0=dr0, generator=generator, **settings):
+        turb.append(res.turb.float().cpu())
+        tilt.append(res.tilt.float().cpu())
+        flow.append(backward_flow(res.flow).float().cpu())
+    return torch.cat(turb, -2), torch.cat(tilt, -2), torch.stack(flow, 1)
+
+
+class SequenceDataset(Dataset):
+    """Sequences written by ``d2turb make-dataset --frames N`` in ``root`` (or ``root/<split>``).
+
+    Item: dict(turb, tilt (N,3,H,W) float32 in [0,1]; gt (3,H,W); flow (N,2,H,W) float32 px backward flow
+    per frame; depth (1,H,W); dr0 float32 scalar; bin int64 scalar; id str). ``frames`` = a random window
+    of that many consecutive frames (default: all).
+    """
+
+    def __init__(self, root: str | Path, split: str | None = None, frames: int | None = None):
+        from d2turb.data.datasets import bin_index
+
+        self.root = Path(root)
+        if split is not None and (self.root / split / "dataset.json").is_file():
+            self.root = self.root / split
+        config = read_config(self.root)
+        if split is not None and config.get("split") != split:
+            raise D2TurbError(f"{self.root}: dataset split is {config.get('split')!r}, not {split!r}")
+        self.frames = int(config.get("frames", 1))
+        if self.frames < 2:
+            raise D2TurbError(f"{self.root}: not a sequence dataset (made without --frames); use PairDataset")
+        if frames is not None and not 1 <= frames <= self.frames:
+            raise D2TurbError(f"frames {frames} must be between 1 and the dataset's {self.frames}")
+        self.window = frames or self.frames
+        self.patch = int(config["patch"])
+        self.records = sorted(read_meta(self.root), key=lambda r: r["index"])
+        self._bin_index = bin_index
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, index: int) -> dict:
+        rec = self.records[index]
+        sid, n, p = rec["id"], self.frames, self.patch
+        f0 = int(torch.randint(0, n - self.window + 1, ())) if self.window < n else 0
+        sl = slice(f0, f0 + self.window)
+        flow = np.load(file_path(self.root, "flow", sid), allow_pickle=False)[sl]
+        return {
+            "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
+            "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
+            "gt": read_image(file_path(self.root, "gt", sid)),
+            "flow": torch.from_numpy(flow.astype(np.float32)),
+            "depth": read_depth_png(file_path(self.root, "depth", sid)),
+            "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
+            "bin": torch.tensor(self._bin_index(rec["bin"]), dtype=torch.int64),
+            "id": sid,
+        }
