@@ -326,7 +326,7 @@ def test_simulate_video_cli(still, tmp_path, capsys):
     assert not (tmp_path / "bad").exists()
 
 
-def _make_args(clean, out, frames=4, pairs=8):
+def _make_args(clean, out, frames=8, pairs=8):
     return [
         *("make-dataset", "--clean", str(clean), "--out", str(out), "--pairs", str(pairs), "--patch", "32"),
         *("--batch", "2", "--seed", "5", "--depth", "prior", "--device", "cpu", "--no-progress"),
@@ -335,7 +335,7 @@ def _make_args(clean, out, frames=4, pairs=8):
 
 
 def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
-    """make-dataset --frames 4: filmstrip samples pass check-dataset and load as sequences; killed with
+    """make-dataset --frames 8: filmstrip samples pass check-dataset and load as sequences; killed with
     SIGKILL part-way and rerun, the dataset is byte-identical to an uninterrupted run."""
     import signal
     import subprocess
@@ -352,11 +352,17 @@ def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     ds = SequenceDataset(ref)
     item = ds[0]
     assert (
-        item["turb"].shape == (4, 3, 32, 32)
-        and item["flow"].shape == (4, 2, 32, 32)
+        item["turb"].shape == (8, 3, 32, 32)
+        and item["flow"].shape == (8, 2, 32, 32)
         and item["gt"].shape == (3, 32, 32)
     )
     assert not torch.equal(item["turb"][0], item["turb"][1])
+    from d2turb.ops import warp
+
+    inner = (slice(None), slice(None), slice(4, -4), slice(4, -4))
+    gt = item["gt"].expand_as(item["tilt"])
+    undone = (warp(item["tilt"], item["flow"]) - gt)[inner].abs().mean()
+    assert undone < 0.8 * (item["tilt"] - gt)[inner].abs().mean()  # the flow of every frame undoes its tilt
     assert SequenceDataset(ref, frames=2)[1]["tilt"].shape == (2, 3, 32, 32)
     with pytest.raises(D2TurbError, match="SequenceDataset"):
         PairDataset(ref)
