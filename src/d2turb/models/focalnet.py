@@ -6,7 +6,7 @@ attention modules (FAM) merge them, residual blocks at every scale; at full reso
 channel split whose second half is at half resolution (multi-scale receptive fields); the focal module (dual-domain
 selection: a spatial gate from channel max/mean pooling and dilated depthwise convolutions, then a frequency
 selection that rescales the high-frequency part x − mean(x)) sits at the bottleneck; coarse heads predict the ¼ and ½
-images for the multi-scale training loss. Default = the 8-residual-block configuration: 6.80 M parameters (paper
+images for the multi-scale training loss. Default = the 8-residual-block configuration: 6.77 M parameters (paper
 6.77 M). Training objective (FocalNet): multi-scale L1 + 0.1 · multi-scale L1 of the 2-D FFT (:meth:`extra_loss`).
 """
 
@@ -117,7 +117,7 @@ def multiscale_fft_loss(outputs: list[torch.Tensor], target: torch.Tensor, fft_w
 @register_backbone("focalnet")
 class FocalNet(nn.Module):
     """Three scales with ``base_channels`` · (1, 2, 4) channels and ``num_res`` residual blocks per stage
-    (``num_res=4``: the 3.8 M dehazing/desnowing release; 8: the 6.8 M configuration of the D²Turb comparison)."""
+    (``num_res=4``: the 3.74 M dehazing/desnowing release; 8: the 6.77 M configuration of the D²Turb comparison)."""
 
     multiple = 4  # two 2× downsamples
     fft_weight = 0.1  # λ of FocalNet's frequency loss
