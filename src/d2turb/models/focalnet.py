@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from d2turb.models.common import pad_to_multiple
+from d2turb.models.common import pad_to_multiple, pad_to_size
 from d2turb.models.registry import register_backbone, register_model
 
 
@@ -168,12 +168,14 @@ class FocalNet(nn.Module):
 
     def extra_loss(self, out: dict, batch: dict) -> dict[str, torch.Tensor]:
         """FocalNet's terms beyond the full-scale L1: coarse-scale L1 and 0.1 · FFT-L1 at all scales, against the
-        clean image for a standalone restorer and against the tilt-only image inside D²Turb (Eq. 11)."""
+        clean image for a standalone restorer and against the tilt-only image inside D²Turb (Eq. 11). The predictions
+        cover the canvas the backbone saw (the input padded to a multiple of 4, or of 32 inside D²Turb); the target
+        is padded to that canvas by the same rule as the input."""
         side, self._side = self._side, None
         if side is None:
             return {}
         target = batch["gt"] if out.get("flow") is None else batch["tilt"]
-        target, _ = pad_to_multiple(target.float(), self.multiple)
+        target = pad_to_size(target.float(), side[-1].shape[-2:])
         return multiscale_fft_loss(side, target, self.fft_weight)
 
 
@@ -183,8 +185,10 @@ def d2turb_focalnet(
     backbone_cfg: dict | None = None,
     rectifier_cfg: dict | None = None,
     injection_cfg: dict | None = None,
+    rectifier: str = "authors",
 ):
-    """D²Turb with the FocalNet backbone (supplementary backbone study; paper 12.46 M = 6.77 + 5.69 M)."""
+    """``d2turb`` with ``backbone="focalnet"`` (supplementary backbone study): the authors' rectifier and ASPI on
+    FocalNet's 32-channel F_guide: 12,460,991 parameters = 6,767,964 + 5,693,027 (paper 12.46 M)."""
     from d2turb.models.d2turb import D2Turb
 
-    return D2Turb("focalnet", injection, backbone_cfg, rectifier_cfg, injection_cfg)
+    return D2Turb("focalnet", injection, backbone_cfg, rectifier_cfg, injection_cfg, rectifier)
