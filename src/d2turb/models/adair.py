@@ -160,8 +160,10 @@ def d2turb_adair(
     backbone_cfg: dict | None = None,
     rectifier_cfg: dict | None = None,
     injection_cfg: dict | None = None,
+    rectifier: str = "authors",
 ):
-    """D²Turb with the AdaIR backbone (supplementary backbone study; paper 34.43 M = 28.74 + 5.69 M)."""
+    """``d2turb`` with ``backbone="adair"`` (supplementary backbone study): the authors' rectifier and ASPI on
+    AdaIR's 96-channel F_guide: 34,463,209 parameters = 28,766,086 + 5,697,123 (paper 34.43 M)."""
     from d2turb.models.d2turb import D2Turb
 
-    return D2Turb("adair", injection, backbone_cfg, rectifier_cfg, injection_cfg)
+    return D2Turb("adair", injection, backbone_cfg, rectifier_cfg, injection_cfg, rectifier)
