@@ -14,6 +14,8 @@ from d2turb.models import create_model, list_models, parameter_count
 from d2turb.models.adair import _box
 from d2turb.models.complexity import PAPER_EFFICIENCY
 from d2turb.models.focalnet import fft_l1
+from d2turb.models.injection import ASPI
+from d2turb.models.rectifier import TiltRectifier
 from d2turb.models.restormer import Restormer
 from d2turb.models.tmt import ShuffleAttention, published_parameter_count
 from d2turb.train import build_loss, load_config
@@ -22,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 TINY_RESTORMER = {"dim": 8, "num_blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "num_refinement_blocks": 1}
 TINY_FOCALNET = {"base_channels": 8, "num_res": 1}
 TINY_ADAIR = {**TINY_RESTORMER, "freq_div": 4}  # freq_div 4: non-empty low-frequency masks at these tiny sizes
-TINY_RECT = {"width": 8, "mults": [1, 1, 2, 2], "depth": 3}
+TINY_RECT = {"widths": [8, 8, 16, 16]}  # the authors' rectifier, 3 levels (its ASPI has no options)
 CASES = {
     "atnet": ("atnet", {"width": 8, "cardinality": 4, "scale": 3, "mc_samples": 2}),
     "turbnet": ("turbnet", TINY_RESTORMER),
@@ -31,11 +33,11 @@ CASES = {
     "adair": ("adair", TINY_ADAIR),
     "d2turb_focalnet": (
         "d2turb_focalnet",
-        {"backbone_cfg": TINY_FOCALNET, "rectifier_cfg": TINY_RECT, "injection_cfg": {"heads": 2}},
+        {"backbone_cfg": TINY_FOCALNET, "rectifier_cfg": TINY_RECT},
     ),
     "d2turb_adair": (
         "d2turb_adair",
-        {"backbone_cfg": TINY_ADAIR, "rectifier_cfg": TINY_RECT, "injection_cfg": {"heads": 2}},
+        {"backbone_cfg": TINY_ADAIR, "rectifier_cfg": TINY_RECT},
     ),
 }
 KEYS = {"deblurred", "restored", "flow", "guide"}
@@ -70,14 +72,15 @@ def test_paper_rows_are_registered():
 
 @pytest.mark.parametrize("case_id", CASES)
 def test_forward_backward_every_parameter_gets_a_gradient(case_id):
-    """Two SGD steps at 67×93 on the project's objective plus the method's own terms (build_loss with the model's
-    extra_loss). Zero-initialised gains block what lies behind them on the first step only; on the second every
-    parameter must receive a finite, nonzero gradient."""
+    """SGD steps at 67×93 on the project's objective plus the method's own terms (build_loss with the model's
+    extra_loss). Zero-initialised parameters block what lies behind them until they have moved: AdaIR's gains and
+    D²Turb's flow head on step 1, the authors' ASPI γ on step 2; so on the last of two steps (three with the authors'
+    ASPI) every parameter must receive a finite, nonzero gradient."""
     model = build(case_id)
     loss_fn = build_loss({"vgg": 0}, model, warn=False)
     batch = fake_batch()
     opt = torch.optim.SGD(model.parameters(), lr=0.05)
-    for _ in range(2):
+    for _ in range(3 if any(isinstance(m, ASPI) for m in model.modules()) else 2):
         opt.zero_grad()
         out = model(batch["turb"])
         loss, terms = loss_fn(out, batch)
@@ -138,13 +141,28 @@ def test_atnet_count_relates_to_the_paper_as_documented():
     assert parameter_count("atnet") == pytest.approx(2 * 3.49e6, rel=0.01)
 
 
-def test_d2turb_presets_are_backbone_plus_rectifier():
-    for preset, backbone in (("d2turb_focalnet", "focalnet"), ("d2turb_adair", "adair")):
+@pytest.mark.parametrize("preset, backbone", [("d2turb_focalnet", "focalnet"), ("d2turb_adair", "adair")])
+def test_d2turb_presets_are_d2turb_on_that_backbone(preset, backbone):
+    """The presets are ``d2turb`` with another backbone: the authors' rectifier and ASPI by default, fed the
+    backbone's own F_guide; every other keyword of ``d2turb`` (here the ``unet`` rectifier) passes through."""
+    for cfg in ({}, {"rectifier": "unet", "injection": "aspi_cosine", "injection_cfg": {"heads": 2}}):
         with torch.device("meta"):
-            model = create_model(preset)
-        assert model.backbone.config["name"] == backbone
-        rect = sum(p.numel() for p in model.rectifier.parameters())
-        assert parameter_count(preset) == parameter_count(backbone) + rect
+            model = create_model(preset, **cfg)
+            ref = create_model("d2turb", backbone=backbone, **cfg)
+        assert {k: v.shape for k, v in model.state_dict().items()} == {k: v.shape for k, v in ref.state_dict().items()}
+    with torch.device("meta"):
+        model = create_model(preset)
+    assert model.backbone.config["name"] == backbone and isinstance(model.rectifier, TiltRectifier)
+    assert isinstance(model.rectifier.inject, ASPI)
+    assert (
+        model.rectifier.inject.key.in_channels
+        == model.backbone.guide_channels
+        == {"focalnet": 32, "adair": 96}[backbone]
+    )
+    rect = sum(p.numel() for p in model.rectifier.parameters())
+    assert parameter_count(preset) == parameter_count(backbone) + rect
+    # the same rectifier as the paper model's (31,823,767 − 26,126,644), less the K/V rows of a narrower F_guide
+    assert rect == 31_823_767 - 26_126_644 - 2 * 32 * (96 - model.backbone.guide_channels)
 
 
 # ------------------------------------------------------------------ building blocks vs independent oracles
@@ -185,6 +203,27 @@ def test_adair_at_init_is_restormer_and_turbnet_j_is_restormer():
     with torch.no_grad():
         torch.testing.assert_close(adair(x)["restored"], _copy_restormer(adair.backbone)(x)[0])
         torch.testing.assert_close(turbnet(x)["restored"], _copy_restormer(turbnet)(x)[0])
+
+
+@pytest.mark.parametrize("case_id", ["focalnet", "d2turb_focalnet"])
+def test_focalnet_terms_vanish_for_a_perfect_prediction_at_every_scale(case_id):
+    """With its output heads zeroed, FocalNet predicts its (padded) input at full, ½ and ¼ scale (nearest
+    downsampling). For an image constant on 4×4 blocks, padded by replication (sides 12×20 < the pad to 32 inside
+    D²Turb) and given as its own target, those are exactly the bilinearly downscaled target: every term must be 0,
+    which holds only if the target is padded to the canvas the backbone saw."""
+    model = build(case_id).train()
+    backbone = getattr(model, "backbone", model)
+    with torch.no_grad():
+        for head in (backbone.output, backbone.out2[0], backbone.out4[0]):
+            head.weight.zero_()
+            head.bias.zero_()
+    image = torch.rand(1, 3, 3, 5, generator=torch.Generator().manual_seed(0)).repeat_interleave(4, -2)
+    image = image.repeat_interleave(4, -1)  # (1, 3, 12, 20)
+    batch = {"turb": image, "gt": image, "tilt": image}
+    out = model(image)
+    terms = backbone.extra_loss(out, batch)
+    assert backbone.multiple == 4 and set(terms) == {"multiscale", "fft"}
+    assert terms["multiscale"].item() < 1e-6 and terms["fft"].item() < 1e-4
 
 
 def test_turbnet_redegradation_term():
@@ -234,9 +273,13 @@ def test_method_configs_follow_the_d2turb_recipe(stem):
     ref = load_config(REPO / "configs" / "d2turb_restormer_aspi.yaml")
     same = (("train", ("epochs", "batch", "lr", "lr_min", "betas", "seed")), ("data", ("patch", "pairs")))
     for section, keys in same:
-        assert {k: cfg[section][k] for k in keys} == {k: ref[section][k] for k in keys}, section
-    assert (cfg["loss"]["photo"], cfg["loss"]["vgg"]) == (1.0, 0.02)
-    assert cfg["model"]["name"] in {name for _, name, _, _, _ in PAPER_EFFICIENCY}
+        ours, paper = getattr(cfg, section), getattr(ref, section)
+        assert {k: getattr(ours, k) for k in keys} == {k: getattr(paper, k) for k in keys}, section
+    assert (cfg.loss.photo, cfg.loss.vgg) == (1.0, 0.02)
+    assert cfg.model["name"] in {name for _, name, _, _, _ in PAPER_EFFICIENCY}
+    if stem.startswith("d2turb_"):  # the D²Turb recipe in full, on the paper model's rectifier and injection
+        assert vars(cfg.loss) == vars(ref.loss)
+        assert {k: v for k, v in cfg.model.items() if k != "name"} == {"rectifier": "authors", "injection": "aspi"}
 
 
 @pytest.mark.parametrize("case_id", CASES)
