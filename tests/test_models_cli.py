@@ -92,9 +92,11 @@ def test_bench_all_writes_markdown_table(tmp_path):
     for method, _, _, paper, _ in PAPER_EFFICIENCY:
         assert f"| {method}" in text and f"| {paper:.2f} |" in text, method
     # conv GMACs = Restormer's published 140.99
-    assert "| Restormer | restormer | 26.11 | 26.13 | -0.1% | 154.88 | 140.99 | – |" in text
+    assert "| Restormer | restormer | 26.13 | 26.13 | -0.0% | 154.88 | 140.99 | – |" in text
     assert "| FocalNet | focalnet | 6.77 | 6.77 |" in text
-    assert "| D²Turb+Restormer | d2turb (backbone=restormer, injection=aspi) | 31.82 |" in text and "| 150.51 |" in text
+    d2turb_row = "| D²Turb+Restormer | d2turb (backbone=restormer, injection=aspi) | 31.82 | 31.82 | +0.0% |"
+    assert d2turb_row in text and "| 150.51 |" in text
+    assert "| D²Turb+FocalNet | d2turb_focalnet | 12.46 | 12.46 |" in text
     assert "[1] AT-Net:" in text and "[2] TMT:" in text  # differences over 2 % come with their explanation
     assert text.count("\n| ") >= 14
 
