@@ -263,6 +263,31 @@ def test_atnet_uncertainty_comes_from_mc_dropout_in_eval():
     assert not torch.equal(outs[0]["uncertainty"], outs[2]["uncertainty"])
 
 
+@pytest.mark.parametrize("preset", ["d2turb_focalnet", "d2turb_adair"])
+def test_preset_files_written_before_format_2_load_with_their_old_defaults(tmp_path, preset):
+    """Weights saved before the authors' rectifier became the default (no ``d2turb_format`` key): the presets then
+    meant the U-Net rectifier and the cosine ASPI, and such a file must load as exactly that model."""
+    from safetensors.torch import save_file
+
+    from d2turb.models import load_pretrained
+    from d2turb.models.hub import tensors_sha256
+
+    backbone_cfg = TINY_FOCALNET if preset == "d2turb_focalnet" else TINY_ADAIR
+    rect = {"width": 8, "mults": [1, 1, 2, 2], "depth": 3}
+    old = {"backbone_cfg": backbone_cfg, "rectifier_cfg": rect, "injection_cfg": {"heads": 2}}
+    then = dict(old, rectifier="unet", injection="aspi_cosine")
+    torch.manual_seed(0)
+    model = create_model(preset, **then).eval()
+    tensors = {k: v.contiguous() for k, v in model.state_dict().items()}
+    meta = {"d2turb_config": json.dumps({"name": preset, **old}), "d2turb_sha256": tensors_sha256(tensors)}
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=meta)
+    loaded = load_pretrained(tmp_path / "old.safetensors")
+    assert loaded.config == json.loads(json.dumps({"name": preset, **then}))
+    x = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(loaded(x)["restored"], model(x)["restored"])
+
+
 # ------------------------------------------------------------------ configs, training and restoring via the CLI
 METHOD_CONFIGS = ["atnet", "turbnet", "tmt", "focalnet", "adair", "d2turb_focalnet_aspi", "d2turb_adair_aspi"]
 
