@@ -18,7 +18,8 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
     models = {m["name"]: m["params"] for m in listing["models"]}
     assert {"d2turb", "d2turb_lite", "restormer", "nafnet"} <= set(models)
     assert models["nafnet"] == count_parameters(create_model("nafnet"))
-    assert {b["name"]: b["guide_channels"] for b in listing["backbones"]} == {"restormer": 96, "nafnet": 16}
+    guides = {b["name"]: b["guide_channels"] for b in listing["backbones"]}
+    assert guides.items() >= {"restormer": 96, "nafnet": 16, "adair": 96, "focalnet": 32}.items()
     # the paper's 31.82 M / 26.13 M, exactly the authors' released model definition
     assert models["d2turb"] == 31_823_767 and models["restormer"] == 26_126_644
     assert {b["name"]: b["params"] for b in listing["backbones"]}["restormer"] == 26_126_644
@@ -72,7 +73,7 @@ def test_bench_model_d2turb_reports_the_paper_model(tmp_path, capsys):
     assert main(["bench", "model", "restormer", "--no-latency", "--out", str(out)]) == 0
     r = json.loads(out.read_text())
     assert r["params"] == 26_126_644 and r["conv_gmacs"] == pytest.approx(140.99, abs=0.005)
-    assert "| restormer | 26.13 | 154.88 | 140.99 |" in capsys.readouterr().out
+    assert "| restormer | 26.13 | 26.13 | -0.0% | 154.88 | 140.99 |" in capsys.readouterr().out
 
 
 def test_flops_of_a_single_conv_match_the_formula():
@@ -82,12 +83,22 @@ def test_flops_of_a_single_conv_match_the_formula():
 
 
 def test_bench_all_writes_markdown_table(tmp_path):
+    """The paper's efficiency table, its values beside ours, then the project's other models."""
+    from d2turb.models.complexity import PAPER_EFFICIENCY
+
     out = tmp_path / "table.md"
     assert main(["bench", "model", "--all", "--no-latency", "--out", str(out)]) == 0
     text = out.read_text()
-    assert "| restormer | 26.13 | 154.88 | 140.99 |" in text  # conv GMACs = Restormer's published 140.99
-    assert "| d2turb (backbone=restormer, injection=aspi) | 31.82 |" in text
-    assert text.count("\n| ") >= 7
+    for method, _, _, paper, _ in PAPER_EFFICIENCY:
+        assert f"| {method}" in text and f"| {paper:.2f} |" in text, method
+    # conv GMACs = Restormer's published 140.99
+    assert "| Restormer | restormer | 26.13 | 26.13 | -0.0% | 154.88 | 140.99 | – |" in text
+    assert "| FocalNet | focalnet | 6.77 | 6.77 |" in text
+    d2turb_row = "| D²Turb+Restormer | d2turb (backbone=restormer, injection=aspi) | 31.82 | 31.82 | +0.0% |"
+    assert d2turb_row in text and "| 150.51 |" in text
+    assert "| D²Turb+FocalNet | d2turb_focalnet | 12.46 | 12.46 |" in text
+    assert "[1] AT-Net:" in text and "[2] TMT:" in text  # differences over 2 % come with their explanation
+    assert text.count("\n| ") >= 14
 
 
 @pytest.mark.parametrize(

@@ -12,7 +12,8 @@ def register(sub):
         "model",
         help="params, FLOPs/MACs at --size and forward latency of a model",
         description="FLOPs are counted with torch FlopCounterMode (convolutions and matmuls, "
-        "MACs = FLOPs/2); 'conv GMACs' counts convolutions only, the papers' convention.",
+        "MACs = FLOPs/2); 'conv GMACs' counts convolutions only, the papers' convention. With --all: the paper's "
+        "efficiency table (its methods with its parameter counts beside ours), then the project's other models.",
     )
     m.add_argument("name", nargs="?", help="registered model (see `d2turb models`)")
     m.add_argument("--all", action="store_true", help="efficiency table of the whole registry")
@@ -20,7 +21,11 @@ def register(sub):
     m.add_argument("--injection", choices=["aspi", "concat", "none"], help="injection of a d2turb model")
     m.add_argument("--config", help="extra model config as JSON (string or path to a .json file)")
     m.add_argument("--size", type=int, default=256, help="square input size (default 256)")
-    m.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
+    m.add_argument(
+        "--device",
+        default="auto",
+        help="latency device: cpu, cuda, or auto (default: cpu, plus cuda when a GPU is present)",
+    )
     m.add_argument("--warmup", type=int, default=1, help="untimed forwards first (default 1)")
     m.add_argument("--repeats", type=int, default=3, help="timed forwards, the median is reported (default 3)")
     m.add_argument("--no-latency", action="store_true", help="only params and FLOPs (no forward pass is run)")
@@ -52,9 +57,11 @@ def _config(args) -> dict:
 
 
 def run(args):
+    import torch
+
     from d2turb.device import resolve_device
     from d2turb.io import write_json, write_text
-    from d2turb.models.complexity import benchmark, efficiency_entries, markdown_table
+    from d2turb.models.complexity import benchmark, efficiency_entries, latency_devices, markdown_table
 
     if args.bench_target != "model":
         raise D2TurbError("usage: d2turb bench model NAME [options] (or --all)")
@@ -64,11 +71,11 @@ def run(args):
         raise D2TurbError("bench model: need --size >= 8, --repeats >= 1, --warmup >= 0")
     if args.out and not args.out.endswith((".md", ".json")):
         raise D2TurbError(f"--out {args.out}: must end in .md or .json")
-    device = resolve_device(args.device)
+    devices = [str(resolve_device(d)) for d in latency_devices(args.device)]
     entries = efficiency_entries() if args.all else [(args.name, _config(args))]
     results = []
     for name, cfg in entries:
-        results.append(benchmark(name, cfg, args.size, device, args.warmup, args.repeats, latency=not args.no_latency))
+        results.append(benchmark(name, cfg, args.size, devices, args.warmup, args.repeats, latency=not args.no_latency))
     table = markdown_table(results)
     print(table, end="")
     if args.out:
@@ -77,7 +84,10 @@ def run(args):
         else:
             write_text(
                 args.out,
-                f"FLOPs: torch FlopCounterMode at {args.size}², MACs = FLOPs/2; conv GMACs = "
-                f"convolutions only; latency = median of {args.repeats} forwards (batch 1, fp32).\n\n{table}",
+                f"Parameters and FLOPs of one inference forward at {args.size}² (torch FlopCounterMode on the meta "
+                f"device: convolutions and matmuls, MACs = FLOPs/2; conv GMACs = convolutions only, the papers' "
+                f'"GFLOPs"); latency = median of {args.repeats} forwards after {args.warmup} warm-up (batch 1, '
+                f"fp32, {torch.get_num_threads()} CPU threads); paper = the D²Turb paper's efficiency table."
+                f"\n\n{table}",
             )
     return 0

@@ -3,7 +3,8 @@
 To add a backbone, create ``d2turb/models/<name>.py`` with a class decorated by ``@register_backbone("<name>")`` and
 add it to the imports below (see docs/models.md)."""
 
-from d2turb.models import nafnet, restormer  # noqa: F401  (register the backbones)
+# register the backbones and models: D²Turb's own, then the paper's comparison methods (docs/models.md, "Baselines")
+from d2turb.models import adair, atnet, focalnet, nafnet, restormer, tmt, turbnet  # noqa: F401
 from d2turb.models.complexity import (
     count_flops,
     count_parameters,

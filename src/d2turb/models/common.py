@@ -7,14 +7,22 @@ import torch.nn.functional as F
 from torch import nn
 
 
-def pad_to_multiple(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple[int, int]]:
-    """Pad H and W at the bottom/right up to a multiple (reflect, or replicate when the image is too small)."""
+def pad_to_size(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Pad H and W at the bottom/right up to ``size`` (reflect; replicate when a pad is not smaller than the side)."""
     h, w = x.shape[-2:]
-    ph, pw = (-h) % multiple, (-w) % multiple
+    ph, pw = size[0] - h, size[1] - w
+    if ph < 0 or pw < 0:
+        raise ValueError(f"cannot pad {(h, w)} to the smaller size {tuple(size)}")
     if ph or pw:
         mode = "reflect" if ph < h and pw < w else "replicate"
         x = F.pad(x, (0, pw, 0, ph), mode=mode)
-    return x, (h, w)
+    return x
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Pad H and W at the bottom/right up to a multiple (as :func:`pad_to_size`); returns (padded, original (H, W))."""
+    h, w = x.shape[-2:]
+    return pad_to_size(x, (h + (-h) % multiple, w + (-w) % multiple)), (h, w)
 
 
 class ChannelLayerNorm(nn.Module):

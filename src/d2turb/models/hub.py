@@ -241,12 +241,14 @@ def _build_for_loading(name: str, config: dict) -> nn.Module:
 
 def legacy_config(name: str, config: dict) -> dict:
     """The config of a file written before format 2 with its defaults spelled out: then Restormer's LayerNorm was
-    bias-free, ``d2turb`` used the U-Net rectifier and ``injection="aspi"`` meant the cosine variant."""
+    bias-free, ``d2turb`` (and its presets) used the U-Net rectifier and ``injection="aspi"`` meant the cosine
+    variant."""
     cfg = dict(config)
+    backbones = {"d2turb": "restormer", "d2turb_lite": "nafnet", "d2turb_focalnet": "focalnet", "d2turb_adair": "adair"}
     if name == "restormer":
         cfg.setdefault("norm_bias", False)
-    elif name in ("d2turb", "d2turb_lite"):
-        if cfg.get("backbone", "restormer" if name == "d2turb" else "nafnet") == "restormer":
+    elif name in backbones:
+        if cfg.get("backbone", backbones[name]) == "restormer":
             cfg["backbone_cfg"] = {"norm_bias": False, **(cfg.get("backbone_cfg") or {})}
         cfg.setdefault("rectifier", "unet")
         if cfg.get("injection", "aspi") == "aspi":

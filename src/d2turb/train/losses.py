@@ -6,6 +6,8 @@
 * L_detilt = λ_photo‖Î_clean − I_gt‖₁ + λ_vgg‖φ(Î_clean) − φ(I_gt)‖²₂ (Eq. 13); φ = VGG16 relu1_2…relu5_3 on
   ImageNet-normalised input, the squared norm taken as the mean squared difference per layer, summed over layers.
 * Plain backbones (flow None, Table 1 baselines): λ_photo·L1(restored, I_gt) (+ λ_vgg·VGG term).
+* A method's own extra terms (e.g. TurbNet's re-degradation), already weighted: ``model.extra_loss(out, batch)`` or,
+  failing that, its backbone's (see :func:`extra_loss_of`).
 All norms are means over elements, so a batch split across processes averages to the full-batch loss.
 """
 
@@ -87,13 +89,14 @@ class MultiStageLoss(nn.Module):
         vgg: float = 0.02,
         perceptual: nn.Module | None = None,
         native: str = "l1",
+        extra: Callable[[dict, dict], dict] | None = None,
     ):
         super().__init__()
         if native not in NATIVE_LOSSES:
             raise D2TurbError(f"unknown native loss {native!r}; choose from {', '.join(NATIVE_LOSSES)}")
         self.w_deblur, self.w_flow, self.w_photo = float(deblur), float(flow), float(photo)
         self.w_vgg = float(vgg) if perceptual is not None else 0.0
-        self.perceptual, self.native = perceptual, native
+        self.perceptual, self.native, self.extra = perceptual, native, extra
 
     def forward(self, out: dict, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
         restored, gt = out["restored"].float(), batch["gt"]
@@ -106,7 +109,15 @@ class MultiStageLoss(nn.Module):
             terms["deblur"] = NATIVE_LOSSES[self.native](out["deblurred"].float(), batch["tilt"])  # Eq. 11
             terms["flow"] = l1_loss(out["flow"].float(), batch["flow"])  # Eq. 12
             total = total + self.w_deblur * terms["deblur"] + self.w_flow * terms["flow"]  # Eq. 14
+        for name, value in (self.extra(out, batch) if self.extra is not None else {}).items():
+            terms[name] = value
+            total = total + value
         return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def extra_loss_of(model: nn.Module) -> Callable[[dict, dict], dict] | None:
+    """``model.extra_loss`` or else ``model.backbone.extra_loss``: ``(out, batch) -> {name: weighted term}``."""
+    return getattr(model, "extra_loss", None) or getattr(getattr(model, "backbone", None), "extra_loss", None)
 
 
 def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True) -> MultiStageLoss:
@@ -128,4 +139,5 @@ def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True
         vgg=loss_cfg.get("vgg", 0.02),
         perceptual=perceptual,
         native=native_loss_name(model, loss_cfg.get("native")),
+        extra=extra_loss_of(model),
     )
