@@ -102,11 +102,7 @@ def _number(name: str, value, positive: bool = True) -> float:
 def _scaled(name: str, text, exponent: int) -> float:
     """A number typed in a unit (nm: exponent -9, µrad: -6) → SI through its decimal text, so that "525" nm is
     exactly the float of ``525e-9`` (the CLI's default and what a typed ``--wavelength 525e-9`` gives)."""
-    token = str(text).strip()
-    value = _number(name, token)
-    m = re.fullmatch(r"([0-9]*\.?[0-9]+)(?:[eE]([-+]?[0-9]+))?", token)
-    if m is None:  # e.g. '0x1p3' or 'inf' were refused above; anything else odd: scale the float
-        return value * 10.0**exponent
+    m = re.fullmatch(r"([0-9.]+)(?:e([-+]?[0-9]+))?", repr(_number(name, text)))  # a positive finite float's repr
     return float(f"{m[1]}e{int(m[2] or 0) + exponent}")
 
 

@@ -26,7 +26,6 @@ INTRO = """# d2turb — depth-aware atmospheric turbulence
 and shows what they do; **Restore** runs a trained model on your image or short video. Every result comes with the
 `d2turb` command line that reproduces it. Everything stays on this machine."""
 
-HAS_SLIDER = hasattr(gr, "ImageSlider")  # gradio >= 5; before, input and output are shown side by side
 MAX_UPLOAD = "300mb"
 
 
@@ -166,9 +165,8 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
         pair = (str(r.before), str(r.after))
         niqe_md = core.niqe_markdown(r.niqe) + f"\n\nflow picture: full colour = {r.flow_scale_px:.3g} px"
         niqe_md += "\n\n" + notes if notes else ""
-        slider = (pair,) if HAS_SLIDER else pair
         return (
-            *slider,
+            pair,
             str(r.flow),
             niqe_md,
             {"niqe": r.niqe, "frames": r.frames, "flow_scale_px": r.flow_scale_px},
@@ -277,14 +275,7 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
                     device = gr.Dropdown(devices, value=devices[-1], label="device")
                     run_restore = gr.Button("Restore", variant="primary", elem_id="restore-button")
                 with gr.Column(scale=2):
-                    if HAS_SLIDER:
-                        compare = [gr.ImageSlider(label="input | restored", type="filepath")]
-                    else:  # documented fallback: side by side
-                        with gr.Row():
-                            compare = [
-                                gr.Image(label="input", type="filepath"),
-                                gr.Image(label="restored", type="filepath"),
-                            ]
+                    compare = gr.ImageSlider(label="input | restored (drag the handle)", type="filepath")
                     r_flow = gr.Image(label="predicted flow V̂ (colour wheel)", type="filepath")
                     niqe = gr.Markdown()
                     r_command = gr.Code(label="command line", language="shell", **_code_kwargs())
@@ -294,7 +285,7 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             run_restore.click(
                 restore,
                 [r_upload, weights, weights_path, tile, overlap, device],
-                [*compare, r_flow, niqe, r_json, r_command, r_files],
+                [compare, r_flow, niqe, r_json, r_command, r_files],
                 api_name="restore",
                 concurrency_limit=1,
             )
