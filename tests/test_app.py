@@ -10,6 +10,7 @@ import subprocess
 import sys
 import zipfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -270,20 +271,29 @@ def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(workspace, t
 
 
 def test_weights_choices_follow_resolve_weights(tmp_path, monkeypatch):
+    import d2turb.restore
     from d2turb.restore import resolve_weights
 
-    a, b, cache = tmp_path / "a", tmp_path / "b", tmp_path / "cache"
+    a, b, cache, package = tmp_path / "a", tmp_path / "b", tmp_path / "cache", tmp_path / "package"
+    shipped = package / "resources" / "weights"
+    monkeypatch.setattr(d2turb.restore, "resources", SimpleNamespace(files=lambda name: package))
+    monkeypatch.setenv("D2TURB_WEIGHTS_DIR", f"{a}:{b}")
+    monkeypatch.setenv("D2TURB_CACHE_DIR", str(cache))
+    assert core.weights_choices() == [("input", None)] and core.default_weights(core.weights_choices()) == "input"
     for folder, names in ((a, ["m1"]), (b, ["m1", "m2", "bad name"]), (cache / "weights", ["m3"])):
         folder.mkdir(parents=True)
         for n in names:
             (folder / f"{n}.safetensors").write_bytes(b"")
-    monkeypatch.setenv("D2TURB_WEIGHTS_DIR", f"{a}:{b}")
-    monkeypatch.setenv("D2TURB_CACHE_DIR", str(cache))
+    assert core.default_weights(core.weights_choices()) == "m1"  # nothing shipped: the first found
+    shipped.mkdir(parents=True)
+    (shipped / "d2turb-small.safetensors").write_bytes(b"")
     choices = core.weights_choices()
     assert choices[0] == ("input", None)
-    assert [(n, p.parent) for n, p in choices[1:]] == [("m1", a), ("m2", b), ("m3", cache / "weights")]
+    expected = [("m1", a), ("m2", b), ("m3", cache / "weights"), ("d2turb-small", shipped)]
+    assert [(n, p.parent) for n, p in choices[1:]] == expected
     for name, path in choices[1:]:
         assert resolve_weights(name) == path
+    assert core.shipped_weights_dir() == shipped and core.default_weights(choices) == "d2turb-small"
 
 
 def test_restore_bad_input_gives_one_line_messages(workspace, tmp_path):
@@ -322,3 +332,6 @@ def test_base_install_does_not_pull_the_app_dependencies_and_the_command_says_ho
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 2, res.stderr
     assert res.stderr.strip().splitlines() == ["error: d2turb app needs the app extra: pip install 'd2turb[app]'"]
+    from d2turb.cli import build_parser
+
+    assert build_parser().parse_args(["app"]).host == "127.0.0.1"  # this machine only, unless asked

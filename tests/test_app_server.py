@@ -93,7 +93,7 @@ def server(tmp_path_factory):
             proc.kill()
             pytest.fail(f"the app did not start (exit {proc.poll()}):\n{log.read_text()[-3000:]}")
         time.sleep(0.5)
-    yield SimpleNamespace(url=url, home=home, cwd=cwd, tmp=tmp, weights=weights, log=log, proc=proc)
+    yield SimpleNamespace(url=url, port=port, home=home, cwd=cwd, tmp=tmp, weights=weights, log=log, proc=proc)
     proc.send_signal(signal.SIGTERM)
     try:
         assert proc.wait(timeout=120) == 0, log.read_text()[-3000:]
@@ -101,6 +101,26 @@ def server(tmp_path_factory):
         if proc.poll() is None:
             proc.kill()
     assert list(tmp.iterdir()) == [], "the app's temp folder is removed on exit"
+
+
+def _listening_addresses(port: int) -> set[str]:
+    """Local addresses (hex, as Linux writes them) of the sockets listening on ``port``."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        if not os.path.exists(table):
+            continue
+        for line in Path(table).read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            address, hex_port = local.split(":")
+            if state == "0A" and int(hex_port, 16) == port:  # 0A: LISTEN
+                found.add(address)
+    return found
+
+
+def test_binds_localhost_only(server):
+    if not os.path.exists("/proc/net/tcp"):
+        pytest.skip("no /proc/net/tcp (not Linux)")
+    assert _listening_addresses(server.port) == {"0100007F"}  # 127.0.0.1, nothing else
 
 
 def _client(server, tmp_path):
@@ -251,6 +271,20 @@ def test_browser_renders_a_simulation(server, tmp_path, monkeypatch):
             "const r = document.querySelector('#sim-turb img').getBoundingClientRect();"
             "return [r.left, r.top, r.width, r.height, window.devicePixelRatio];"
         )
+        # the page fetched nothing from anywhere but the app (fonts, scripts, pictures)
+        fetched = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+        assert fetched and all(u.startswith(server.url) or u.startswith(("data:", "blob:")) for u in fetched)
+        # bad input: one clear line in the page, no stack trace
+        bad = tmp_path / "broken.png"
+        bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)
+        tabs = browser.find_elements(By.CSS_SELECTOR, "button[role=tab]")
+        next(t for t in tabs if t.text.strip() == "Restore").click()
+        WebDriverWait(browser, 60).until(lambda b: b.find_elements(By.CSS_SELECTOR, "#restore-upload input[type=file]"))
+        browser.find_element(By.CSS_SELECTOR, "#restore-upload input[type=file]").send_keys(str(bad))
+        browser.find_element(By.ID, "restore-button").click()
+        message = "broken.png: cannot read image"
+        WebDriverWait(browser, CALL_TIMEOUT_S).until(lambda b: message in b.find_element(By.TAG_NAME, "body").text)
+        assert "Traceback" not in browser.find_element(By.TAG_NAME, "body").text
     finally:
         browser.quit()
     left, top, width, height, ratio = box

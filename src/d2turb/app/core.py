@@ -322,6 +322,13 @@ def _samples() -> dict:
     return sample_images()
 
 
+def sample_image(name: str) -> torch.Tensor:
+    """A built-in sample (3, 192, 256) in [0, 1]: the demo's images (``SAMPLES``)."""
+    if name not in SAMPLES:
+        raise D2TurbError(f"unknown sample {name!r}; choose one of {', '.join(SAMPLES)}")
+    return _samples()[name]
+
+
 def simulate_argv(s: SimSettings, input_name: str, depth_name: str | None, out: str = "out") -> list[str]:
     """The ``d2turb simulate`` arguments (without ``d2turb``) for these settings."""
     from d2turb.sim import MODULATIONS
@@ -360,10 +367,9 @@ def _prepare_sim_input(s: SimSettings, run: Path, limits: Limits) -> tuple[str, 
     from d2turb.io import read_image, write_image
 
     if s.source == "sample":
-        if s.sample not in SAMPLES:
-            raise D2TurbError(f"unknown sample {s.sample!r}; choose one of {', '.join(SAMPLES)}")
+        image = sample_image(s.sample)
         name = f"{s.sample}.png"
-        write_image(run / name, _samples()[s.sample])  # 8-bit, as the command line will read it
+        write_image(run / name, image)  # 8-bit, as the command line will read it
     elif s.source == "upload":
         if not s.upload:
             raise D2TurbError("image source 'upload': upload an image first (or choose a sample)")
@@ -464,6 +470,20 @@ def weights_choices() -> list[tuple[str, Path | None]]:
             except D2TurbError:  # not a valid name (e.g. a space in it): only usable as a path
                 continue
     return [(IDENTITY_NAME, None), *found.items()]
+
+
+def shipped_weights_dir() -> Path:
+    """The package's ``resources/weights`` (the last folder of ``weights_search_path``): the shipped weights."""
+    from d2turb.restore import weights_search_path
+
+    return weights_search_path("x")[-1].parent
+
+
+def default_weights(choices: list[tuple[str, Path | None]]) -> str:
+    """The weights preselected in the page: the first shipped one, else the first found, else "input"."""
+    found = [(name, path) for name, path in choices if path is not None]
+    shipped = [name for name, path in found if path.parent == shipped_weights_dir()]
+    return (shipped or [name for name, _ in found] or [choices[0][0]])[0]
 
 
 @dataclass

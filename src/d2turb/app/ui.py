@@ -33,7 +33,7 @@ def _error(message: str) -> gr.Error:
     text = html.escape(message, quote=False)  # gr.Error renders HTML
     try:
         return gr.Error(text, print_exception=False)
-    except TypeError:  # gradio < 5
+    except TypeError:  # a gradio release without print_exception
         return gr.Error(text)
 
 
@@ -66,8 +66,10 @@ def _short(message: str, workspace: core.Workspace) -> str:
     return text.splitlines()[0] if text else text
 
 
-def _weights_dropdown_choices() -> list[tuple[str, str]]:
-    return [(name if path is None else f"{name}  ({path.parent})", name) for name, path in core.weights_choices()]
+def _weights_label(name: str, path: Path | None) -> str:
+    if path is None:
+        return f"{name}  (identity: output = input)"
+    return f"{name}  ({'shipped' if path.parent == core.shipped_weights_dir() else path.parent})"
 
 
 def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> gr.Blocks:
@@ -98,10 +100,8 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
     def show_sample(name):
         from d2turb.io import write_image
 
-        if name not in core.SAMPLES:
-            raise D2TurbError(f"unknown sample {name!r}")
         path = workspace.new_run("preview") / f"{name}.png"
-        write_image(path, core._samples()[name])
+        write_image(path, core.sample_image(name))
         return path
 
     @guard
@@ -174,8 +174,10 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             [str(f) for f in r.files],
         )
 
-    def refresh_weights():
-        return gr.update(choices=_weights_dropdown_choices())
+    def refresh_weights(current):
+        found = core.weights_choices()
+        value = current if current in {name for name, _ in found} else core.default_weights(found)
+        return gr.update(choices=[(_weights_label(n, p), n) for n, p in found], value=value)
 
     with gr.Blocks(title="d2turb", **_blocks_kwargs()) as demo:
         gr.Markdown(INTRO)
@@ -262,10 +264,15 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
                         file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
                         type="filepath",
                         height=120,
+                        elem_id="restore-upload",
                     )
                     r_shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
-                    choices = _weights_dropdown_choices()
-                    weights = gr.Dropdown(choices, value=choices[-1][1], label="weights (found locally)")
+                    found = core.weights_choices()
+                    weights = gr.Dropdown(
+                        [(_weights_label(n, p), n) for n, p in found],
+                        value=core.default_weights(found),
+                        label="weights (found locally)",
+                    )
                     weights_path = gr.Textbox(value="", label="or a local .safetensors path")
                     refresh = gr.Button("rescan weights", size="sm")
                     with gr.Row():
@@ -289,7 +296,7 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
                 api_name="restore",
                 concurrency_limit=1,
             )
-            refresh.click(refresh_weights, None, weights, api_name=False)
+            refresh.click(refresh_weights, weights, weights, api_name=False)
             r_upload.upload(show_restore_input, r_upload, r_shown, api_name=False)
     return demo
 
