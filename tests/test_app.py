@@ -335,3 +335,20 @@ def test_base_install_does_not_pull_the_app_dependencies_and_the_command_says_ho
     from d2turb.cli import build_parser
 
     assert build_parser().parse_args(["app"]).host == "127.0.0.1"  # this machine only, unless asked
+
+
+def test_a_folder_named_gradio_is_not_the_extra(tmp_path, monkeypatch, capsys):
+    """Gradio's own cache is /tmp/gradio: started in /tmp without the extra, `import gradio` finds that folder."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("gradio")
+    if spec is not None and spec.origin not in (None, "namespace"):
+        pytest.skip("gradio is installed")
+    (tmp_path / "gradio").mkdir()
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "gradio", raising=False)
+    for name in ("GRADIO_TEMP_DIR", "GRADIO_ANALYTICS_ENABLED", "MPLCONFIGDIR"):
+        monkeypatch.delenv(name, raising=False)
+    assert importlib.util.find_spec("gradio") is not None  # the folder is importable as a namespace package
+    assert main(["app"]) == 2
+    assert capsys.readouterr().err.strip() == "error: d2turb app needs the app extra: pip install 'd2turb[app]'"

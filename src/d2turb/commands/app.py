@@ -25,7 +25,8 @@ def run(args) -> int:
     import signal
     import threading
 
-    if importlib.util.find_spec("gradio") is None:
+    spec = importlib.util.find_spec("gradio")
+    if spec is None or spec.origin in (None, "namespace"):  # no origin: a stray folder named gradio, not the package
         raise D2TurbError(INSTALL_HINT)
     from d2turb.app.core import Workspace, prepare_environment
 
