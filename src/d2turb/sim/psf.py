@@ -148,10 +148,9 @@ def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0
     matrix), then every PSF is projected on them.
     """
     n, w, _ = psfs.shape
-    x = psfs.reshape(n, -1).double()
-    mean = x.mean(0)
-    y = x - mean
-    fit = y[:: max(1, math.ceil(n / max_fit))]
+    x = psfs.reshape(n, -1)
+    mean = x.mean(0).double()  # only the fitted PSFs are copied to float64
+    fit = x[:: max(1, math.ceil(n / max_fit))].double() - mean
     lam, u = _small_eigh(fit @ fit.T)
     lam, u = lam.flip(0).clamp_min(0), u.flip(1)
     total = lam.sum()
@@ -169,7 +168,8 @@ def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0
         k = min(k, max_components, fit.shape[0])
     comps = (fit.T @ u[:, :k]) / lam[:k].sqrt().clamp_min(1e-30)
     comps = comps - comps.mean(0, keepdim=True)  # exactly zero-sum: a flat image stays flat
-    weights = y @ comps  # projection (columns orthonormal up to the zero-sum correction)
+    # projection (columns orthonormal up to the zero-sum correction), in float32: no float64 copy of all N PSFs
+    weights = x @ comps.float() - (mean @ comps).float()
     basis = torch.cat([mean[None], comps.T]).reshape(k + 1, w, w)
     return basis.float(), weights.float()
 
