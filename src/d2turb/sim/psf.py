@@ -174,23 +174,49 @@ def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0
     return basis.float(), weights.float()
 
 
+def _full_spectrum(half_spec: torch.Tensor, width: int) -> torch.Tensor:
+    """Full 2-D DFT (…, h, width) of real planes from their ``rfft2`` (…, h, width//2+1): X(−k) = X(k)*."""
+    h, wh = half_spec.shape[-2], half_spec.shape[-1]
+    rows = (-torch.arange(h, device=half_spec.device)) % h
+    cols = width - torch.arange(wh, width, device=half_spec.device)
+    rest = half_spec.index_select(-2, rows).index_select(-1, cols).conj()
+    return torch.cat([half_spec, rest], -1)
+
+
 def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Spatially varying blur in gather form: out(x) = Σ_k w_k(x)·(P_k ∗ I)(x), w_0 ≡ 1.
 
     image (B, C, H, W); basis (C|1, K+1, w, w); weights (B, C|1, K, H, W). Reflect padding, FFT convolution.
+    Two images of a batch share one complex FFT: the kernels are real, so P ∗ (I_a + i·I_b) = P ∗ I_a +
+    i·(P ∗ I_b), and one complex inverse FFT of a batch costs half as much as two real ones on a CPU (MKL,
+    24 planes of 300²: 4.9 against 10.6 ms).
     """
     b, c, hgt, wid = image.shape
     half = basis.shape[-1] // 2
     mode = "reflect" if half < min(hgt, wid) else "replicate"
     padded = F.pad(image, (half, half, half, half), mode=mode) if half else image
     hp, wp = fast_size(padded.shape[-2]), fast_size(padded.shape[-1])  # zero-extended: no wrap into the crop
-    img_f = torch.fft.rfft2(padded, s=(hp, wp))
     kern = torch.zeros(basis.shape[0], basis.shape[1], hp, wp, dtype=image.dtype, device=image.device)
     kern[..., : 2 * half + 1, : 2 * half + 1] = basis.to(image)
     kern_f = torch.fft.rfft2(torch.roll(kern, shifts=(-half, -half), dims=(-2, -1)))
-    out = None
+    if b == 1:  # nothing to pair with
+        img_f = torch.fft.rfft2(padded, s=(hp, wp))
+        out = None
+        for k in range(basis.shape[1]):
+            conv = torch.fft.irfft2(img_f * kern_f[:, k], s=(hp, wp))[..., half : half + hgt, half : half + wid]
+            out = conv.clone() if k == 0 else out.addcmul_(conv, weights[:, :, k - 1])
+        return out
+    na = (b + 1) // 2  # images 0..na-1 in the real parts, na..b-1 in the imaginary parts
+    nb = b - na
+    second = padded[na:] if nb == na else torch.cat([padded[na:], torch.zeros_like(padded[:1])])
+    img_f = torch.fft.fft2(torch.complex(padded[:na], second), s=(hp, wp))
+    kern_f = _full_spectrum(kern_f, wp)
+    out_a = out_b = None
     for k in range(basis.shape[1]):
-        conv = torch.fft.irfft2(img_f * kern_f[:, k], s=(hp, wp))[..., half : half + hgt, half : half + wid]
-        term = conv if k == 0 else conv * weights[:, :, k - 1]
-        out = term if out is None else out + term
-    return out
+        conv = torch.fft.ifft2(img_f * kern_f[:, k])[..., half : half + hgt, half : half + wid]
+        if k == 0:
+            out_a, out_b = conv.real.clone(), conv.imag[:nb].clone()
+        else:
+            out_a.addcmul_(conv.real, weights[:na, :, k - 1])
+            out_b.addcmul_(conv.imag[:nb], weights[na:, :, k - 1])
+    return torch.cat([out_a, out_b])
