@@ -45,11 +45,11 @@ class PupilOptics:
             inside = rho <= 1.0
             rows, cols = np.nonzero(inside)
             zern = np.stack([zernike(j, rho[inside], theta[inside]) for j in self.modes]) * (ref_wavelength / wl)
-            # The FFT runs on the disk's bounding box: where the pupil sits in the zero-padded nf² grid only adds
+            # The DFT runs on the disk's bounding box: where the pupil sits in the zero-padded nf² grid only adds
             # a linear phase to its transform, which |.|² removes.
             rows, cols = rows - rows.min(), cols - cols.min()
             box = int(max(rows.max(), cols.max())) + 1
-            zern_box = np.zeros((len(self.modes), box, 2, box))  # (mode, row, re|im, col): the layout _transform reads
+            zern_box = np.zeros((len(self.modes), box, 2, box))  # (mode, row, re|im, col), as psfs() reads it
             zern_box[:, rows, :, cols] = zern.T[:, :, None]
             amp = np.zeros((box, 2, box))
             amp[rows, :, cols] = 1.0
@@ -211,12 +211,13 @@ def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Ten
     second = padded[na:] if nb == na else torch.cat([padded[na:], torch.zeros_like(padded[:1])])
     img_f = torch.fft.fft2(torch.complex(padded[:na], second), s=(hp, wp))
     kern_f = _full_spectrum(kern_f, wp)
+    w_a, w_b = (weights[:na], weights[na:]) if weights.shape[0] > 1 else (weights, weights)
     out_a = out_b = None
     for k in range(basis.shape[1]):
         conv = torch.fft.ifft2(img_f * kern_f[:, k])[..., half : half + hgt, half : half + wid]
         if k == 0:
             out_a, out_b = conv.real.clone(), conv.imag[:nb].clone()
         else:
-            out_a.addcmul_(conv.real, weights[:na, :, k - 1])
-            out_b.addcmul_(conv.imag[:nb], weights[na:, :, k - 1])
+            out_a.addcmul_(conv.real, w_a[:, :, k - 1])
+            out_b.addcmul_(conv.imag[:nb], w_b[:, :, k - 1])
     return torch.cat([out_a, out_b])
