@@ -1,6 +1,6 @@
-"""Options and behaviour shared by the subcommands: seed range, device, image-size limit, PNG level, and the
+"""Options and behaviour shared by the subcommands: seed range, device, image-size limit, PNG level, the
 rule for folders with bad files (every readable file is processed, one ``error:`` line per bad file, a
-summary, exit status 1; ``--fail-fast`` stops at the first)."""
+summary, exit status 1; ``--fail-fast`` stops at the first), and the stderr handler of the ``d2turb`` loggers."""
 
 from __future__ import annotations
 
