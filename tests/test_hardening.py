@@ -183,6 +183,7 @@ def test_make_dataset_skips_a_bomb_like_other_unreadable_sources(tmp_path, capsy
 def _command(name, image, out, dataset_src):
     return {
         "simulate": ["simulate", str(image), "--out", str(out)],
+        "simulate-video": ["simulate-video", str(image), "--out", str(out), "--frames", "2", "--no-mp4"],
         "restore": ["restore", str(image), "--weights", "input", "--out", str(out)],
         "make-dataset": make_dataset_args(dataset_src, out),
         "evaluate": ["evaluate", "--real", str(image.parent), "--metrics", "piqe", "--out", str(out)],
@@ -190,7 +191,7 @@ def _command(name, image, out, dataset_src):
     }[name]
 
 
-@pytest.mark.parametrize("command", ["simulate", "restore", "make-dataset", "evaluate", "demo"])
+@pytest.mark.parametrize("command", ["simulate", "simulate-video", "restore", "make-dataset", "evaluate", "demo"])
 @pytest.mark.parametrize("kind", ["existing file", "under a file"])
 def test_bad_out_is_one_line(command, kind, tmp_path, capsys):
     image = rgb(tmp_path / "in" / "a.png", 64, 64)
@@ -249,7 +250,7 @@ def test_writer_errors_surface_in_the_command(tmp_path, capsys):
 
 
 # -------------------------------------------------------------------------------------------- 3. devices
-@pytest.mark.parametrize("command", ["simulate", "restore", "make-dataset", "evaluate", "demo"])
+@pytest.mark.parametrize("command", ["simulate", "simulate-video", "restore", "make-dataset", "evaluate", "demo"])
 @pytest.mark.parametrize("device, message", [("bogus", "not a device name"), ("meta", "not supported")])
 def test_bad_device_is_one_line(command, device, message, tmp_path, capsys):
     image = rgb(tmp_path / "in" / "a.png", 64, 64)
@@ -260,7 +261,7 @@ def test_bad_device_is_one_line(command, device, message, tmp_path, capsys):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
-@pytest.mark.parametrize("command", ["simulate", "restore", "make-dataset", "evaluate", "demo"])
+@pytest.mark.parametrize("command", ["simulate", "simulate-video", "restore", "make-dataset", "evaluate", "demo"])
 def test_cuda_without_cuda_is_one_line(command, tmp_path, capsys):
     image = rgb(tmp_path / "in" / "a.png", 64, 64)
     rc, _, err = run_cli(capsys, _command(command, image, tmp_path / "out", image.parent) + ["--device", "cuda"])
@@ -285,7 +286,7 @@ def test_resolve_device_rules(monkeypatch):
 
 
 # ---------------------------------------------------------------------------------------------- 4. seeds
-@pytest.mark.parametrize("command", ["simulate", "make-dataset", "demo"])
+@pytest.mark.parametrize("command", ["simulate", "simulate-video", "make-dataset", "demo"])
 @pytest.mark.parametrize("seed", [str(2**70), "-1", "1.5"])
 def test_seed_out_of_range_is_one_line(command, seed, tmp_path, capsys):
     image = rgb(tmp_path / "in" / "a.png", 64, 64)

@@ -48,6 +48,27 @@ def add_device_arg(p, default: str = "cpu") -> None:
     p.add_argument("--device", default=default, metavar="DEVICE", help=f"{DEVICE_HELP} (default {default})")
 
 
+def add_motion_args(p) -> None:
+    """The options of a turbulent clip (frozen-flow layers moved by the wind), shared by ``simulate-video`` and
+    ``make-dataset --frames``."""
+    p.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
+    p.add_argument(
+        "--wind",
+        type=float,
+        nargs="+",
+        default=[1.0],
+        metavar="V",
+        help="transverse wind in m/s (default 1); several values: speeds from the aperture to the object, "
+        "interpolated along the path",
+    )
+    p.add_argument(
+        "--wind-dir", type=float, default=0.0, metavar="DEG", help="drift direction in the image (0 = +x, 90 = +y)"
+    )
+    p.add_argument(
+        "--boil", type=float, default=0.0, metavar="X", help="fraction of each layer's variance refreshed per frame"
+    )
+
+
 def add_max_pixels_arg(p) -> None:
     """Images whose header claims more pixels are refused before decoding (applied by ``d2turb.cli.main``)."""
     p.add_argument(

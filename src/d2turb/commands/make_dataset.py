@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from d2turb.commands.common import add_device_arg, add_max_pixels_arg, add_png_level_arg, add_seed_arg
+from d2turb.commands.common import add_device_arg, add_max_pixels_arg, add_motion_args, add_png_level_arg, add_seed_arg
 from d2turb.errors import D2TurbError
 
 
@@ -61,21 +61,7 @@ def register(sub):
     p.add_argument(
         "--frames", type=int, default=1, metavar="N", help="N > 1: turbulent clips of N frames per sample (filmstrips)"
     )
-    p.add_argument("--fps", type=float, default=30.0, help="sequences: frames per second (default 30)")
-    p.add_argument(
-        "--wind",
-        type=float,
-        nargs="+",
-        default=[1.0],
-        metavar="V",
-        help="sequences: wind m/s, or speeds from aperture to object",
-    )
-    p.add_argument(
-        "--wind-dir", type=float, default=0.0, metavar="DEG", help="sequences: drift direction (default 0 = +x)"
-    )
-    p.add_argument(
-        "--boil", type=float, default=0.0, metavar="X", help="sequences: variance refreshed per frame (default 0)"
-    )
+    add_motion_args(p)  # used with --frames N > 1
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_png_level_arg(p)
     add_max_pixels_arg(p)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from d2turb.commands.common import add_max_pixels_arg, add_motion_args, add_seed_arg
 from d2turb.commands.simulate import add_physics_args
 from d2turb.errors import D2TurbError
 
@@ -21,34 +22,20 @@ def register(sub):
     p.add_argument("input", metavar="INPUT", help="image file, video file, or folder of frames")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--frames", type=int, default=None, metavar="N", help="frames (default: 64, or all input frames)")
-    p.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
-    p.add_argument(
-        "--wind",
-        type=float,
-        nargs="+",
-        default=[1.0],
-        metavar="V",
-        help="transverse wind in m/s (default 1); several values: speeds from the aperture to the object, "
-        "interpolated along the path",
-    )
-    p.add_argument(
-        "--wind-dir", type=float, default=0.0, metavar="DEG", help="drift direction in the image (0 = +x, 90 = +y)"
-    )
-    p.add_argument(
-        "--boil", type=float, default=0.0, metavar="X", help="fraction of each layer's variance refreshed per frame"
-    )
+    add_motion_args(p)
     strength = p.add_mutually_exclusive_group()
     strength.add_argument("--dr0", type=float, default=None, metavar="X", help="turbulence strength D/r0 (default 3)")
     strength.add_argument("--cn2", type=float, default=None, metavar="CN2", help="Cn² (m^-2/3), constant on the path")
     p.add_argument("--depth", default="none", metavar="SPEC", help="none | prior | FILE | anything:PATH (default none)")
     p.add_argument("--depth-is-disparity", "--disparity", dest="disparity", action="store_true")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_seed_arg(p)
     p.add_argument("--save-tilt", action="store_true", help="also write tilt-only frames tilt/NNNNNN.png")
     p.add_argument(
         "--save-flow", action="store_true", help="also write flow/NNNNNN.npy: float32 (2,H,W) forward displacement px"
     )
     p.add_argument("--no-mp4", action="store_true", help="do not write turb.mp4")
     add_physics_args(p)
+    add_max_pixels_arg(p)
     p.set_defaults(func=run)
 
 
@@ -96,7 +83,8 @@ def run(args):
 
     from d2turb.commands.simulate import make_params
     from d2turb.depth import depth_for_image
-    from d2turb.io import atomic_path, to_uint8, write_image, write_json, write_npy
+    from d2turb.device import resolve_device
+    from d2turb.io import atomic_path, check_output_dir, to_uint8, write_image, write_json, write_npy
     from d2turb.sim import Simulator, dr0_bin
     from d2turb.sim.sequence import check_sequence_args, wind_speeds
     from d2turb.sim.tilt import path_nodes
@@ -104,15 +92,16 @@ def run(args):
     src = Path(args.input)
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
+    device = resolve_device(args.device)
+    out = check_output_dir(args.out)
     check_sequence_args(args.frames, args.fps, args.wind_dir, args.boil)
     wind = args.wind[0] if len(args.wind) == 1 else list(args.wind)
     params = make_params(args, args.dr0)
     t, _ = path_nodes(params.tilt_geometry, params.layer_z_frac, 12)
     speeds = wind_speeds(wind, t)
     source, n_frames, kind = _input_frames(src, args.frames)
-    sim = Simulator(params, device=args.device)
+    sim = Simulator(params, device=device)
     gen = torch.Generator().manual_seed(args.seed)
-    out = Path(args.out)
     mp4 = None
     if not args.no_mp4:
         try:
@@ -124,7 +113,7 @@ def run(args):
             print(f"note: no mp4 written; {VIDEO_HINT}")
 
     def depth_of(frame):
-        d = depth_for_image(args.depth, src if kind == "image" else None, frame, args.disparity, args.device)
+        d = depth_for_image(args.depth, src if kind == "image" else None, frame, args.disparity, device)
         return None if d is None else d[None]
 
     if kind == "image":
