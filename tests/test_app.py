@@ -41,25 +41,6 @@ def workspace():
     ws.cleanup()
 
 
-@pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory):
-    """A tiny random D²Turb (NAFNet + U-Net rectifier) with a non-zero flow head, saved as safetensors."""
-    from d2turb.models import create_model, save_pretrained
-
-    torch.manual_seed(0)
-    model = create_model(
-        "d2turb",
-        backbone="nafnet",
-        injection="aspi_cosine",
-        rectifier="unet",
-        backbone_cfg={"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1]},
-        rectifier_cfg={"width": 8, "mults": [1, 1, 2, 2], "depth": 3},
-    )
-    torch.nn.init.normal_(model.rectifier.flow_head.weight, std=2.0)
-    folder = tmp_path_factory.mktemp("weights")
-    return save_pretrained(model.eval(), folder / "tiny-app.safetensors")
-
-
 def _rgb(h, w, seed=0):
     rng = np.random.default_rng(seed)
     base = np.linspace(0, 255, w)[None, :, None] * np.ones((h, 1, 3))
@@ -260,11 +241,11 @@ def test_restore_identity_image_and_video(workspace, tmp_path, monkeypatch):
         core.run_restore(str(gif), "input", workspace, limits=core.Limits(video_frames=3))
 
 
-def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(workspace, tiny_weights, tmp_path, monkeypatch):
+def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(workspace, tiny_app_weights, tmp_path, monkeypatch):
     img = tmp_path / "far.png"
     Image.fromarray(_rgb(56, 72)).save(img)
-    r = core.run_restore(str(img), str(tiny_weights), workspace, tile=40, overlap=16)  # 2 x 2 tiles
-    assert f"--weights {tiny_weights} --out out --tile 40 --overlap 16" in r.command
+    r = core.run_restore(str(img), str(tiny_app_weights), workspace, tile=40, overlap=16)  # 2 x 2 tiles
+    assert f"--weights {tiny_app_weights} --out out --tile 40 --overlap 16" in r.command
     assert np.asarray(Image.open(r.after)).shape == (56, 72, 3)
     flow = np.load(r.files[2])
     assert flow.shape == (2, 56, 72) and r.flow_scale_px > 0.1
