@@ -10,6 +10,8 @@ import re
 import sys
 
 from d2turb import __version__
+from d2turb.commands.common import log_to_stderr
+from d2turb.defaults import DEFAULT_MAX_PIXELS
 from d2turb.errors import D2TurbError
 
 COMMANDS = [
@@ -61,9 +63,6 @@ def _end_progress_bars() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from d2turb.commands.common import log_to_stderr
-    from d2turb.io import DEFAULT_MAX_PIXELS, set_max_pixels
-
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -73,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     log_to_stderr()
+    from d2turb.io import set_max_pixels  # lazy: d2turb.io imports torch, which --help and usage errors never need
+
     set_max_pixels(getattr(args, "max_pixels", DEFAULT_MAX_PIXELS))
     try:
         return int(args.func(args) or 0)

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from d2turb.defaults import DEVICE_HELP
 from d2turb.errors import D2TurbError
-
-DEVICE_HELP = "auto (a GPU when there is one), cpu, cuda or cuda:N"
 
 
 def resolve_device(name: str | torch.device | None = "auto", local_rank: int = 0) -> torch.device:

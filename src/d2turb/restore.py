@@ -23,7 +23,8 @@ from torch import nn
 
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
-from d2turb.io import cache_dir
+from d2turb.io import cache_dir, check_image_tensor, read_image
+from d2turb.models import load_pretrained
 from d2turb.ops.warp import base_grid, sample_at
 
 IDENTITY_NAME = "input"
@@ -80,7 +81,6 @@ def load_restoration_model(weights, device: str | torch.device = "cpu") -> tuple
     resolved = resolve_weights(weights)
     if resolved == IDENTITY_NAME:
         return IdentityRestorer().to(device), IDENTITY_NAME
-    from d2turb.models import load_pretrained
 
     model = load_pretrained(str(resolved), device=str(device))
     return model.to(device).eval(), Path(resolved).stem
@@ -181,8 +181,6 @@ class Restorer:
     # -- internals --------------------------------------------------------------------------------
     @staticmethod
     def _as_batch(image) -> tuple[torch.Tensor, bool]:
-        from d2turb.io import check_image_tensor, read_image
-
         if isinstance(image, (str, os.PathLike)):
             image = read_image(image)
         if not isinstance(image, torch.Tensor):

@@ -25,8 +25,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from d2turb import __version__
+from d2turb.cli import build_parser
+from d2turb.commands.demo import sample_images
+from d2turb.commands.restore import VIDEO_HINT, VIDEO_SUFFIXES, _iter_video
+from d2turb.commands.simulate import make_params
+from d2turb.depth import depth_for_image
+from d2turb.depth.io import DEPTH_SUFFIXES
 from d2turb.errors import D2TurbError
-from d2turb.io import IMAGE_SUFFIXES
+from d2turb.eval.niqe import niqe
+from d2turb.eval.report import fit_cell, flow_to_rgb
+from d2turb.io import IMAGE_SUFFIXES, read_image, write_image, write_json, write_text
+from d2turb.restore import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
+from d2turb.sim import MODULATIONS, Simulator, depth_modulation, dr0_bin, fried_r0_spherical
+from d2turb.sim.geometry import footprint_px
 
 SAMPLES = ("astronaut", "coffee", "chelsea", "chart")  # d2turb.commands.demo.sample_images
 STRENGTHS = ("D/r0", "Cn²")
@@ -141,8 +153,6 @@ def check_pixels(name: str, width: int, height: int, limit: int) -> None:
 
 def parse_cli(argv: list[str]):
     """The real ``d2turb`` parser on ``argv``; argparse's exit becomes a D2TurbError."""
-    from d2turb.cli import build_parser
-
     try:
         return build_parser().parse_args(argv)
     except SystemExit as exc:
@@ -159,9 +169,6 @@ def run_cli(argv: list[str]) -> None:
 
 def write_command(path: Path, argv: list[str]) -> str:
     """The command line as text (``d2turb ...``) and as an executable script ``path``."""
-    from d2turb import __version__
-    from d2turb.io import write_text
-
     cmd = shlex.join(["d2turb", *argv])
     write_text(path, f"#!/bin/sh\n# written by d2turb {__version__} app; run it in this folder\n{cmd}\n")
     path.chmod(0o755)
@@ -181,9 +188,6 @@ def bundle(run: Path, name: str) -> Path:
 def preview(image: torch.Tensor, path: Path, source: Path | None = None) -> Path:
     """(C,H,W) in [0,1] as an 8-bit PNG for the page, downscaled to PREVIEW_SIDE if larger; ``source``: a PNG
     that already holds this image, returned as is when no downscaling is needed."""
-    from d2turb.eval.report import fit_cell
-    from d2turb.io import write_image
-
     if max(image.shape[-2:]) <= PREVIEW_SIDE:
         if source is not None:
             return source
@@ -196,8 +200,6 @@ def preview(image: torch.Tensor, path: Path, source: Path | None = None) -> Path
 def flow_view(flow: torch.Tensor, path: Path) -> tuple[Path, float]:
     """Colour-wheel picture of a (2,H,W) flow with the wheel as a legend in the bottom-right corner; returns the
     path and the magnitude (px) that maps to full saturation."""
-    from d2turb.eval.report import flow_to_rgb
-
     scale = float(flow.norm(dim=0).max())
     rgb = flow_to_rgb(flow, max_px=scale if scale > 0 else 1.0)
     h, w = rgb.shape[-2:]
@@ -226,9 +228,6 @@ def derived_quantities(params, mean_modulation: float | None = None) -> dict:
     tilt_sigma_px (per axis, where M = 1; the simulator's own scale), footprint_px (tilt correlation scale),
     samples_per_lambda_d (q = λ/(D·ifov), 2 = Nyquist), ifov_urad, bin; with ``mean_modulation`` also
     tilt_sigma_px_mean_m (σ at the mean M: Δ = M·Δ0, Eq. 5)."""
-    from d2turb.sim import Simulator, dr0_bin, fried_r0_spherical
-    from d2turb.sim.geometry import footprint_px
-
     lam, length = params.reference_wavelength, params.path_length_m
     r0 = params.r0_m
     cn2 = (fried_r0_spherical(1.0, length, lam) / r0) ** (5 / 3)  # r0 ∝ Cn²^(−3/5)
@@ -317,8 +316,6 @@ class SimOutput:
 
 @lru_cache(maxsize=1)
 def _samples() -> dict:
-    from d2turb.commands.demo import sample_images
-
     return sample_images()
 
 
@@ -331,8 +328,6 @@ def sample_image(name: str) -> torch.Tensor:
 
 def simulate_argv(s: SimSettings, input_name: str, depth_name: str | None, out: str = "out") -> list[str]:
     """The ``d2turb simulate`` arguments (without ``d2turb``) for these settings."""
-    from d2turb.sim import MODULATIONS
-
     seed = _number("seed", s.seed, positive=False)
     if not (seed.is_integer() and 0 <= seed < 2**63):
         raise D2TurbError(f"seed must be a whole number in [0, 2^63), got {s.seed!r}")
@@ -364,8 +359,6 @@ def simulate_argv(s: SimSettings, input_name: str, depth_name: str | None, out: 
 
 
 def _prepare_sim_input(s: SimSettings, run: Path, limits: Limits) -> tuple[str, torch.Tensor]:
-    from d2turb.io import read_image, write_image
-
     if s.source == "sample":
         image = sample_image(s.sample)
         name = f"{s.sample}.png"
@@ -388,11 +381,6 @@ def _prepare_sim_input(s: SimSettings, run: Path, limits: Limits) -> tuple[str, 
 def run_simulation(s: SimSettings, workspace: Workspace, limits: Limits | None = None) -> SimOutput:
     """Simulate turbulence as the page asks: runs ``d2turb simulate`` (in-process) in a fresh run folder and
     prepares the pictures (I_turb, I_tilt, flow, depth, M), the derived quantities and the downloads."""
-    from d2turb.commands.simulate import make_params
-    from d2turb.depth import depth_for_image
-    from d2turb.depth.io import DEPTH_SUFFIXES
-    from d2turb.sim import depth_modulation
-
     limits = limits or Limits()
     run = workspace.new_run("simulate")
     name, image = _prepare_sim_input(s, run, limits)
@@ -415,8 +403,6 @@ def run_simulation(s: SimSettings, workspace: Workspace, limits: Limits | None =
     depth = depth_for_image(args.depth, run / name, image, is_disparity=args.disparity)  # refuses another aspect
     run_cli(run_argv)
     command = write_command(run / "command.sh", argv)
-
-    from d2turb.io import read_image, write_json
 
     out = run / "out"
     meta_path = out / f"{stem}_meta.json"
@@ -452,8 +438,6 @@ def run_simulation(s: SimSettings, workspace: Workspace, limits: Limits | None =
 def weights_choices() -> list[tuple[str, Path | None]]:
     """(name, file) of every weights name ``resolve_weights`` finds in its folders (in its order: the first folder
     holding a name wins), after the identity baseline ``("input", None)``."""
-    from d2turb.restore import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
-
     found: dict[str, Path] = {}
     for folder in dict.fromkeys(p.parent for p in weights_search_path("x")):
         for f in sorted(folder.glob(f"*{WEIGHTS_SUFFIX}")) if folder.is_dir() else []:
@@ -469,8 +453,6 @@ def weights_choices() -> list[tuple[str, Path | None]]:
 
 def shipped_weights_dir() -> Path:
     """The package's ``resources/weights`` (the last folder of ``weights_search_path``): the shipped weights."""
-    from d2turb.restore import weights_search_path
-
     return weights_search_path("x")[-1].parent
 
 
@@ -496,8 +478,6 @@ class RestoreOutput:
 
 
 def _niqe(image: torch.Tensor) -> float | str:
-    from d2turb.eval.niqe import niqe
-
     try:
         return float(niqe(image))
     except D2TurbError as exc:
@@ -506,8 +486,6 @@ def _niqe(image: torch.Tensor) -> float | str:
 
 def _video_size(path: Path) -> tuple[int, int, int]:
     """(frames, width, height) of a video from its container, without decoding it."""
-    from d2turb.commands.restore import VIDEO_HINT
-
     try:
         import imageio.v3 as iio
     except ImportError as exc:
@@ -539,10 +517,6 @@ def run_restore(
 ) -> RestoreOutput:
     """Restore an uploaded image or short video with ``d2turb restore`` (in-process, same tiling, tqdm progress);
     ``weights``: "input", a name from :func:`weights_choices` or a .safetensors path."""
-    from d2turb.commands.restore import VIDEO_SUFFIXES, _iter_video
-    from d2turb.io import read_image
-    from d2turb.restore import resolve_weights
-
     limits = limits or Limits()
     if not upload:
         raise D2TurbError("upload an image or a short video first")

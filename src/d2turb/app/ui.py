@@ -17,7 +17,10 @@ from pathlib import Path
 import gradio as gr
 
 from d2turb.app import core
+from d2turb.commands.restore import VIDEO_SUFFIXES
 from d2turb.errors import D2TurbError
+from d2turb.io import read_image, write_image
+from d2turb.sim import MODULATIONS
 
 log = logging.getLogger("d2turb.app")
 
@@ -74,8 +77,6 @@ def _weights_label(name: str, path: Path | None) -> str:
 
 def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> gr.Blocks:
     """The Blocks page: Simulate and Restore tabs. API names: ``/simulate``, ``/restore``."""
-    from d2turb.sim import MODULATIONS
-
     limits = limits or core.Limits()
     guard = page_errors(workspace)
 
@@ -83,7 +84,6 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
     def show_input(path):
         if not path:
             return None
-        from d2turb.io import read_image
 
         p = Path(path)
         w, h = core.image_size(p)
@@ -98,8 +98,6 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
 
     @guard
     def show_sample(name):
-        from d2turb.io import write_image
-
         path = workspace.new_run("preview") / f"{name}.png"
         write_image(path, core.sample_image(name))
         return path
@@ -306,8 +304,6 @@ def _code_kwargs() -> dict:
 
 
 def _video_suffixes() -> set[str]:
-    from d2turb.commands.restore import VIDEO_SUFFIXES
-
     return set(VIDEO_SUFFIXES)
 
 

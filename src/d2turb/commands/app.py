@@ -28,6 +28,7 @@ def run(args) -> int:
     spec = importlib.util.find_spec("gradio")
     if spec is None or spec.origin in (None, "namespace"):  # no origin: a stray folder named gradio, not the package
         raise D2TurbError(INSTALL_HINT)
+    # lazy: app.core imports torch and the pipeline; d2turb --help starts without them
     from d2turb.app.core import Workspace, prepare_environment
 
     workspace = Workspace()
@@ -36,6 +37,7 @@ def run(args) -> int:
     demo = None
     try:
         try:
+            # lazy: gradio is optional and reads GRADIO_TEMP_DIR on import (set just above)
             from d2turb.app.ui import serve
         except ImportError as exc:
             raise D2TurbError(f"cannot import gradio ({exc}); {INSTALL_HINT}") from exc

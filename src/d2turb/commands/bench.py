@@ -57,6 +57,7 @@ def _config(args) -> dict:
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import torch
 
     from d2turb.device import resolve_device

@@ -8,9 +8,8 @@ import argparse
 import logging
 import sys
 
-from d2turb.device import DEVICE_HELP
+from d2turb.defaults import DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL, DEVICE_HELP
 from d2turb.errors import D2TurbError
-from d2turb.io import DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL
 
 SEED_MAX = 2**63 - 1  # torch generators and numpy SeedSequence both take [0, 2**63 - 1]
 

@@ -4,6 +4,10 @@ PSNR/SSIM table."""
 
 from __future__ import annotations
 
+from d2turb.commands.common import add_seed_arg
+from d2turb.commands.simulate import add_physics_args, make_params
+from d2turb.errors import D2TurbError
+
 LEVELS = (("weak", 1.5), ("medium", 3.0), ("strong", 4.5))
 SIZE = (192, 256)  # H, W of every demo image
 DEFAULT_WEIGHTS = "d2turb-small"  # the model shipped in the package (MODEL_CARD.md)
@@ -11,9 +15,6 @@ DEMO_PATH_LENGTH_M = 3000.0  # D = 0.1 m at Nyquist: tilt footprint 12.7 px, ins
 
 
 def register(sub):
-    from d2turb.commands.common import add_seed_arg
-    from d2turb.commands.simulate import add_physics_args
-
     p = sub.add_parser(
         "demo",
         help="simulate turbulence on built-in sample images and write a labelled grid",
@@ -73,11 +74,11 @@ def _label(tile, text):
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import numpy as np
     import torch
     from PIL import Image
 
-    from d2turb.commands.simulate import make_params
     from d2turb.depth import estimate_depth_prior
     from d2turb.device import resolve_device
     from d2turb.io import atomic_path, check_output_dir, to_uint8, write_image, write_json
@@ -118,7 +119,7 @@ def run(args):
         Image.fromarray(grid).save(tmp, format="PNG")
     print(f"wrote {out / 'demo.png'} ({len(names)} images x clean/weak/medium/strong/depth)")
     if args.weights != "none":
-        from d2turb.errors import D2TurbError
+        # lazy: the restorer (models) loads only when restoration is asked for
         from d2turb.restore import resolve_weights
 
         try:
@@ -135,6 +136,7 @@ def run(args):
 
 def restore_demo(weights: str, res, names: list[str], out, device) -> dict:
     """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table."""
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import numpy as np
     from PIL import Image
 

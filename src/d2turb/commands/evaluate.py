@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
+from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg, print_error, summary
 from d2turb.errors import D2TurbError
 
 
@@ -60,7 +60,7 @@ def register(sub):
 
 
 def run(args):
-    from d2turb.commands.common import print_error, summary
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.device import resolve_device
     from d2turb.io import check_output_dir, remove_stale_temp_files
 
@@ -71,6 +71,7 @@ def run(args):
     device = str(resolve_device(args.device))
     remove_stale_temp_files(check_output_dir(args.out) / "grids")
     if args.real:
+        # lazy: the no-reference metrics (scipy, MUSIQ) load only for --real
         from d2turb.eval.real import evaluate_real, parse_metrics
 
         results = evaluate_real(
@@ -88,6 +89,7 @@ def run(args):
             print(model + ": " + ", ".join(f"{m} {v['mean']:.4f}" for m, v in scores.items()))
         total = len(results["images"]) + len(results["skipped"])
     else:
+        # lazy: the synthetic evaluator (datasets, models) loads only for --data
         from d2turb.eval.real import parse_metrics
         from d2turb.eval.synthetic import evaluate_synthetic
 

@@ -69,6 +69,7 @@ def register(sub):
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.data.generate import DatasetConfig, generate_dataset
 
     try:

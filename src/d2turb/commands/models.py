@@ -15,6 +15,7 @@ def register(sub):
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import json
 
     import torch

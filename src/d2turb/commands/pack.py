@@ -31,6 +31,7 @@ def register(sub):
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.data.pack import make_pack
 
     summary = make_pack(

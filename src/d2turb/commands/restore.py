@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg, add_png_level_arg
+from d2turb.commands.common import FileErrors, add_device_arg, add_fail_fast_arg, add_max_pixels_arg, add_png_level_arg
 from d2turb.errors import D2TurbError
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif"}
@@ -44,6 +44,7 @@ def _iter_video(path: Path):
         import imageio.v3 as iio
     except ImportError as exc:
         raise D2TurbError(f"{path}: reading video needs imageio; {VIDEO_HINT}") from exc
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.restore import frame_to_tensor
 
     try:
@@ -57,6 +58,7 @@ def _iter_video(path: Path):
 
 def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
     """(image files, video files) named on the command line; output names must be unique."""
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.io import check_unique_stems, expand_inputs
 
     images, videos = [], []
@@ -71,6 +73,7 @@ def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
 
 
 def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import numpy as np
 
     from d2turb.io import write_image, write_npy
@@ -87,9 +90,9 @@ def _named(path: Path, exc: D2TurbError) -> D2TurbError:
 
 
 def run(args) -> int:
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from tqdm import tqdm
 
-    from d2turb.commands.common import FileErrors
     from d2turb.device import resolve_device
     from d2turb.io import BackgroundWriter, check_output_dir, read_image, writer_threads
     from d2turb.restore import Restorer

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from d2turb.commands.common import (
+    FileErrors,
     add_device_arg,
     add_fail_fast_arg,
     add_max_pixels_arg,
@@ -106,6 +107,7 @@ def register(sub):
 
 
 def make_params(args, dr0=None):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.sim import TurbulenceParams
 
     wl = args.wavelength
@@ -153,6 +155,7 @@ def _check_depth_spec(spec: str) -> None:
 
 
 def _write_outputs(out, name: str, turb, tilt, flow, meta: dict, png_level: int) -> None:
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.io import write_image, write_json, write_npy
 
     write_image(out / f"{name}_turb.png", turb, png_level)
@@ -164,9 +167,9 @@ def _write_outputs(out, name: str, turb, tilt, flow, meta: dict, png_level: int)
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import torch
 
-    from d2turb.commands.common import FileErrors
     from d2turb.depth import depth_for_image
     from d2turb.device import resolve_device
     from d2turb.io import (

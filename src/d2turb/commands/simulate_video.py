@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from d2turb.commands.common import add_max_pixels_arg, add_motion_args, add_seed_arg
-from d2turb.commands.simulate import add_physics_args
+from d2turb.commands.restore import VIDEO_SUFFIXES, _iter_video
+from d2turb.commands.simulate import add_physics_args, make_params
 from d2turb.errors import D2TurbError
 
 VIDEO_HINT = "install the video extra for an mp4: pip install 'd2turb[video]'"
@@ -41,7 +42,7 @@ def register(sub):
 
 def _input_frames(path: Path, frames: int | None):
     """(iterator of (3,H,W) frames or a still tensor, number of frames or None, kind)."""
-    from d2turb.commands.restore import VIDEO_SUFFIXES, _iter_video
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.io import list_images, read_image
 
     if path.is_dir():
@@ -75,13 +76,13 @@ class _Mp4:
 
 
 def run(args):
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import contextlib
 
     import numpy as np
     import torch
     from tqdm import tqdm
 
-    from d2turb.commands.simulate import make_params
     from d2turb.depth import depth_for_image
     from d2turb.device import resolve_device
     from d2turb.io import atomic_path, check_output_dir, to_uint8, write_image, write_json, write_npy

@@ -9,9 +9,11 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import BIN_NAMES, file_path, read_config, read_depth_png, read_meta
+from d2turb.data.generate import make_depth_fn, resize_up
+from d2turb.data.layout import bin_index, file_path, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
+from d2turb.ops.splat import backward_flow
 from d2turb.sim.params import bin_spans, dr0_bin, dr0_from_uniform
 
 
@@ -37,10 +39,6 @@ def crop_sample(sample: dict, y0: int, x0: int, size: int) -> dict:
         if key in out and out[key] is not None:
             out[key] = out[key][..., y0 : y0 + size, x0 : x0 + size]
     return out
-
-
-def bin_index(name: str) -> int:
-    return BIN_NAMES.index(name) if name in BIN_NAMES else -1
 
 
 class PairDataset(Dataset):
@@ -124,8 +122,6 @@ class CleanCropDataset(Dataset):
         hflip: bool = True,
         cache: int | None = None,
     ):
-        from d2turb.data.generate import make_depth_fn
-
         self.paths = expand_inputs([str(d) for d in dirs])
         if patch < 16:
             raise D2TurbError(f"patch must be at least 16 px, got {patch}")
@@ -139,8 +135,6 @@ class CleanCropDataset(Dataset):
         return self.length
 
     def _load(self, k: int):
-        from d2turb.data.generate import resize_up
-
         if k in self._cache:
             self._cache.move_to_end(k)
             return self._cache[k]
@@ -209,8 +203,6 @@ class OnTheFlySynthesis:
         return torch.from_numpy(dr0_from_uniform(self._uniform(n).numpy(), self.spans)).float()
 
     def __call__(self, batch: dict) -> dict:
-        from d2turb.ops.splat import backward_flow
-
         gt = batch["gt"].to(self.device, non_blocking=True)
         if gt.ndim != 4 or gt.shape[1] != 3:
             raise D2TurbError(f"expected a batch of clean images (B,3,H,W), got {tuple(gt.shape)}")

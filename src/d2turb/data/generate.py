@@ -36,6 +36,8 @@ from d2turb.data.layout import (
     truncate_partial_line,
     write_depth_png,
 )
+from d2turb.data.sequence import sequence_settings, simulate_sequence_chunk
+from d2turb.depth import depth_for_image
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
@@ -52,6 +54,8 @@ from d2turb.io import (
     write_text,
     writer_threads,
 )
+from d2turb.ops.splat import backward_flow
+from d2turb.sim import Simulator
 from d2turb.sim.geometry import footprint_px, geometry_bank
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
@@ -103,8 +107,6 @@ def validate(cfg: DatasetConfig) -> None:
     if not 0 <= cfg.seed < 2**63:
         raise D2TurbError(f"--seed must be between 0 and 2**63 - 1, got {cfg.seed}")
     if cfg.frames != 1 or cfg.sequence:
-        from d2turb.data.sequence import sequence_settings
-
         cfg.sequence = sequence_settings(cfg.frames, cfg.sequence)
 
 
@@ -181,7 +183,6 @@ def make_depth_fn(spec: str, device=None, is_disparity: bool = False):
     """spec → f(image (3,H,W), path) -> depth (1,H,W) in [0,1] (far = 1), or None for ``none``."""
     if spec == "none":
         return None
-    from d2turb.depth import depth_for_image
 
     def depth_fn(image: torch.Tensor, path) -> torch.Tensor:
         if spec == "prior" and device is not None:
@@ -432,9 +433,6 @@ def _write_sample(root: Path, sid: str, sample: dict, meta: dict, shard: Path, l
 
 
 def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
-    from d2turb.ops.splat import backward_flow
-    from d2turb.sim import Simulator
-
     device = resolve_device(cfg.device, info.local_rank)
     done = set(collect_records(root))
     n_chunks = (cfg.pairs + cfg.batch - 1) // cfg.batch
@@ -500,8 +498,6 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
             generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
             if cfg.frames > 1:  # sequences: frames stacked vertically, flow (B, N, 2, H, W)
-                from d2turb.data.sequence import simulate_sequence_chunk
-
                 turb, tilt, flow = simulate_sequence_chunk(
                     sim, clean_t, depth_t, dr0, generator, cfg.frames, cfg.sequence
                 )

@@ -32,6 +32,11 @@ SHARD_DIR = ".meta"
 BIN_NAMES = tuple(BINS)  # D/r0 strength bins, defined once in d2turb.sim.params
 
 
+def bin_index(name: str) -> int:
+    """Index of a strength bin's name in ``BIN_NAMES`` (-1 for a name that is no bin)."""
+    return BIN_NAMES.index(name) if name in BIN_NAMES else -1
+
+
 def sample_id(index: int) -> str:
     return f"{index:07d}"
 

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from d2turb.data.generate import make_depth_fn, resize_up
 from d2turb.data.split import SPLITS, TEST_FOLDERS, VAL_FOLDERS, split_of
 from d2turb.errors import D2TurbError
 from d2turb.io import atomic_path, list_images, read_image, to_uint8, write_text
@@ -370,8 +371,6 @@ def _decode(path: Path) -> torch.Tensor:
 
 
 def _resize_up_uint8(image: torch.Tensor, patch: int) -> torch.Tensor:
-    from d2turb.data.generate import resize_up
-
     if min(image.shape[-2:]) >= patch:
         return image
     return (resize_up(image.float() / 255.0, patch) * 255.0).round().to(torch.uint8)
@@ -400,8 +399,6 @@ def decode_pack(
         (images: uint8 (3, H, W) each, depths: float16 (1, H, W) each in [0, 1] or None for ``none``,
         names: ``folder/stem`` each).
     """
-    from d2turb.data.generate import make_depth_fn
-
     if split not in ("train", "val"):
         raise D2TurbError(f"a pack has train and val images, not {split!r}")
     pack = Path(pack)

@@ -21,17 +21,17 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import file_path, read_config, read_depth_png, read_meta
+from d2turb.data.layout import bin_index, file_path, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
+from d2turb.ops.splat import backward_flow
+from d2turb.sim.sequence import check_sequence_args, wind_speeds
 
 SEQUENCE_DEFAULTS = {"fps": 30.0, "wind": 1.0, "wind_dir": 0.0, "boil": 0.0}
 
 
 def sequence_settings(frames: int, sequence: dict) -> dict:
     """Checked sequence settings (fps, wind m/s or list from aperture to object, wind_dir deg, boil)."""
-    from d2turb.sim.sequence import check_sequence_args, wind_speeds
-
     if not isinstance(frames, int) or frames < 1:
         raise D2TurbError(f"--frames must be a positive integer, got {frames!r}")
     unknown = sorted(set(sequence) - set(SEQUENCE_DEFAULTS))
@@ -48,8 +48,6 @@ def sequence_settings(frames: int, sequence: dict) -> dict:
 def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, settings: dict):
     """One chunk of sequence samples: (turb (B,3,N·H,W), tilt (B,3,N·H,W), flow (B,N,2,H,W)) on the CPU.
     ``flow`` is the backward flow of each frame, as for pairs."""
-    from d2turb.ops.splat import backward_flow
-
     turb, tilt, flow = [], [], []
     for res in sim.sequence(clean, frames=frames, depth=depth, dr0=dr0, generator=generator, **settings):
         turb.append(res.turb.float().cpu())
@@ -67,8 +65,6 @@ class SequenceDataset(Dataset):
     """
 
     def __init__(self, root: str | Path, split: str | None = None, frames: int | None = None):
-        from d2turb.data.datasets import bin_index
-
         self.root = Path(root)
         if split is not None and (self.root / split / "dataset.json").is_file():
             self.root = self.root / split

@@ -11,6 +11,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from d2turb.depth.prior import METHODS, estimate_depth_prior
+from d2turb.io import read_image
+
 KITTI_STEREO_FB = 721.5 * 0.54  # focal length (px) × baseline (m): depth = fb / disparity
 
 
@@ -47,9 +50,6 @@ def spearman_on_valid(estimate: torch.Tensor, truth: np.ndarray, valid: np.ndarr
 
 
 def main(root: str = "../shared/data/depth") -> None:
-    from d2turb.depth.prior import METHODS, estimate_depth_prior
-    from d2turb.io import read_image
-
     cases = kitti_cases(root)
     table = {m: [] for m in METHODS}
     print("| image | " + " | ".join(METHODS) + " |")

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.errors import D2TurbError
+from d2turb.eval.lpips import LPIPS
 from d2turb.io import check_image_tensor
 
 K1, K2 = 0.01, 0.03  # Wang et al. 2004 stabilising constants
@@ -146,8 +147,6 @@ class LPIPSMetric(MeanMetric):
 
     def __init__(self, model=None, **lpips_kwargs) -> None:
         if model is None:
-            from d2turb.eval.lpips import LPIPS
-
             model = LPIPS(**lpips_kwargs)
         self.model = model.eval()
         super().__init__()

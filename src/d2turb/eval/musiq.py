@@ -35,7 +35,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
-from d2turb.io import cache_dir
+from d2turb.eval.vgg import load_state_dict_file
+from d2turb.io import cache_dir, check_image_tensor
 
 ENV_VAR = "D2TURB_MUSIQ_WEIGHTS"
 # Searched (in this order) in a folder given by D2TURB_MUSIQ_WEIGHTS and in $D2TURB_CACHE_DIR/musiq/.
@@ -222,8 +223,6 @@ class _Encoder(nn.Module):
 
 
 def _load_state(path: Path) -> dict[str, torch.Tensor]:
-    from d2turb.eval.vgg import load_state_dict_file
-
     state = load_state_dict_file(path, "MUSIQ weights")
     for wrapper in ("params", "model"):
         if set(state) == {wrapper}:
@@ -287,8 +286,6 @@ class MUSIQ(nn.Module):
         return self.block1(x).permute(0, 2, 3, 1).reshape(x.shape[0], -1)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        from d2turb.io import check_image_tensor
-
         if isinstance(image, torch.Tensor) and image.ndim == 3:
             image = image[None]
         check_image_tensor(image, "MUSIQ input", channels=3)

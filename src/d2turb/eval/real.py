@@ -15,7 +15,11 @@ from pathlib import Path
 import torch
 
 from d2turb.errors import D2TurbError
+from d2turb.eval.musiq import MUSIQ
+from d2turb.eval.niqe import niqe
+from d2turb.eval.piqe import piqe
 from d2turb.io import check_unique_stems, list_images, read_image, write_image, write_json, write_text
+from d2turb.restore import Restorer
 
 IDENTITY = "input"
 NO_REFERENCE = ("niqe", "piqe", "musiq")
@@ -28,16 +32,10 @@ def no_reference_metric(
 ) -> Callable[[torch.Tensor], float]:
     """(3, H, W) image in [0, 1] → float, for "niqe", "piqe" (lower is better) or "musiq" (higher is better)."""
     if name == "niqe":
-        from d2turb.eval.niqe import niqe
-
         return lambda img: float(niqe(img))
     if name == "piqe":
-        from d2turb.eval.piqe import piqe
-
         return lambda img: float(piqe(img))
     if name == "musiq":  # weights: the argument, $D2TURB_MUSIQ_WEIGHTS or the cache folder (d2turb.eval.musiq)
-        from d2turb.eval.musiq import MUSIQ
-
         model = MUSIQ(weights=musiq_weights, device=device)
         return lambda img: float(model(img)[0])
     if name in FULL_REFERENCE:
@@ -59,8 +57,6 @@ def _model_names(weights: list[str]) -> list[str]:
 
 
 def _default_restorer(weights: str, device: str):
-    from d2turb.restore import Restorer  # written elsewhere; imported only when models are evaluated
-
     return Restorer(weights, device=device).restore
 
 

@@ -16,7 +16,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from d2turb.data import PairDataset
+from d2turb.data.layout import BIN_NAMES
 from d2turb.errors import D2TurbError
+from d2turb.eval.lpips import LPIPS
+from d2turb.eval.metrics import psnr, ssim
+from d2turb.eval.report import comparison_grid, latex_table, markdown_table
+from d2turb.io import atomic_path, write_json, write_text
+from d2turb.restore import IdentityRestorer, Restorer
 
 logger = logging.getLogger(__name__)
 
@@ -38,8 +45,6 @@ def _unique_names(names: list[str]) -> list[str]:
 
 def _build_lpips(strict: bool, lpips_weights, lpips_backbone, lpips_net: str, device):
     """(LPIPS model or None, note). Missing LPIPS weights only raise when LPIPS was asked for explicitly."""
-    from d2turb.eval.lpips import LPIPS
-
     try:
         return LPIPS(lpips_net, weights=lpips_weights, backbone=lpips_backbone).to(device), None
     except D2TurbError as exc:
@@ -90,13 +95,6 @@ def evaluate_synthetic(
     called and it is listed in ``results["skipped"]``; with ``fail_fast`` its error is raised instead.
     """
     from PIL import Image
-
-    from d2turb.data import PairDataset
-    from d2turb.data.layout import BIN_NAMES
-    from d2turb.eval.metrics import psnr, ssim
-    from d2turb.eval.report import comparison_grid, latex_table, markdown_table
-    from d2turb.io import atomic_path, write_json, write_text
-    from d2turb.restore import IdentityRestorer, Restorer
 
     if not weights:
         raise D2TurbError("evaluate: give at least one model (--weights PATH|NAME|input)")

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.models.common import pad_to_multiple, transposed_attention
+from d2turb.models.d2turb import D2Turb
 from d2turb.models.registry import register_backbone, register_model
 from d2turb.models.restormer import Restormer
 
@@ -164,6 +165,4 @@ def d2turb_adair(
 ):
     """``d2turb`` with ``backbone="adair"`` (supplementary backbone study): the authors' rectifier and ASPI on
     AdaIR's 96-channel F_guide: 34,463,209 parameters = 28,766,086 + 5,697,123 (paper 34.43 M)."""
-    from d2turb.models.d2turb import D2Turb
-
     return D2Turb("adair", injection, backbone_cfg, rectifier_cfg, injection_cfg, rectifier)

@@ -7,7 +7,7 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from d2turb.models.registry import create_model
+from d2turb.models.registry import create_model, list_models
 
 
 def count_parameters(model: torch.nn.Module) -> int:
@@ -128,8 +128,6 @@ def _paper_row(name: str, cfg: dict) -> tuple[str, str, dict, float, float | Non
 def efficiency_entries() -> list[tuple[str, dict]]:
     """The efficiency table's rows: the paper's methods in its order, the project's ablation / CPU variants, then
     every other registered model at its default config."""
-    from d2turb.models.registry import list_models
-
     entries = [(name, cfg) for _, name, cfg, _, _ in PAPER_EFFICIENCY] + _PROJECT_ROWS
     listed = {name for name, _ in entries}
     return entries + [(name, {}) for name in list_models() if name not in listed]

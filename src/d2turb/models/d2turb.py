@@ -9,7 +9,7 @@ from torch import nn
 from d2turb.errors import D2TurbError
 from d2turb.models.common import pad_to_multiple
 from d2turb.models.rectifier import create_rectifier
-from d2turb.models.registry import create_backbone, register_model
+from d2turb.models.registry import create_backbone, register_model, register_standalone
 from d2turb.ops.warp import warp
 
 
@@ -80,6 +80,7 @@ class D2Turb(nn.Module):
         }
 
 
+@register_standalone
 class BackboneRestorer(nn.Module):
     """A plain backbone trained to predict the clean image directly (Table 1 baselines): restored = deblurred."""
 

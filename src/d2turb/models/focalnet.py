@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.models.common import pad_to_multiple, pad_to_size
+from d2turb.models.d2turb import D2Turb
 from d2turb.models.registry import register_backbone, register_model
 
 
@@ -189,6 +190,4 @@ def d2turb_focalnet(
 ):
     """``d2turb`` with ``backbone="focalnet"`` (supplementary backbone study): the authors' rectifier and ASPI on
     FocalNet's 32-channel F_guide: 12,460,991 parameters = 6,767,964 + 5,693,027 (paper 12.46 M)."""
-    from d2turb.models.d2turb import D2Turb
-
     return D2Turb("focalnet", injection, backbone_cfg, rectifier_cfg, injection_cfg, rectifier)

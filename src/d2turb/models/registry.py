@@ -16,6 +16,7 @@ from d2turb.errors import D2TurbError
 
 _MODELS: dict[str, Callable[..., nn.Module]] = {}
 _BACKBONES: dict[str, Callable[..., nn.Module]] = {}
+_STANDALONE: dict[str, Callable[..., nn.Module]] = {}  # "wrapper": factory(backbone_name, **cfg) -> a model
 
 
 def _register(table: dict, kind: str, name: str):
@@ -36,6 +37,13 @@ def register_model(name: str):
 def register_backbone(name: str):
     """Decorator: register a deblurring backbone (forward(image) -> (image_out, F_guide), attr ``guide_channels``)."""
     return _register(_BACKBONES, "backbone", name)
+
+
+def register_standalone(factory):
+    """Decorator: the wrapper that makes a registered backbone a complete model, ``factory(backbone_name, **cfg)``;
+    :func:`create_model` uses it for a backbone name (the registry itself knows no concrete model)."""
+    _register(_STANDALONE, "standalone wrapper", "wrapper")(factory)
+    return factory
 
 
 def list_models() -> list[str]:
@@ -72,13 +80,11 @@ def create_model(name: str, **cfg) -> nn.Module:
     if name not in _MODELS and name not in _BACKBONES:
         raise D2TurbError(f"unknown model {name!r}; available: {', '.join(list_models())}")
     if name not in _MODELS:
-        from d2turb.models.d2turb import BackboneRestorer
-
         try:
             json.dumps(cfg)
         except TypeError as exc:
             raise D2TurbError(f"model {name!r}: config must be JSON-serialisable ({exc})") from exc
-        model = BackboneRestorer(name, **cfg)
+        model = _STANDALONE["wrapper"](name, **cfg)
     else:
         model = _build(_MODELS, "model", name, cfg)
     model.config = {"name": name, **cfg}

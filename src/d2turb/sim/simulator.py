@@ -14,6 +14,7 @@ from d2turb.errors import D2TurbError
 from d2turb.ops.warp import warp
 from d2turb.sim.params import MAX_DR0, TurbulenceParams, depth_modulation
 from d2turb.sim.psf import PupilOptics, blur_with_basis, pca_basis
+from d2turb.sim.sequence import simulate_sequence
 from d2turb.sim.tilt import ScalarFieldSampler, VectorFieldSampler, path_nodes
 from d2turb.sim.zernike import noll_covariance, noll_to_nm
 
@@ -242,8 +243,6 @@ class Simulator:
         Returns:
             an iterator of :class:`SimResult`, one per frame, computed on demand (constant memory).
         """
-        from d2turb.sim.sequence import simulate_sequence
-
         return simulate_sequence(self, image, frames, fps, wind, wind_dir, boil, depth, dr0, generator)
 
     def _check_depth(self, depth, b, h, w):

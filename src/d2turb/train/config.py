@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from d2turb.errors import D2TurbError
+from d2turb.sim.geometry import GEOMETRIES
 
 
 @dataclass
@@ -265,7 +266,6 @@ def validate(cfg: Config) -> None:
         raise D2TurbError(f"config: data.on_the_fly.bins must be a non-empty list of bin names, got {otf.bins!r}")
     if otf.length is not None and not _positive_int(otf.length):
         raise D2TurbError(f"config: data.on_the_fly.length must be a positive integer, got {otf.length!r}")
-    from d2turb.sim.geometry import GEOMETRIES
 
     if otf.geometry not in GEOMETRIES:
         raise D2TurbError(

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.eval.vgg import FeatureExtractor, imagenet_normalize, load_backbone
 
 
 def l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -62,8 +63,6 @@ class PerceptualLoss(nn.Module):
 
     @classmethod
     def from_file(cls, path: str | os.PathLike) -> PerceptualLoss:
-        from d2turb.eval.vgg import FeatureExtractor, load_backbone
-
         return cls(load_backbone(FeatureExtractor("vgg", device="meta"), path))
 
     def train(self, mode: bool = True):  # the extractor always stays in eval mode
@@ -72,8 +71,6 @@ class PerceptualLoss(nn.Module):
         return self
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        from d2turb.eval.vgg import imagenet_normalize
-
         feats = self.extractor(imagenet_normalize(torch.cat([pred, target])))
         return sum(F.mse_loss(*f.float().chunk(2)) for f in feats)
 

@@ -32,10 +32,18 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler, Sampler, Subset
 
+from d2turb.data import CleanCropDataset, OnTheFlySynthesis, PairDataset, crop_sample
 from d2turb.data.layout import BIN_NAMES
+from d2turb.data.pack import PackCrops
+from d2turb.data.split import split_of
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
+from d2turb.eval.metrics import psnr, ssim
 from d2turb.io import atomic_path, write_json, write_text
+from d2turb.models import create_model, load_pretrained, save_pretrained
+from d2turb.restore import IDENTITY_NAME, resolve_weights
+from d2turb.sim import Simulator
+from d2turb.sim.geometry import geometry_bank
 from d2turb.train.config import Config, model_kwargs
 from d2turb.train.ema import EMA
 from d2turb.train.losses import build_loss
@@ -191,8 +199,6 @@ class Trainer:
 
     def _build_model(self) -> None:
         """The model, created from ``train.seed`` (identical on every rank) without touching the global RNG."""
-        from d2turb.models import create_model
-
         name, kwargs = model_kwargs(self.cfg)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.cfg.train.seed)
@@ -210,10 +216,6 @@ class Trainer:
 
     def _make_synthesis(self, bins, seed: int):
         """On-the-fly synthesis on the training device (one place, for training and pack validation)."""
-        from d2turb.data import OnTheFlySynthesis
-        from d2turb.sim import Simulator
-        from d2turb.sim.geometry import geometry_bank
-
         otf = self.cfg.data.on_the_fly
         if getattr(self, "_simulators", None) is None:
             self._simulators = [Simulator(p, self.device) for p in geometry_bank(otf.geometry, otf.params or {})]
@@ -226,8 +228,6 @@ class Trainer:
         data, seed = self.cfg.data, self.cfg.train.seed
         self.synthesis = None
         if data.source == "pairs":
-            from d2turb.data import PairDataset
-
             probe = PairDataset(data.pairs)
             self.dataset = PairDataset(
                 data.pairs, crop=min(data.patch, probe.patch), hflip=data.hflip, vflip=data.vflip
@@ -235,9 +235,6 @@ class Trainer:
             return
         otf = data.on_the_fly
         if data.source == "clean":
-            from d2turb.data import CleanCropDataset
-            from d2turb.data.split import split_of
-
             tests = sorted({Path(c).name for c in data.clean if split_of(c) == "test"})
             if tests and self.is_main:
                 warnings.warn(
@@ -248,8 +245,6 @@ class Trainer:
                 data.clean, patch=data.patch, depth_spec=otf.depth, length=otf.length, hflip=data.hflip
             )
         else:
-            from d2turb.data.pack import PackCrops
-
             self.dataset = PackCrops(
                 data.pack,
                 patch=data.patch,
@@ -294,8 +289,6 @@ class Trainer:
         val = self.cfg.val
         self.val_loader = None
         if val.pairs is not None:
-            from d2turb.data import PairDataset
-
             dataset = PairDataset(val.pairs)
             n = len(dataset) if val.max_images is None else min(len(dataset), val.max_images)
             shard = Subset(dataset, list(range(self.rank, n, self.world)))
@@ -306,8 +299,6 @@ class Trainer:
     def _pack_validation(self) -> list[dict]:
         """One centre crop per val image × one pair per bin, each from its own seed (so the set does not depend
         on the number of processes); this rank's share, batched by ``val.batch``."""
-        from d2turb.data.pack import PackCrops
-
         val, otf = self.cfg.val, self.cfg.data.on_the_fly
         size = val.crop or self.cfg.data.patch
         crops = PackCrops(val.pack, patch=size, split="val", depth=otf.depth, device=self.device).center_crops(size)
@@ -357,9 +348,6 @@ class Trainer:
         """Load weights only (no optimiser or schedule) from a d2turb ``.safetensors`` file or weights name
         (resolved like ``d2turb restore --weights``); its model config must equal this run's, loading is strict.
         The EMA restarts from these weights."""
-        from d2turb.models import load_pretrained
-        from d2turb.restore import IDENTITY_NAME, resolve_weights
-
         path = resolve_weights(weights)
         if path == IDENTITY_NAME:
             raise D2TurbError(f"--init-from {weights}: not a weights file")
@@ -483,8 +471,6 @@ class Trainer:
 
     def _save_weights(self, name: str) -> None:
         if self.is_main:
-            from d2turb.models import save_pretrained
-
             save_pretrained(self.eval_model, self.run_dir / name)
 
     def write_status(self, state: str, **extra) -> None:
@@ -553,9 +539,6 @@ class Trainer:
         ``psnr``, ``ssim`` of ``restored`` (clamped to [0, 1]) and of the input (``psnr_input``, ``ssim_input``),
         the flow end-point error ``epe`` (px, mean over pixels of ‖V̂ − V‖₂) and that of zero flow ``epe_zero``
         (mean ‖V‖₂); the same per bin as ``<metric>_<bin>``."""
-        from d2turb.data import crop_sample
-        from d2turb.eval.metrics import psnr, ssim
-
         if self.val_loader is None:
             raise D2TurbError("no validation set: set val.pairs or val.pack")
         crop = self.cfg.val.crop if self.cfg.val.pairs is not None else None
