@@ -1,17 +1,33 @@
 import os
 from pathlib import Path
 
-import pytest
-import torch
+# Under pytest-xdist (the default run, `-n auto` in pyproject.toml) each worker gets one thread, and so do the
+# processes tests start (OMP_NUM_THREADS, set before torch is imported); a serial run (`-n 0`) keeps two.
+# D2TURB_TEST_THREADS overrides both.
+TEST_THREADS = int(os.environ.get("D2TURB_TEST_THREADS", "1" if "PYTEST_XDIST_WORKER" in os.environ else "2"))
+if "PYTEST_XDIST_WORKER" in os.environ:
+    os.environ["OMP_NUM_THREADS"] = str(TEST_THREADS)
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 SHARED_DATA = Path(
     os.environ.get("D2TURB_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
 ).resolve()
 
 
+def pytest_xdist_auto_num_workers(config):
+    """`-n auto`: xdist's one worker per core for the suite, but a run of a single test file stays in this
+    process (starting workers that each import torch costs more than they save there)."""
+    files = {str(arg).split("::")[0] for arg in config.args}
+    if len(files) == 1 and next(iter(files)).endswith(".py"):
+        return 0
+    return None
+
+
 @pytest.fixture(autouse=True)
 def _torch_threads():
-    torch.set_num_threads(int(os.environ.get("D2TURB_TEST_THREADS", "2")))  # 1 on a machine shared with other jobs
+    torch.set_num_threads(TEST_THREADS)
 
 
 @pytest.fixture

@@ -101,17 +101,9 @@ def test_demo_writes_grid(tmp_path):
     assert meta["levels"] == {"weak": 1.5, "medium": 3.0, "strong": 4.5}
 
 
-def test_demo_restores_with_given_weights(tmp_path):
-    import torch
-
-    from d2turb.models import create_model, save_pretrained
-
-    torch.manual_seed(0)
-    model = create_model("d2turb_small")
-    torch.nn.init.normal_(model.rectifier.flow_head.weight, std=1e-3)  # a non-zero predicted flow
-    weights = save_pretrained(model, tmp_path / "tiny.safetensors")
-    out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--weights", str(weights)]) == 0
+def test_demo_restores_with_given_weights(tmp_path, tiny_app_weights):
+    out = tmp_path / "demo"  # tiny D²Turb weights with a non-zero predicted flow (conftest)
+    assert main(["demo", "--out", str(out), "--weights", str(tiny_app_weights)]) == 0
     grid = Image.open(out / "restore.png")
     assert grid.size[1] > 12 * 192  # 4 images x 3 bins, one row each
     table = json.loads((out / "demo_meta.json").read_text())["restoration"]["table"]

@@ -70,11 +70,12 @@ def test_zernike_orthonormal_on_unit_disk():
 
 
 def _pointwise_coefficients(sim, n, dr0, seed):
-    """a_2..a_J at one pixel of n independent 2×2 images (B, J-1) in rad."""
+    """a_2..a_J at one pixel of n independent 2×2 images (B, J-1) in rad (in chunks of 2000: small enough for the
+    allocator to reuse its memory, which halves the time; any chunk size gives the same distribution)."""
     gen = torch.Generator().manual_seed(seed)
     chunks = []
-    for _ in range(n // 20000):
-        b = 20000
+    for _ in range(n // 2000):
+        b = 2000
         d = torch.full((b,), float(dr0), dtype=torch.float64)
         tilt = sim.tilt_fields(b, 2, 2, d, gen)
         high = sim.high_fields(tilt, d, (1.0, 1.0), gen)

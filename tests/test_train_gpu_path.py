@@ -177,7 +177,7 @@ def test_detached_training_status_and_guard(pairs, tmp_path, capsys, monkeypatch
     while time.time() < deadline:  # a background process in its own session (here, a child of this one)
         if os.waitpid(pid, os.WNOHANG)[0] == pid:
             break
-        time.sleep(0.5)
+        time.sleep(0.05)
     logged = (run / "train.log").read_text()
     assert "trained 3/3" in logged, logged[-2000:]
     assert "warning: loss.vgg_weights not set" in logged and "initialised from" in logged

@@ -206,12 +206,17 @@ class FrozenFlow:
         r = torch.as_tensor(offsets, dtype=torch.float64, device=self.device).reshape(-1, 2)
         lag = torch.zeros(len(r), dtype=torch.float64, device=self.device) if lags is None else lags
         lag = torch.as_tensor(lag, dtype=torch.float64, device=self.device).reshape(-1)
-        phase = self._tilt_freqs @ r.T - self._tilt_along[..., None] * lag  # (B, M, N)
-        cos = torch.cos(2 * math.pi * phase) * (1.0 - self.boil) ** (lag / 2)
         power = self._tilt_sd[0] ** 2
         d = self._tilt_dir
         terms = torch.stack([d.real * d.real, d.real * d.imag, d.imag * d.imag], -1) * power[:, None]  # (B, M, 3)
-        xx, xy, yy = torch.einsum("bmc,bmn->cbn", terms, cos)
+        parts = []
+        step = max(1, 2**22 // self._tilt_freqs[..., 0].numel())  # offsets per chunk: (B, M, step) ≈ 32 MB
+        for i in range(0, len(r), step):
+            ri, li = r[i : i + step], lag[i : i + step]
+            phase = self._tilt_freqs @ ri.T - self._tilt_along[..., None] * li  # (B, M, n)
+            cos = torch.cos(2 * math.pi * phase) * (1.0 - self.boil) ** (li / 2)
+            parts.append(torch.einsum("bmc,bmn->cbn", terms, cos))
+        xx, xy, yy = torch.cat(parts, -1) if parts else terms.new_zeros(3, len(terms), 0)
         return torch.stack([torch.stack([xx, xy], -1), torch.stack([xy, yy], -1)], -2)
 
     def high(self, gh: int, gw: int, spacing) -> torch.Tensor:
