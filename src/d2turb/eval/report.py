@@ -10,7 +10,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image, ImageDraw, ImageFont
 
-BINS = ("weak", "medium", "strong")
+from d2turb.sim.params import BINS
+
 METRIC_INFO = {  # display name, higher is better, decimals
     "psnr": ("PSNR", True, 3),
     "ssim": ("SSIM", True, 3),
@@ -18,7 +19,7 @@ METRIC_INFO = {  # display name, higher is better, decimals
     "epe": ("EPE px", False, 3),  # flow end-point error vs the true backward flow ("input" = zero flow)
     "psnr_tilt": ("PSNR(Î_tilt)", True, 3),  # deblurring stage vs I_tilt
 }
-GROUPS = BINS + ("avg",)
+GROUPS = (*BINS, "avg")  # table columns: the D/r0 bins, then their mean
 
 
 def _ranks(values: list[float | None], higher_better: bool, decimals: int) -> list[int | None]:
