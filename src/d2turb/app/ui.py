@@ -21,6 +21,7 @@ from d2turb.commands.restore import VIDEO_SUFFIXES
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image, write_image
 from d2turb.sim import MODULATIONS
+from d2turb.sim.params import BINS_RULE
 
 log = logging.getLogger("d2turb.app")
 
@@ -194,9 +195,7 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
                     )
                     shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
                     strength = gr.Radio(list(core.STRENGTHS), value="D/r0", label="strength given as")
-                    dr0 = gr.Slider(
-                        0.1, 10.0, value=3.0, step=0.05, label="D/r0 (weak < 2.25 ≤ medium ≤ 3.75 < strong)"
-                    )
+                    dr0 = gr.Slider(0.1, 10.0, value=3.0, step=0.05, label=f"D/r0 ({BINS_RULE})")
                     cn2 = gr.Number(value=1e-14, label="Cn² (m^-2/3), constant along the path", visible=False)
                     with gr.Row():
                         aperture = gr.Number(value=0.1, label="aperture D (m)")

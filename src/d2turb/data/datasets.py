@@ -14,7 +14,7 @@ from d2turb.data.layout import bin_index, file_path, read_config, read_depth_png
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
 from d2turb.ops.splat import backward_flow
-from d2turb.sim.params import bin_spans, dr0_bin, dr0_from_uniform
+from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
 
 def flip_sample(sample: dict, horizontal: bool = True) -> dict:
@@ -173,7 +173,7 @@ class OnTheFlySynthesis:
     def __init__(
         self,
         simulator,
-        bins=("weak", "medium", "strong"),
+        bins=tuple(BINS),
         device: str | torch.device = "cpu",
         seed: int | None = None,
         use_depth: bool = True,

@@ -70,7 +70,7 @@ class DatasetConfig:
     pairs: int
     patch: int = 256
     split: str = "train"
-    bins: tuple[str, ...] = ("weak", "medium", "strong")
+    bins: tuple[str, ...] = tuple(BINS)
     depth: str = "prior"
     depth_is_disparity: bool = False
     seed: int = 0

@@ -24,6 +24,7 @@ from d2turb.eval.metrics import psnr, ssim
 from d2turb.eval.report import comparison_grid, latex_table, markdown_table
 from d2turb.io import atomic_path, write_json, write_text
 from d2turb.restore import IdentityRestorer, Restorer
+from d2turb.sim.params import BINS_RULE
 
 logger = logging.getLogger(__name__)
 
@@ -217,7 +218,7 @@ def evaluate_synthetic(
     md = [
         "# Synthetic evaluation\n",
         f"Dataset `{data_dir}` — {len(samples)} samples ({bins_line}); "
-        "bins: weak D/r0 < 2.25 ≤ medium ≤ 3.75 < strong. Avg = mean over all samples.\n",
+        f"bins: D/r0 {BINS_RULE}. Avg = mean over all samples.\n",
         markdown_table(table, metrics),
     ]
     md += [f"\n> **Note:** {n}\n" for n in notes]

@@ -10,7 +10,8 @@ import torch
 
 from d2turb.errors import D2TurbError
 
-BINS = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}
+BINS = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}  # D/r0 strength bins (paper Sec. 4.1)
+BINS_RULE = f"weak < {BINS['medium'][0]:g} ≤ medium ≤ {BINS['medium'][1]:g} < strong"  # dr0_bin, for labels
 MODULATIONS = ("uniform", "linear", "linear_offset", "power", "power_offset")
 GEOMETRIES = ("path", "layer")
 MAX_DR0 = 10.0
@@ -122,7 +123,7 @@ class TurbulenceParams:
 
 
 def dr0_bin(x: float) -> str:
-    """Strength bin of D/r0 (paper Sec. 4.1): weak < 2.25 <= medium <= 3.75 < strong (docs/physics.md §5)."""
+    """Strength bin of D/r0 (paper Sec. 4.1): weak < 2.25 ≤ medium ≤ 3.75 < strong, from BINS (docs/physics.md §5)."""
     x = float(x)
     if not math.isfinite(x) or x <= 0:
         raise D2TurbError(f"D/r0 must be positive and finite, got {x!r}")

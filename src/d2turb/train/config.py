@@ -17,13 +17,14 @@ from typing import Any
 
 from d2turb.errors import D2TurbError
 from d2turb.sim.geometry import GEOMETRIES
+from d2turb.sim.params import BINS
 
 
 @dataclass
 class OnTheFlyConfig:
     """Synthesis of training pairs on the training device (``data.clean`` or ``data.pack``)."""
 
-    bins: list[str] = field(default_factory=lambda: ["weak", "medium", "strong"])
+    bins: list[str] = field(default_factory=lambda: list(BINS))
     depth: str = "prior"  # none | prior | DIR | anything:PATH
     length: int | None = None  # crops per epoch (default: one per image)
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
