@@ -114,7 +114,7 @@ def run(args):
         half = np.concatenate([d[:, : d.shape[1] // 2], m[:, d.shape[1] // 2 :]], axis=1)
         tiles.append(_label(Image.fromarray(half).convert("RGB"), "depth | M"))
         rows.append(np.concatenate([np.asarray(t) for t in tiles], axis=1))
-    grid = np.concatenate(rows, axis=0)
+    grid = np.concatenate(rows, axis=0)  # labels drawn on the tiles, unlike comparison_grid: the README's picture
     with atomic_path(out / "demo.png") as tmp:
         Image.fromarray(grid).save(tmp, format="PNG")
     print(f"wrote {out / 'demo.png'} ({len(names)} images x clean/weak/medium/strong/depth)")

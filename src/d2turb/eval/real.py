@@ -61,6 +61,8 @@ def _default_restorer(weights: str, device: str):
 
 
 def _grid(images: list[torch.Tensor], gap: int = 4) -> torch.Tensor:
+    """Input | each model's output side by side at full resolution (real frames are inspected pixel by pixel;
+    :func:`d2turb.eval.report.comparison_grid` fits synthetic samples into labelled cells instead)."""
     h = max(im.shape[1] for im in images)
     padded = [torch.nn.functional.pad(im, (0, 0, 0, h - im.shape[1]), value=1.0) for im in images]
     sep = torch.ones(3, h, gap)
