@@ -103,7 +103,7 @@ def published_tilt():
 
 
 @pytest.fixture(scope="session")
-def tiny_app_weights(tmp_path_factory) -> Path:
+def tiny_d2turb_weights(tmp_path_factory) -> Path:
     """A tiny random D²Turb (NAFNet + U-Net rectifier) with a non-zero flow head, saved as safetensors in a
     folder of its own (usable as $D2TURB_WEIGHTS_DIR)."""
     from d2turb.models import create_model, save_pretrained

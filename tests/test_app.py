@@ -241,11 +241,13 @@ def test_restore_identity_image_and_video(workspace, tmp_path, monkeypatch):
         core.run_restore(str(gif), "input", workspace, limits=core.Limits(video_frames=3))
 
 
-def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(workspace, tiny_app_weights, tmp_path, monkeypatch):
+def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(
+    workspace, tiny_d2turb_weights, tmp_path, monkeypatch
+):
     img = tmp_path / "far.png"
     Image.fromarray(_rgb(56, 72)).save(img)
-    r = core.run_restore(str(img), str(tiny_app_weights), workspace, tile=40, overlap=16)  # 2 x 2 tiles
-    assert f"--weights {tiny_app_weights} --out out --tile 40 --overlap 16" in r.command
+    r = core.run_restore(str(img), str(tiny_d2turb_weights), workspace, tile=40, overlap=16)  # 2 x 2 tiles
+    assert f"--weights {tiny_d2turb_weights} --out out --tile 40 --overlap 16" in r.command
     assert np.asarray(Image.open(r.after)).shape == (56, 72, 3)
     flow = np.load(r.files[2])
     assert flow.shape == (2, 56, 72) and r.flow_scale_px > 0.1

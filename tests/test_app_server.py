@@ -45,12 +45,12 @@ def _free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory, tiny_app_weights):
+def server(tmp_path_factory, tiny_d2turb_weights):
     root = tmp_path_factory.mktemp("app_server")
     home, cwd, tmp = (root / n for n in ("home", "cwd", "tmp"))
     for d in (home, cwd, tmp):
         d.mkdir()
-    weights = tiny_app_weights.parent
+    weights = tiny_d2turb_weights.parent
     env = {k: v for k, v in os.environ.items() if not k.startswith(("GRADIO_", "D2TURB_", "MPLCONFIGDIR"))}
     env.update(
         HOME=str(home),

@@ -101,9 +101,9 @@ def test_demo_writes_grid(tmp_path):
     assert meta["levels"] == {"weak": 1.5, "medium": 3.0, "strong": 4.5}
 
 
-def test_demo_restores_with_given_weights(tmp_path, tiny_app_weights):
+def test_demo_restores_with_given_weights(tmp_path, tiny_d2turb_weights):
     out = tmp_path / "demo"  # tiny D²Turb weights with a non-zero predicted flow (conftest)
-    assert main(["demo", "--out", str(out), "--weights", str(tiny_app_weights)]) == 0
+    assert main(["demo", "--out", str(out), "--weights", str(tiny_d2turb_weights)]) == 0
     grid = Image.open(out / "restore.png")
     assert grid.size[1] > 12 * 192  # 4 images x 3 bins, one row each
     table = json.loads((out / "demo_meta.json").read_text())["restoration"]["table"]
