@@ -79,7 +79,6 @@ class SequenceDataset(Dataset):
         self.window = frames or self.frames
         self.patch = int(config["patch"])
         self.records = sorted(read_meta(self.root), key=lambda r: r["index"])
-        self._bin_index = bin_index
 
     def __len__(self) -> int:
         return len(self.records)
@@ -97,6 +96,6 @@ class SequenceDataset(Dataset):
             "flow": torch.from_numpy(flow.astype(np.float32)),
             "depth": read_depth_png(file_path(self.root, "depth", sid)),
             "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
-            "bin": torch.tensor(self._bin_index(rec["bin"]), dtype=torch.int64),
+            "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
             "id": sid,
         }
