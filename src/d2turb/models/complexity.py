@@ -162,8 +162,9 @@ def benchmark(
     if latency:
         result["latency"] = {}
         for dev in devices:
-            torch.manual_seed(0)
-            model = create_model(name, **cfg)
+            with torch.random.fork_rng(devices=[]):  # the same weights every run, the caller's RNG untouched
+                torch.manual_seed(0)
+                model = create_model(name, **cfg)
             result["latency"][str(dev)] = measure_latency(model, size, dev, warmup, repeats, dtype)
         result["latency_s"] = result["latency"][str(devices[0])]
         result.update(repeats=repeats, dtype=str(dtype).replace("torch.", ""))
