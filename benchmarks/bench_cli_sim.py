@@ -1,23 +1,21 @@
 """`d2turb simulate` over a folder against the in-process batched simulator, per image, measured in one run.
 
-    python3 benchmarks/bench_cli_sim.py [--images 64] [--size 256] [--rounds 5] [--threads 2]
+    python3 benchmarks/bench_cli_sim.py [--images 64] [--size 256] [--batch 8] [--rounds 5] [--threads 2]
                                         [--baseline-src /path/to/older/src] [--json FILE]
 
-Each round, back to back on the same folder of natural-image crops (scikit-image samples, PNG):
-1. ``sim``: a new simulator in this process over the images, already in memory (batch 8; its set-up on the
-   first call is counted, as in the command);
-2. ``cli``: ``d2turb.cli.main(["simulate", FOLDER, ...])`` in this process — the console command's code path
-   (reading, simulator construction and first-call set-up, simulation, background writing), without the
-   interpreter start-up;
-3. ``child``: the same command in a fresh child process, which runs it twice: over the first batch of images
-   (its first call pays the imports, caches and set-up: ``first_call_s``), then over the whole folder (the
-   per-image figures); ``process_s`` is the child's wall time in all, interpreter start-up included;
-4. ``baseline`` (with ``--baseline-src``): the same child run with another source tree (e.g. the version
-   before a change).
-Per-image wall and CPU times (CPU = all threads of the process; on a machine shared with other jobs the
-scheduler shares cores per thread, which skews wall times of multi-threaded steps). Ratios are taken within
-each round, then the median over rounds. Prints one JSON object (and writes it to --json FILE), with the
-PNG writing cost (conversion, encoding, atomic file) per zlib level.
+A fresh child process (``--threads`` torch/OpenMP threads) makes the folder of natural-image crops
+(scikit-image samples, PNG), runs the command once over its first batch (``first_call_s``: the command's own
+imports, caches and set-up) and then, ``--rounds`` times, back to back in the same process:
+1. ``cli``: ``d2turb.cli.main(["simulate", FOLDER, ...])`` — the console command's code path (reading,
+   simulator construction and first-call set-up, simulation, writing), without the interpreter start-up;
+2. ``sim``: a new simulator over the same images, already in memory (batch ``--batch``; its set-up on the
+   first call counted, as in the command);
+and at the end ``own``: the command once more with the simulator replaced by a stored result (its own work:
+reading, writing, bookkeeping).
+Both in one process, alternating, so they share its state (allocator, caches) and the machine's moment; the
+ratio is taken per round, then the median. With ``--baseline-src`` another child does the same with another
+source tree (e.g. the version before a change). CPU = all threads of the process. Prints one JSON object
+(and writes it to --json FILE), with the PNG writing cost (conversion, encoding, atomic file) per zlib level.
 """
 
 from __future__ import annotations
@@ -37,6 +35,7 @@ import numpy as np
 import torch
 
 SRC = Path(__file__).resolve().parents[1] / "src"
+HERE = Path(__file__).resolve().parent
 
 
 def make_images(folder: Path, count: int, size: int) -> list[Path]:
@@ -58,51 +57,65 @@ def make_images(folder: Path, count: int, size: int) -> list[Path]:
     return paths
 
 
-def time_in_process(paths: list[Path], batch: int) -> tuple[float, float]:
-    """(wall, CPU) seconds per image of a new Simulator over the images (already in memory), batches of
-    ``batch``: the simulator's set-up (field spectra on its first call) is counted, as in the command."""
+def measure(folder: Path, out: Path, batch: int, rounds: int) -> dict:
+    """In this process: the command over the first batch, then ``rounds`` × (command, simulator) over the
+    folder. Returns {"first_call_s", "rounds": [{"cli"|"sim": {"s", "cpu_s"}}]} (whole folder)."""
+    import contextlib
+    import shutil
+    from unittest import mock
+
+    from d2turb.cli import main as cli_main
     from d2turb.io import read_image
     from d2turb.sim import Simulator, TurbulenceParams
 
+    paths = sorted(folder.glob("*.png"))
+    warm = folder.parent / "warm"
+    warm.mkdir(exist_ok=True)
+    for p in paths[:batch]:
+        (warm / p.name).unlink(missing_ok=True)
+        (warm / p.name).symlink_to(p)
     images = torch.stack([read_image(p) for p in paths])
-    start, cpu = time.perf_counter(), time.process_time()
-    sim = Simulator(TurbulenceParams(dr0=3.0))
-    gen = torch.Generator().manual_seed(0)
-    for i in range(0, len(images), batch):
-        sim(images[i : i + batch], generator=gen)
-    return (time.perf_counter() - start) / len(images), (time.process_time() - cpu) / len(images)
 
+    def command(src: Path) -> dict:
+        shutil.rmtree(out, ignore_errors=True)
+        with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
+            start, cpu = time.perf_counter(), time.process_time()
+            rc = cli_main(["simulate", str(src), "--out", str(out), "--dr0", "3", "--batch", str(batch)])
+            result = {"s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu}
+        if rc != 0:
+            raise RuntimeError("simulate failed")
+        return result
 
-CHILD = """
-import contextlib, json, os, sys, time
-from d2turb.cli import main
-warm, folder, out, extra = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
-result = {}
-with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
-    for key, src in (("first", warm), ("steady", folder)):
+    def simulator() -> dict:
         start, cpu = time.perf_counter(), time.process_time()
-        rc = main(["simulate", src, "--out", os.path.join(out, key), "--dr0", "3", *extra])
-        result[key] = {"rc": rc, "s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu}
-print(json.dumps(result))
-"""
+        sim = Simulator(TurbulenceParams(dr0=3.0))
+        gen = torch.Generator().manual_seed(0)
+        for i in range(0, len(images), batch):
+            sim(images[i : i + batch], generator=gen)
+        return {"s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu}
+
+    first = command(warm)["s"]
+    result = {"first_call_s": first, "rounds": [{"cli": command(folder), "sim": simulator()} for _ in range(rounds)]}
+    # the command's own work (reading, writing, bookkeeping): once more with the simulator replaced by a result
+    stored = Simulator(TurbulenceParams(dr0=3.0))(images[:batch], generator=torch.Generator().manual_seed(0))
+    with mock.patch.object(Simulator, "__call__", lambda self, image, **kwargs: stored):
+        result["own"] = command(folder)
+    return result
 
 
-def time_cli(src: Path, warm: Path, folder: Path, out: Path, threads: int, extra: list[str]) -> dict:
-    """A child process runs the command twice, over ``warm`` (its first call: imports, caches, set-up) and then
-    over ``folder``: {"first"|"steady": {"s", "cpu_s"}} inside ``d2turb.cli.main`` and "process_s", the child's
-    wall time in all (interpreter start-up included). CPU = all threads of the process."""
-    env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": str(threads)}
-    start = time.perf_counter()
-    done = subprocess.run(
-        [sys.executable, "-c", CHILD, str(warm), str(folder), str(out), *extra],
-        env=env,
-        capture_output=True,
-        text=True,
+def run_child(src: Path, folder: Path, out: Path, args) -> dict:
+    """:func:`measure` in a fresh process importing d2turb from ``src``; adds "process_s" (its wall time in all,
+    interpreter start-up included)."""
+    code = (
+        f"import json, sys; sys.path.insert(0, {str(HERE)!r}); from pathlib import Path; import bench_cli_sim as b; "
+        f"print(json.dumps(b.measure(Path({str(folder)!r}), Path({str(out)!r}), {args.batch}, {args.rounds})))"
     )
-    result = json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else {}
-    if not result or any(v["rc"] != 0 for v in result.values()):
-        raise RuntimeError(f"simulate failed: {done.stderr}")
-    return {**result, "process_s": time.perf_counter() - start}
+    env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": str(args.threads)}
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"child failed: {done.stderr}")
+    return {**json.loads(done.stdout.strip().splitlines()[-1]), "process_s": time.perf_counter() - start}
 
 
 def png_costs(size: int) -> dict:
@@ -125,21 +138,6 @@ def png_costs(size: int) -> dict:
     return out
 
 
-def time_main(folder: Path, out: Path, batch: int) -> tuple[float, float]:
-    """(wall, CPU) seconds of ``d2turb.cli.main`` simulate over ``folder`` in this process."""
-    import contextlib
-
-    from d2turb.cli import main as cli_main
-
-    with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
-        start, cpu = time.perf_counter(), time.process_time()
-        rc = cli_main(["simulate", str(folder), "--out", str(out), "--dr0", "3", "--batch", str(batch)])
-        wall, cpu = time.perf_counter() - start, time.process_time() - cpu
-    if rc != 0:
-        raise RuntimeError("simulate failed")
-    return wall, cpu
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--images", type=int, default=64)
@@ -151,51 +149,34 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, metavar="FILE")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    n = args.images
-    rounds = []
+    n, load = args.images, round(os.getloadavg()[0], 2)
+    trees = {"current": SRC, **({"baseline": args.baseline_src} if args.baseline_src else {})}
+    results = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        paths = make_images(tmp / "in", n, args.size)
-        (tmp / "warm").mkdir()
-        for p in paths[: args.batch]:
-            (tmp / "warm" / p.name).symlink_to(p)
-        for r in range(args.rounds):
-            row = {"load_avg_1min": round(os.getloadavg()[0], 2)}
-            wall, cpu = time_in_process(paths, args.batch)
-            row["sim"] = {"wall_s_per_image": wall, "cpu_s_per_image": cpu}
-            wall, cpu = time_main(tmp / "in", tmp / f"cli-{r}", args.batch)
-            row["cli"] = {"wall_s_per_image": wall / n, "cpu_s_per_image": cpu / n}
-            children = {"child": (SRC, ["--batch", str(args.batch)])}
-            if args.baseline_src:
-                children["baseline"] = (args.baseline_src, [])
-            for name, (src, extra) in children.items():
-                t = time_cli(src, tmp / "warm", tmp / "in", tmp / f"{name}-{r}", args.threads, extra)
-                row[name] = {
-                    "wall_s_per_image": t["steady"]["s"] / n,
-                    "cpu_s_per_image": t["steady"]["cpu_s"] / n,
-                    "first_call_s": t["first"]["s"],
-                    "process_s": t["process_s"],
-                }
-            rounds.append(row)
+        make_images(tmp / "in", n, args.size)
+        for name, src in trees.items():
+            results[name] = run_child(src, tmp / "in", tmp / "out", args)
 
     def med(values):
         return round(statistics.median(values), 3)
 
-    summary = {
-        "sim_ms_per_image": med(1000 * r["sim"]["wall_s_per_image"] for r in rounds),
-        "sim_cpu_ms_per_image": med(1000 * r["sim"]["cpu_s_per_image"] for r in rounds),
-    }
-    for name in [k for k in ("cli", "child", "baseline") if k in rounds[0]]:
-        entry = {
-            "ms_per_image": med(1000 * r[name]["wall_s_per_image"] for r in rounds),
-            "cpu_ms_per_image": med(1000 * r[name]["cpu_s_per_image"] for r in rounds),
-            "ratio_to_sim": med(r[name]["wall_s_per_image"] / r["sim"]["wall_s_per_image"] for r in rounds),
-            "cpu_ratio_to_sim": med(r[name]["cpu_s_per_image"] / r["sim"]["cpu_s_per_image"] for r in rounds),
+    summary = {}
+    for name, res in results.items():
+        rounds = res["rounds"]
+        summary[name] = {
+            "cli_ms_per_image": med(1000 * r["cli"]["s"] / n for r in rounds),
+            "sim_ms_per_image": med(1000 * r["sim"]["s"] / n for r in rounds),
+            "cli_cpu_ms_per_image": med(1000 * r["cli"]["cpu_s"] / n for r in rounds),
+            "sim_cpu_ms_per_image": med(1000 * r["sim"]["cpu_s"] / n for r in rounds),
+            "ratio": med(r["cli"]["s"] / r["sim"]["s"] for r in rounds),
+            "ratio_per_round": [round(r["cli"]["s"] / r["sim"]["s"], 3) for r in rounds],
+            "cpu_ratio": med(r["cli"]["cpu_s"] / r["sim"]["cpu_s"] for r in rounds),
+            "own_ms_per_image": round(1000 * res["own"]["s"] / n, 3),  # the simulator replaced by a stored result
+            "own_cpu_ms_per_image": round(1000 * res["own"]["cpu_s"] / n, 3),
+            "first_call_s": round(res["first_call_s"], 3),  # over args.batch images
+            "process_s": round(res["process_s"], 3),
         }
-        if "first_call_s" in rounds[0][name]:
-            entry["first_call_s"] = med(r[name]["first_call_s"] for r in rounds)  # over args.batch images
-            entry["process_s"] = med(r[name]["process_s"] for r in rounds)
-        summary[name] = entry
     report = {
         "benchmark": "cli_sim",
         "size": args.size,
@@ -208,7 +189,8 @@ def main(argv=None) -> int:
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "summary": summary,
         "png_encode": png_costs(args.size),
-        "rounds": rounds,
+        "load_avg_1min_at_start": load,
+        "results": results,
     }
     text = json.dumps(report, indent=2)
     print(text)

@@ -24,6 +24,9 @@ def test_read_image_modes(tmp_path, mode):
     assert 0 <= x.min() and x.max() <= 1
     if mode == "I;16":
         torch.testing.assert_close(x[0], torch.from_numpy(rgb[..., 0] / 255.0).float(), atol=1e-6, rtol=0)
+    else:  # the 8-bit values over 255, rounded once from float64 (Pillow's own RGB expansion of L, RGBA, P)
+        expected = (np.asarray(Image.open(path).convert("RGB"), dtype=np.float64) / 255.0).astype(np.float32)
+        assert torch.equal(x, torch.from_numpy(expected.transpose(2, 0, 1).copy()))
 
 
 def test_read_corrupt_image_raises_one_line(tmp_path):
@@ -47,6 +50,55 @@ def test_write_image_roundtrip_and_no_temp_left(tmp_path):
     y = read_image(tmp_path / "a.png")
     torch.testing.assert_close(y, x, atol=0.5 / 255 + 1e-6, rtol=0)
     assert [p.name for p in tmp_path.iterdir()] == ["a.png"]
+
+
+@pytest.mark.parametrize("encoder", ["imagecodecs", "pillow"])
+@pytest.mark.parametrize("level", [0, 1, 6, 9])
+def test_png_writer_is_lossless_at_every_level(tmp_path, monkeypatch, encoder, level):
+    """Decoded by Pillow: the exact 8-bit RGB and grey values and 16-bit depth, with either encoder."""
+    from skimage import data
+
+    import d2turb.io
+    from d2turb.data.layout import write_depth_png
+
+    if encoder == "pillow":
+        monkeypatch.setattr(d2turb.io, "imagecodecs", None)  # as on a machine without it
+    else:
+        pytest.importorskip("imagecodecs")
+
+    rgb = data.astronaut()[100:228, 150:310]
+    write_image(tmp_path / "rgb.png", rgb, level)
+    write_image(tmp_path / "grey.png", rgb[..., 1], level)
+    depth = torch.rand(1, 40, 50, generator=torch.Generator().manual_seed(level))
+    write_depth_png(tmp_path / "depth.png", depth, level)
+    with Image.open(tmp_path / "rgb.png") as a, Image.open(tmp_path / "grey.png") as b:
+        assert (a.mode, b.mode) == ("RGB", "L")
+        assert np.array_equal(np.asarray(a), rgb) and np.array_equal(np.asarray(b), rgb[..., 1])
+    with Image.open(tmp_path / "depth.png") as d:
+        expected = np.round(depth[0].double().numpy() * 65535)
+        assert d.mode.startswith("I") and np.array_equal(np.asarray(d).astype(np.float64), expected)
+
+
+@pytest.mark.parametrize("encoder", ["imagecodecs", "pillow"])
+def test_png_levels_trade_size_and_bad_levels_are_refused(monkeypatch, encoder):
+    from skimage import data, filters
+
+    import d2turb.io
+    from d2turb.io import encode_png
+
+    if encoder == "pillow":
+        monkeypatch.setattr(d2turb.io, "imagecodecs", None)
+    else:
+        pytest.importorskip("imagecodecs")
+
+    # a blurred photograph, like the simulator's outputs (on sharp, noisy ones run-length at level 1 can
+    # beat LZ77 at every level)
+    rgb = np.round(filters.gaussian(data.astronaut()[:256, :256], sigma=1.5, channel_axis=-1) * 255).astype(np.uint8)
+    sizes = [len(encode_png(rgb, level)) for level in (0, 1, 9)]
+    assert sizes[0] >= rgb.size and sizes[0] > sizes[1] > sizes[2]  # level 0 stores the filtered rows
+    for level in (-1, 10):
+        with pytest.raises(D2TurbError, match="PNG level must be 0-9"):
+            encode_png(rgb, level)
 
 
 def test_warp_integer_shift_and_gradcheck():

@@ -14,6 +14,7 @@ import threading
 import time
 import zlib
 from collections.abc import Callable, Iterable, Iterator
+from io import BytesIO
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,11 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from d2turb.defaults import DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL
 from d2turb.errors import D2TurbError
+
+try:  # a dependency; a checkout run without installing it (the GPU machines' image) writes PNG with Pillow
+    import imagecodecs
+except ImportError:
+    imagecodecs = None
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
 _limits = {"max_pixels": DEFAULT_MAX_PIXELS}
@@ -141,7 +147,9 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
     path = Path(path)
     img = open_image(path)
     if img.mode == "RGB" and min(img.size) >= 2:  # the common case, in float32 (x/255 rounds as in float64)
-        return torch.from_numpy(np.array(img)).permute(2, 0, 1).contiguous().float().div_(255.0)
+        arr = np.asarray(img).transpose(2, 0, 1).astype(np.float32, order="C")  # numpy: see float_array
+        arr /= np.float32(255.0)
+        return torch.from_numpy(arr)
     try:
         arr = _to_float_array(img)
     except (OSError, ValueError) as exc:
@@ -150,7 +158,7 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         raise D2TurbError(f"{path}: image is too small ({arr.shape[1]}x{arr.shape[0]})")
     if not np.isfinite(arr).all():
         raise D2TurbError(f"{path}: image contains NaN or infinite values")
-    return torch.from_numpy(arr).permute(2, 0, 1).contiguous()
+    return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
 
 
 def check_image_tensor(x: torch.Tensor, name: str = "image", channels: int | None = None) -> None:
@@ -284,9 +292,17 @@ def check_unique_stems(paths: Iterable[str | os.PathLike]) -> None:
         raise D2TurbError(f"several inputs would write the same output names ({listed}); rename or process apart")
 
 
+def float_array(tensor: torch.Tensor) -> np.ndarray:
+    """A tensor's values as a float32 numpy array, through no torch operator when it already is float32 on
+    the CPU (writer threads: a torch operator there starts an OpenMP team of its own, and more OpenMP threads
+    than cores slow the main computation's parallel regions)."""
+    tensor = tensor.detach().cpu()
+    return (tensor if tensor.dtype == torch.float32 else tensor.float()).numpy()
+
+
 def to_uint8(image: torch.Tensor) -> np.ndarray:
     """(3|1, H, W) or (H, W) float tensor in [0, 1] → HxWx3 (or HxW) uint8 array."""
-    arr = image.detach().float().cpu().clamp(0, 1).numpy()
+    arr = np.clip(float_array(image), 0, 1)
     if arr.ndim == 3:
         arr = arr.transpose(1, 2, 0)
         if arr.shape[2] == 1:
@@ -294,27 +310,42 @@ def to_uint8(image: torch.Tensor) -> np.ndarray:
     return np.round(arr * 255.0).astype(np.uint8)
 
 
-def write_pil(path: str | os.PathLike, img: Image.Image, png_level: int = DEFAULT_PNG_LEVEL) -> None:
-    """Save a PIL image atomically, in the format of the path's suffix (PNG when unknown)."""
-    path = Path(path)
-    fmt = Image.registered_extensions().get(path.suffix.lower(), "PNG")
-    options = {"compress_level": png_level} if fmt == "PNG" else {}
-    if fmt == "PNG" and png_level == 1:  # on filtered photographs zlib's run-length strategy is faster and
-        options["compress_type"] = zlib.Z_RLE  # ~8 % smaller than level-1 LZ77 (benchmarks/bench_cli_sim.py)
-    with atomic_path(path) as tmp:
-        img.save(tmp, format=fmt, **options)
+def encode_png(array: np.ndarray, level: int = DEFAULT_PNG_LEVEL) -> bytes:
+    """(H, W) or (H, W, 3|4) uint8 or uint16 array → PNG bytes (libpng through imagecodecs, GIL released).
+
+    Level 1 filters every row with Paeth and compresses with zlib's run-length strategy: half the time of
+    Pillow's encoder (adaptive filters), files of the same size on photographs (benchmarks/bench_cli_sim.py).
+    Without imagecodecs, Pillow's encoder (run-length at level 1 too).
+    """
+    if not 0 <= level <= 9:
+        raise D2TurbError(f"PNG level must be 0-9, got {level}")
+    array = np.ascontiguousarray(array)
+    if imagecodecs is not None:
+        options = {"strategy": imagecodecs.PNG.STRATEGY.RLE, "filter": imagecodecs.PNG.FILTER.PAETH}
+        return imagecodecs.png_encode(array, level=level, **(options if level == 1 else {}))
+    buffer = BytesIO()
+    options = {"compress_type": zlib.Z_RLE} if level == 1 else {}
+    Image.fromarray(array).save(buffer, format="PNG", compress_level=level, **options)
+    return buffer.getvalue()
 
 
 def write_image(path: str | os.PathLike, image: torch.Tensor | np.ndarray, png_level: int = DEFAULT_PNG_LEVEL) -> None:
-    """Write a (C, H, W) float tensor in [0, 1] (or an HxW[x3] uint8 array) as an 8-bit image, atomically.
-    ``png_level``: zlib level 0-9 for PNG (default 1: fast; 9: smallest files)."""
+    """Write a (C, H, W) float tensor in [0, 1] (or an HxW[x3] uint8 array) as an 8-bit image, atomically, in
+    the format of the path's suffix (PNG when unknown). ``png_level``: zlib level 0-9 for PNG (default 1: fast;
+    9: smallest files)."""
     if isinstance(image, torch.Tensor):
         if image.ndim == 4:
             if image.shape[0] != 1:
                 raise D2TurbError(f"write_image: expected one image, got a batch of {image.shape[0]}")
             image = image[0]
         image = to_uint8(image)
-    write_pil(path, Image.fromarray(image), png_level)
+    path = Path(path)
+    fmt = Image.registered_extensions().get(path.suffix.lower(), "PNG")
+    with atomic_path(path) as tmp:
+        if fmt == "PNG":
+            tmp.write_bytes(encode_png(image, png_level))
+        else:
+            Image.fromarray(image).save(tmp, format=fmt)
 
 
 def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
@@ -333,25 +364,37 @@ def write_text(path: str | os.PathLike, text: str) -> None:
         tmp.write_text(text)
 
 
-def writer_threads() -> int:
-    """Background writer threads for this machine: one per two cores beyond the first, at most 4."""
-    return max(1, min(4, ((os.cpu_count() or 2) - 1) // 2))
-
-
 class BackgroundWriter:
-    """Run write jobs in background threads, so a batch command computes the next batch while earlier
-    outputs are encoded and written. Jobs should write atomically (``write_image`` etc.).
+    """Run write jobs in background threads, so a batch command reads and computes while earlier outputs
+    are encoded and written. Jobs should write atomically (``write_image`` etc.) and convert tensors with
+    numpy (:func:`float_array`): a torch operator in another thread starts an OpenMP team of its own.
 
     ``submit`` blocks while ``max_pending`` jobs wait (bounded memory). The first error of a job is raised
     in the caller at the next ``submit`` or at ``close``; later jobs are dropped. Used as a context manager,
     an exception in the block (Ctrl-C) drops the jobs not started and waits for the running ones.
 
+    The writes are *phased* when the computation runs on the CPU with a torch thread on every core: then
+    :meth:`before_compute` waits for the queued jobs, which meanwhile run one thread per core, because the
+    computation's OpenMP threads lose more time to a writer beside them (spinning at barriers while it holds
+    a core) than the writes take on all cores in between (benchmarks/bench_cli_sim.py). The next inputs are
+    still read while the writers work. Otherwise (a GPU, or a core left free) the writes overlap.
+
     Args:
         max_pending: queue length.
-        threads: writer threads (Pillow's and numpy's encoders release the GIL).
+        compute_device: device of the computation the writes alternate with (None: no computation).
+        threads: writer threads (the PNG encoders release the GIL); default: one per core when phased, else
+            one per two cores beyond the first; at most 4.
     """
 
-    def __init__(self, max_pending: int = 16, threads: int = 1):
+    def __init__(self, max_pending: int = 16, compute_device=None, threads: int | None = None):
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        self.phased = (
+            compute_device is not None
+            and torch.device(compute_device).type == "cpu"
+            and torch.get_num_threads() >= cores
+        )
+        if threads is None:
+            threads = min(4, cores if self.phased else (cores - 1) // 2)
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, max_pending))
         self._error: BaseException | None = None
         self._lock = threading.Lock()
@@ -388,6 +431,12 @@ class BackgroundWriter:
             raise RuntimeError("BackgroundWriter is closed")
         self._raise_error()
         self._queue.put((fn, args, kwargs))
+
+    def before_compute(self) -> None:
+        """When phased, block until the queued jobs are done (raising the error of one, if any)."""
+        if self.phased:
+            self._queue.join()
+            self._raise_error()
 
     def close(self, cancel: bool = False) -> None:
         """Finish (or, with ``cancel``, drop) the queued jobs, stop the threads, raise a job's error."""

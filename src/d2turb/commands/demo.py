@@ -81,7 +81,7 @@ def run(args):
 
     from d2turb.depth import estimate_depth_prior
     from d2turb.device import resolve_device
-    from d2turb.io import atomic_path, check_output_dir, to_uint8, write_image, write_json
+    from d2turb.io import check_output_dir, to_uint8, write_image, write_json
     from d2turb.sim import Simulator, depth_modulation
 
     out = check_output_dir(args.out)
@@ -115,8 +115,7 @@ def run(args):
         tiles.append(_label(Image.fromarray(half).convert("RGB"), "depth | M"))
         rows.append(np.concatenate([np.asarray(t) for t in tiles], axis=1))
     grid = np.concatenate(rows, axis=0)  # labels drawn on the tiles, unlike comparison_grid: the README's picture
-    with atomic_path(out / "demo.png") as tmp:
-        Image.fromarray(grid).save(tmp, format="PNG")
+    write_image(out / "demo.png", grid)
     print(f"wrote {out / 'demo.png'} ({len(names)} images x clean/weak/medium/strong/depth)")
     if args.weights != "none":
         # lazy: the restorer (models) loads only when restoration is asked for
@@ -138,11 +137,10 @@ def restore_demo(weights: str, res, names: list[str], out, device) -> dict:
     """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import numpy as np
-    from PIL import Image
 
     from d2turb.eval.metrics import psnr, ssim
     from d2turb.eval.report import comparison_grid, flow_to_rgb
-    from d2turb.io import atomic_path, write_image, write_text
+    from d2turb.io import write_image, write_text
     from d2turb.ops.splat import backward_flow
     from d2turb.restore import Restorer
 
@@ -184,8 +182,7 @@ def restore_demo(weights: str, res, names: list[str], out, device) -> dict:
             "epe_px": float(np.mean([e for _, e in scores["epe"]])),
         }
     grid = comparison_grid(rows, ["input", restorer.name, "clean", "predicted flow", "true flow"], labels, cell=SIZE[1])
-    with atomic_path(out / "restore.png") as tmp:
-        Image.fromarray(grid).save(tmp, format="PNG")
+    write_image(out / "restore.png", grid)
     lines = [
         f"# d2turb demo: restoration with {restorer.name}\n",
         f"{len(names)} built-in images per bin, {SIZE[1]}x{SIZE[0]} px (a demo, not a benchmark: see MODEL_CARD.md).\n",

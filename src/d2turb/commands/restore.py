@@ -94,7 +94,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from d2turb.device import resolve_device
-    from d2turb.io import BackgroundWriter, check_output_dir, read_image, writer_threads
+    from d2turb.io import BackgroundWriter, check_output_dir, read_image
     from d2turb.restore import Restorer
 
     images, videos = split_inputs(args.inputs)
@@ -105,10 +105,12 @@ def run(args) -> int:
     errors = FileErrors(len(images) + len(videos), args.fail_fast)
     options = (args.save_flow, args.save_intermediate, args.png_level)
     count = 0
-    with BackgroundWriter(max_pending=4, threads=writer_threads()) as writer:
+    with BackgroundWriter(max_pending=4, compute_device=restorer.device) as writer:
         for path in tqdm(images, desc="restore", unit="img", disable=len(images) < 2):
             try:
-                details = restorer.restore_with_details(read_image(path))
+                image = read_image(path)
+                writer.before_compute()
+                details = restorer.restore_with_details(image)
             except D2TurbError as exc:
                 errors.record(_named(path, exc))
                 continue
@@ -122,6 +124,7 @@ def run(args) -> int:
                     i, frame = next(frames, (None, None))
                     if frame is None:
                         break
+                    writer.before_compute()
                     details = restorer.restore_with_details(frame)
                 except D2TurbError as exc:
                     bar.close()

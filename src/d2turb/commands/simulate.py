@@ -178,7 +178,6 @@ def run(args):
         check_unique_stems,
         expand_inputs,
         read_image,
-        writer_threads,
     )
     from d2turb.sim import Simulator, dr0_bin, sample_dr0
 
@@ -209,8 +208,9 @@ def run(args):
             yield path, dr0, image, depth
 
     base_meta = params.to_dict()
-    with BackgroundWriter(max_pending=2 * args.batch, threads=writer_threads()) as writer:
+    with BackgroundWriter(max_pending=2 * args.batch, compute_device=device) as writer:
         for group in _batches(readable(), args.batch):
+            writer.before_compute()
             images = torch.stack([item[2] for item in group])
             depths = (
                 None if group[0][3] is None else torch.stack([item[3].reshape(1, *images.shape[-2:]) for item in group])

@@ -52,7 +52,6 @@ from d2turb.io import (
     write_json,
     write_npy,
     write_text,
-    writer_threads,
 )
 from d2turb.ops.splat import backward_flow
 from d2turb.sim import Simulator
@@ -427,7 +426,7 @@ def _write_sample(root: Path, sid: str, sample: dict, meta: dict, shard: Path, l
     for kind in ("turb", "tilt", "gt"):
         write_image(file_path(root, kind, sid), sample[kind], png_level)
     write_npy(file_path(root, "flow", sid), sample["flow"].numpy().astype(np.float16))
-    write_depth_png(file_path(root, "depth", sid), sample["depth"])
+    write_depth_png(file_path(root, "depth", sid), sample["depth"], png_level)
     with lock:
         append_line(shard, meta)
 
@@ -461,7 +460,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
         bar = tqdm(total=todo, unit="pair", desc=f"make-dataset (rank 0 of {info.world})", dynamic_ncols=True)
     start, written = time.perf_counter(), 0
     shard_lock = threading.Lock()
-    with torch.inference_mode(), BackgroundWriter(max_pending=2 * cfg.batch, threads=writer_threads()) as writer:
+    with torch.inference_mode(), BackgroundWriter(max_pending=2 * cfg.batch, compute_device=device) as writer:
         for c in my_chunks:
             indices = range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
             plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources)) for i in indices]
@@ -497,6 +496,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             depth_t = None if depth[0] is None else torch.stack(depth).to(device)
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
             generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
+            writer.before_compute()
             if cfg.frames > 1:  # sequences: frames stacked vertically, flow (B, N, 2, H, W)
                 turb, tilt, flow = simulate_sequence_chunk(
                     sim, clean_t, depth_t, dr0, generator, cfg.frames, cfg.sequence

@@ -22,7 +22,7 @@ from d2turb.errors import D2TurbError
 from d2turb.eval.lpips import LPIPS
 from d2turb.eval.metrics import psnr, ssim
 from d2turb.eval.report import comparison_grid, latex_table, markdown_table
-from d2turb.io import atomic_path, write_json, write_text
+from d2turb.io import write_image, write_json, write_text
 from d2turb.restore import IdentityRestorer, Restorer
 from d2turb.sim.params import BINS_RULE
 
@@ -95,8 +95,6 @@ def evaluate_synthetic(
     A sample whose files cannot be read (or whose restoration fails) is skipped: ``on_skip(message)`` is
     called and it is listed in ``results["skipped"]``; with ``fail_fast`` its error is raised instead.
     """
-    from PIL import Image
-
     if not weights:
         raise D2TurbError("evaluate: give at least one model (--weights PATH|NAME|input)")
     strict_lpips = _lpips_requested(metrics, lpips_weights, lpips_backbone)
@@ -196,8 +194,7 @@ def evaluate_synthetic(
         if rows:
             arr = comparison_grid([r[0] for r in rows], col_labels, [f"{bin_name}: {r[1]}" for r in rows])
             path = out / "grids" / f"{bin_name}.png"
-            with atomic_path(path) as tmp:
-                Image.fromarray(arr).save(tmp, format="PNG")
+            write_image(path, arr)
             grid_files[bin_name] = str(path.relative_to(out))
     results = {
         "data": str(Path(data_dir)),
