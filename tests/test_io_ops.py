@@ -25,7 +25,8 @@ def test_read_image_modes(tmp_path, mode):
     if mode == "I;16":
         torch.testing.assert_close(x[0], torch.from_numpy(rgb[..., 0] / 255.0).float(), atol=1e-6, rtol=0)
     else:  # the 8-bit values over 255, rounded once from float64 (Pillow's own RGB expansion of L, RGBA, P)
-        expected = (np.asarray(Image.open(path).convert("RGB"), dtype=np.float64) / 255.0).astype(np.float32)
+        with Image.open(path) as img:
+            expected = (np.asarray(img.convert("RGB"), dtype=np.float64) / 255.0).astype(np.float32)
         assert torch.equal(x, torch.from_numpy(expected.transpose(2, 0, 1).copy()))
 
 
