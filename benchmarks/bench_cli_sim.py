@@ -59,7 +59,8 @@ def make_images(folder: Path, count: int, size: int) -> list[Path]:
 
 def measure(folder: Path, out: Path, batch: int, rounds: int) -> dict:
     """In this process: the command over the first batch, then ``rounds`` × (command, simulator) over the
-    folder. Returns {"first_call_s", "rounds": [{"cli"|"sim": {"s", "cpu_s"}}]} (whole folder)."""
+    folder, then the command with a stored simulator result. Returns {"first_call_s", "rounds": [{"cli"|"sim":
+    {"s", "cpu_s"}}], "own": {"s", "cpu_s"}} (whole folder)."""
     import contextlib
     import shutil
     from unittest import mock
