@@ -646,7 +646,9 @@ def test_phased_writer_finishes_the_queued_writes_before_each_computation():
         gate.wait(30)
         done.append(i)
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    from d2turb.device import usable_cores
+
+    cores = usable_cores()
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(cores)

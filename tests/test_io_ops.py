@@ -53,19 +53,24 @@ def test_write_image_roundtrip_and_no_temp_left(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["a.png"]
 
 
-@pytest.mark.parametrize("encoder", ["imagecodecs", "pillow"])
+@pytest.fixture(params=["imagecodecs", "pillow"])
+def png_encoder(request, monkeypatch):
+    """Each PNG encoder of ``d2turb.io.encode_png``: imagecodecs, or Pillow as on a machine without it."""
+    import d2turb.io
+
+    if request.param == "pillow":
+        monkeypatch.setattr(d2turb.io, "imagecodecs", None)
+    else:
+        pytest.importorskip("imagecodecs")
+    return request.param
+
+
 @pytest.mark.parametrize("level", [0, 1, 6, 9])
-def test_png_writer_is_lossless_at_every_level(tmp_path, monkeypatch, encoder, level):
+def test_png_writer_is_lossless_at_every_level(tmp_path, png_encoder, level):
     """Decoded by Pillow: the exact 8-bit RGB and grey values and 16-bit depth, with either encoder."""
     from skimage import data
 
-    import d2turb.io
     from d2turb.data.layout import write_depth_png
-
-    if encoder == "pillow":
-        monkeypatch.setattr(d2turb.io, "imagecodecs", None)  # as on a machine without it
-    else:
-        pytest.importorskip("imagecodecs")
 
     rgb = data.astronaut()[100:228, 150:310]
     write_image(tmp_path / "rgb.png", rgb, level)
@@ -80,17 +85,10 @@ def test_png_writer_is_lossless_at_every_level(tmp_path, monkeypatch, encoder, l
         assert d.mode.startswith("I") and np.array_equal(np.asarray(d).astype(np.float64), expected)
 
 
-@pytest.mark.parametrize("encoder", ["imagecodecs", "pillow"])
-def test_png_levels_trade_size_and_bad_levels_are_refused(monkeypatch, encoder):
+def test_png_levels_trade_size_and_bad_levels_are_refused(png_encoder):
     from skimage import data, filters
 
-    import d2turb.io
     from d2turb.io import encode_png
-
-    if encoder == "pillow":
-        monkeypatch.setattr(d2turb.io, "imagecodecs", None)
-    else:
-        pytest.importorskip("imagecodecs")
 
     # a blurred photograph, like the simulator's outputs (on sharp, noisy ones run-length at level 1 can
     # beat LZ77 at every level)

@@ -22,6 +22,7 @@ import torch
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from d2turb.defaults import DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL
+from d2turb.device import usable_cores
 from d2turb.errors import D2TurbError
 
 try:  # a dependency; a checkout run without installing it (the GPU machines' image) writes PNG with Pillow
@@ -330,9 +331,9 @@ def encode_png(array: np.ndarray, level: int = DEFAULT_PNG_LEVEL) -> bytes:
 
 
 def write_image(path: str | os.PathLike, image: torch.Tensor | np.ndarray, png_level: int = DEFAULT_PNG_LEVEL) -> None:
-    """Write a (C, H, W) float tensor in [0, 1] (or an HxW[x3] uint8 array) as an 8-bit image, atomically, in
-    the format of the path's suffix (PNG when unknown). ``png_level``: zlib level 0-9 for PNG (default 1: fast;
-    9: smallest files)."""
+    """Write a (C, H, W) float tensor in [0, 1] (or an HxW[x3] uint8 array, or for PNG an HxW uint16 one) as an
+    image, atomically, in the format of the path's suffix (PNG when unknown). ``png_level``: zlib level 0-9 for
+    PNG (default 1: fast; 9: smallest files)."""
     if isinstance(image, torch.Tensor):
         if image.ndim == 4:
             if image.shape[0] != 1:
@@ -387,7 +388,7 @@ class BackgroundWriter:
     """
 
     def __init__(self, max_pending: int = 16, compute_device=None, threads: int | None = None):
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        cores = usable_cores()
         self.phased = (
             compute_device is not None
             and torch.device(compute_device).type == "cpu"

@@ -22,7 +22,7 @@ from PIL import Image
 
 from d2turb.defaults import DEFAULT_PNG_LEVEL
 from d2turb.errors import D2TurbError
-from d2turb.io import atomic_path, encode_png, float_array
+from d2turb.io import float_array, write_image
 from d2turb.sim import BINS
 
 FORMAT_VERSION = 1
@@ -49,8 +49,7 @@ def file_path(root: Path, kind: str, sid: str) -> Path:
 def write_depth_png(path: Path, depth: torch.Tensor, png_level: int = DEFAULT_PNG_LEVEL) -> None:
     """(1, H, W) or (H, W) depth in [0, 1] → 16-bit PNG, atomically."""
     arr = np.round(np.clip(float_array(depth), 0, 1).reshape(depth.shape[-2:]).astype(np.float64) * 65535.0)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(encode_png(arr.astype(np.uint16), png_level))
+    write_image(path, arr.astype(np.uint16), png_level)
 
 
 def read_depth_png(path: Path) -> torch.Tensor:
