@@ -229,9 +229,17 @@ def test_write_failures_become_one_line_errors(tmp_path, monkeypatch):
     def refuse(path):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr("d2turb.io._create_temp", refuse)
+    monkeypatch.setattr("d2turb.io._open_temp", refuse)
     with pytest.raises(D2TurbError, match=r"cannot write .*a\.png: Permission denied"):
         write_image(tmp_path / "a.png", torch.rand(3, 4, 4))
+    monkeypatch.undo()
+
+    def full_disk(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", full_disk)
+    with pytest.raises(D2TurbError, match=r"cannot write .*a\.json: No space left on device"):
+        write_json(tmp_path / "a.json", {"a": 1})
     monkeypatch.undo()
     with pytest.raises(D2TurbError, match="cannot write"), atomic_path(tmp_path / "b.json") as tmp:
         tmp.write_text("{")

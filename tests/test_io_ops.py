@@ -1,3 +1,5 @@
+from io import BytesIO
+
 import numpy as np
 import pytest
 import torch
@@ -28,6 +30,49 @@ def test_read_image_modes(tmp_path, mode):
         with Image.open(path) as img:
             expected = (np.asarray(img.convert("RGB"), dtype=np.float64) / 255.0).astype(np.float32)
         assert torch.equal(x, torch.from_numpy(expected.transpose(2, 0, 1).copy()))
+
+
+def _rgb_png_variants(folder, rgb):
+    """8-bit RGB PNG files as cameras and editors write them: plain, upper-case suffix, with transparency and
+    gamma chunks, and with an orientation in each place Pillow reads one (eXIf, ImageMagick text, XMP)."""
+    from PIL import PngImagePlugin
+
+    img = Image.fromarray(rgb)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise on display
+    text, xmp, gamma = (PngImagePlugin.PngInfo() for _ in range(3))
+    raw = b"Exif\0\0" + exif.tobytes(0)
+    text.add_text("Raw profile type exif", f"\nexif\n{len(raw):8d}\n{raw.hex()}")
+    xmp.add_itxt("XML:com.adobe.xmp", '<x:xmpmeta><rdf:Description tiff:Orientation="6"/></x:xmpmeta>')
+    gamma.add(b"gAMA", (45455).to_bytes(4, "big"))
+    variants = {
+        "plain.png": {},
+        "upper.PNG": {},
+        "trns.png": {"transparency": tuple(int(v) for v in rgb[0, 0])},
+        "gamma.png": {"pnginfo": gamma},
+        "exif.png": {"exif": exif},
+        "text.png": {"pnginfo": text},
+        "xmp.png": {"pnginfo": xmp},
+    }
+    for name, options in variants.items():
+        img.save(folder / name, format="PNG", **options)
+    return [folder / name for name in variants]
+
+
+def test_read_image_of_rgb_png_files_equals_pillows_decoding(tmp_path):
+    """8-bit RGB PNG takes libpng where it can; the values, and the orientation where one is given, are those of
+    Pillow with its EXIF transpose (the oracle)."""
+    from PIL import ImageOps
+
+    rgb = np.random.default_rng(1).integers(0, 256, (12, 20, 3), dtype=np.uint8)
+    rotated = 0
+    for path in _rgb_png_variants(tmp_path, rgb):
+        with Image.open(path) as img:
+            expected = np.asarray(ImageOps.exif_transpose(img.convert("RGB")), dtype=np.float64) / 255.0
+        x = read_image(path)
+        assert torch.equal(x, torch.from_numpy(expected.astype(np.float32).transpose(2, 0, 1).copy())), path.name
+        rotated += x.shape[1:] == (20, 12)
+    assert rotated == 3  # each orientation was found
 
 
 def test_read_corrupt_image_raises_one_line(tmp_path):
@@ -83,6 +128,47 @@ def test_png_writer_is_lossless_at_every_level(tmp_path, png_encoder, level):
     with Image.open(tmp_path / "depth.png") as d:
         expected = np.round(depth[0].double().numpy() * 65535)
         assert d.mode.startswith("I") and np.array_equal(np.asarray(d).astype(np.float64), expected)
+
+
+@pytest.mark.parametrize("shape", [(3, 5, 7), (1, 5, 7), (5, 7)])
+def test_to_uint8_rounds_to_the_nearest_level_and_clips(shape):
+    from d2turb.io import to_uint8
+
+    rng = np.random.default_rng(len(shape))
+    levels = rng.integers(0, 256, shape)
+    x = (levels + rng.uniform(-0.45, 0.45, shape)) / 255  # nearest level unambiguous
+    x[..., 0], x[..., 1] = -0.2, 1.3
+    levels[..., 0], levels[..., 1] = 0, 255
+    out = to_uint8(torch.from_numpy(x))
+    expected = np.moveaxis(levels, 0, -1) if len(shape) == 3 else levels
+    expected = expected[..., 0] if expected.ndim == 3 and expected.shape[2] == 1 else expected
+    assert out.dtype == np.uint8 and out.flags.c_contiguous and np.array_equal(out, expected)
+
+
+@pytest.mark.parametrize(
+    "shape, dtype",
+    [((1, 7), np.uint8), ((5, 1, 3), np.uint8), ((9, 6, 2), np.uint8), ((4, 5, 4), np.uint8), ((6, 3, 3), np.uint16)],
+)
+def test_png_level1_is_decoded_exactly_by_libpng_and_pillow(shape, dtype):
+    """The level-1 encoder assembles the PNG itself (Up filter, libdeflate): one row, one column, grey+alpha,
+    RGBA, 16-bit RGB and a strided view decode to the same values with libpng and Pillow (which checks CRCs)."""
+    imagecodecs = pytest.importorskip("imagecodecs")
+    from d2turb.io import encode_png
+
+    rng = np.random.default_rng(sum(shape))
+    array = rng.integers(0, np.iinfo(dtype).max, size=shape, endpoint=True, dtype=dtype)
+    if array.ndim == 3:  # the HWC view of a CHW array, as the commands write a tensor
+        strided = np.moveaxis(np.ascontiguousarray(np.moveaxis(array, -1, 0)), 0, -1)
+    else:
+        strided = np.repeat(array, 2, axis=1)[:, ::2]
+    assert not strided.flags.c_contiguous
+    for view in (array, strided):
+        data = encode_png(view, 1)
+        assert np.array_equal(imagecodecs.png_decode(data), array)
+        with Image.open(BytesIO(data)) as img:
+            img.load()
+            if dtype == np.uint8:
+                assert np.array_equal(np.asarray(img), array)
 
 
 def test_png_levels_trade_size_and_bad_levels_are_refused(png_encoder):
