@@ -153,8 +153,8 @@ def _read_plain_png(path: Path) -> np.ndarray | None:
         data = path.read_bytes()
     except OSError:
         return None
-    # signature, IHDR's length and type, width, height, bit depth 8, colour type 2 (RGB)
-    if data[:16] != _PNG_SIGNATURE + b"\x00\x00\x00\x0dIHDR" or data[24:26] != b"\x08\x02":
+    # signature, IHDR's length and type, width, height, 8 bits, RGB, standard compression and filters, no interlace
+    if data[:16] != _PNG_SIGNATURE + b"\x00\x00\x00\x0dIHDR" or data[24:29] != b"\x08\x02\x00\x00\x00":
         return None
     w, h = struct.unpack(">II", data[16:24])
     limit = _limits["max_pixels"]
@@ -398,16 +398,17 @@ def _encode_png_up(array: np.ndarray, level: int) -> bytes:
 def encode_png(array: np.ndarray, level: int = DEFAULT_PNG_LEVEL) -> bytes:
     """(H, W) or (H, W, 2|3|4) uint8 or uint16 array → PNG bytes (GIL released while compressing).
 
-    Level 1 (the default, for speed) filters every row with "Up" and compresses with libdeflate: 1.0 ms per
-    simulated 256² RGB output instead of 2.2 ms with libpng (Paeth, run-length zlib), files ~10 % larger
-    (benchmarks/bench_cli_sim.py). Other levels: libpng's adaptive filters and zlib at that level, both
-    through imagecodecs; without imagecodecs, Pillow's encoder at every level.
+    Level 1 (the default, for speed) filters every row with "Up" and compresses with libdeflate: 1.2 ms per
+    simulated 256² RGB output instead of 2.2 ms with libpng's fastest settings (Paeth, run-length zlib), files
+    ~10 % larger (~13 % above level 6). Other levels: libpng's adaptive filters and zlib at that level, both
+    through imagecodecs; without imagecodecs, Pillow's encoder (run-length zlib at level 1).
     """
     if not 0 <= level <= 9:
         raise D2TurbError(f"PNG level must be 0-9, got {level}")
     if imagecodecs is None:
         buffer = BytesIO()
-        Image.fromarray(np.ascontiguousarray(array)).save(buffer, format="PNG", compress_level=level)
+        options = {"compress_type": zlib.Z_RLE} if level == 1 else {}
+        Image.fromarray(np.ascontiguousarray(array)).save(buffer, format="PNG", compress_level=level, **options)
         return buffer.getvalue()
     if level == 1 and imagecodecs.DEFLATE.available:
         return _encode_png_up(array, level)

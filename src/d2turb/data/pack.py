@@ -32,7 +32,7 @@ from torch.utils.data import Dataset
 from d2turb.data.generate import make_depth_fn, resize_up
 from d2turb.data.split import SPLITS, TEST_FOLDERS, VAL_FOLDERS, split_of
 from d2turb.errors import D2TurbError
-from d2turb.io import atomic_path, list_images, read_image, to_uint8, write_text
+from d2turb.io import list_images, read_image, to_uint8, write_bytes, write_text
 
 PACK_FORMAT = 1
 MANIFEST = "pack.json"
@@ -160,8 +160,7 @@ class _Encoder:
         path = self.cache / f"{self.sha[k][:24]}_{size[0]}x{size[1]}_q{self.quality}.jpg"
         if not path.is_file():
             data = encode_jpeg(self._pixels(k) if pixels is None else pixels, size, self.quality)
-            with atomic_path(path) as tmp:
-                tmp.write_bytes(data)
+            write_bytes(path, data)
         return path
 
     def pixels_at(self, cap: int | None) -> int:
