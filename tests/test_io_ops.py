@@ -32,6 +32,18 @@ def test_read_image_modes(tmp_path, mode):
         assert torch.equal(x, torch.from_numpy(expected.transpose(2, 0, 1).copy()))
 
 
+@pytest.fixture(params=["imagecodecs", "pillow"])
+def png_codec(request, monkeypatch):
+    """Each PNG codec of ``d2turb.io``: imagecodecs, or Pillow as on a machine without it."""
+    import d2turb.io
+
+    if request.param == "pillow":
+        monkeypatch.setattr(d2turb.io, "imagecodecs", None)
+    else:
+        pytest.importorskip("imagecodecs")
+    return request.param
+
+
 def _rgb_png_variants(folder, rgb):
     """8-bit RGB PNG files as cameras and editors write them: plain, upper-case suffix, with transparency and
     gamma chunks, and with an orientation in each place Pillow reads one (eXIf, ImageMagick text, XMP)."""
@@ -59,7 +71,7 @@ def _rgb_png_variants(folder, rgb):
     return [folder / name for name in variants]
 
 
-def test_read_image_of_rgb_png_files_equals_pillows_decoding(tmp_path):
+def test_read_image_of_rgb_png_files_equals_pillows_decoding(tmp_path, png_codec):
     """8-bit RGB PNG takes libpng where it can; the values, and the orientation where one is given, are those of
     Pillow with its EXIF transpose (the oracle)."""
     from PIL import ImageOps
@@ -98,20 +110,8 @@ def test_write_image_roundtrip_and_no_temp_left(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["a.png"]
 
 
-@pytest.fixture(params=["imagecodecs", "pillow"])
-def png_encoder(request, monkeypatch):
-    """Each PNG encoder of ``d2turb.io.encode_png``: imagecodecs, or Pillow as on a machine without it."""
-    import d2turb.io
-
-    if request.param == "pillow":
-        monkeypatch.setattr(d2turb.io, "imagecodecs", None)
-    else:
-        pytest.importorskip("imagecodecs")
-    return request.param
-
-
 @pytest.mark.parametrize("level", [0, 1, 6, 9])
-def test_png_writer_is_lossless_at_every_level(tmp_path, png_encoder, level):
+def test_png_writer_is_lossless_at_every_level(tmp_path, png_codec, level):
     """Decoded by Pillow: the exact 8-bit RGB and grey values and 16-bit depth, with either encoder."""
     from skimage import data
 
@@ -171,7 +171,7 @@ def test_png_level1_is_decoded_exactly_by_libpng_and_pillow(shape, dtype):
                 assert np.array_equal(np.asarray(img), array)
 
 
-def test_png_levels_trade_size_and_bad_levels_are_refused(png_encoder):
+def test_png_levels_trade_size_and_bad_levels_are_refused(png_codec):
     from skimage import data, filters
 
     from d2turb.io import encode_png
