@@ -77,6 +77,55 @@ def test_models_rows_values_and_grids(real_dir, tmp_path):
     assert "| blur |" in md and "PIQE" in md
 
 
+def test_recursive_scores_each_clip_folder_with_means_per_folder(tmp_path, astronaut, capsys):
+    """One folder per clip, the same frame names in each: per-image NIQE equals the metric on the file, the
+    folder means are the plain means of their frames, grids keep the folder, hidden files are not read."""
+    real = tmp_path / "real"
+    crops = {
+        "clip1/f1.png": astronaut[0, :, :192, :160],
+        "clip1/f2.png": astronaut[0, :, 64:, 96:],
+        "clip2/f1.png": astronaut[0, :, 32:224, 48:208].flip(-1),
+        "top.png": astronaut[0, :, 40:232, 80:240].flip(-2),
+    }
+    for name, crop in crops.items():
+        write_image(real / name, crop)
+    (real / "clip2" / "._f1.png").write_bytes(b"\x00\x05\x16\x07 AppleDouble")  # macOS metadata, not an image
+    out = tmp_path / "out"
+    results = evaluate_real(
+        real, ["niqe"], out, weights=["input", "blur.safetensors"], restorer_factory=_blur_factory([]), recursive=True
+    )
+    assert results["images"] == list(crops) and results["skipped"] == []
+    expected = {name: niqe(read_image(real / name)).item() for name in crops}
+    per_image = results["models"]["input"]["niqe"]["per_image"]
+    assert per_image == pytest.approx(expected, abs=1e-12)
+    folders = results["folders"]
+    assert list(folders) == ["clip1", "clip2", "."]
+    assert folders["clip1"]["images"] == ["clip1/f1.png", "clip1/f2.png"]
+    assert folders["clip1"]["models"]["input"]["niqe"] == pytest.approx(
+        np.mean([expected["clip1/f1.png"], expected["clip1/f2.png"]])
+    )
+    assert folders["."]["models"]["input"]["niqe"] == pytest.approx(expected["top.png"])
+    assert (out / "grids" / "clip1" / "f1.png").is_file() and (out / "grids" / "clip2" / "f1.png").is_file()
+    assert json.loads((out / "results.json").read_text())["folders"] == folders
+    assert "## Means per folder" in (out / "results.md").read_text()
+
+    rc = main(["evaluate", "--real", str(real), "--recursive", "--metrics", "niqe", "--out", str(tmp_path / "o2")])
+    assert rc == 0 and "clip2 (1 image), input: niqe" in capsys.readouterr().out
+    assert main(["evaluate", "--real", str(real / "clip1"), "--recursive", "--out", str(tmp_path / "o3")]) == 0
+
+
+def test_clip_folders_without_recursive_and_recursive_with_data_are_one_line_errors(tmp_path, astronaut, capsys):
+    real = tmp_path / "real"
+    write_image(real / "clip" / "f.png", astronaut[0, :, :192, :160])
+    assert main(["evaluate", "--real", str(real), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "no images found" in err and "--recursive" in err and err.count("\n") == 1
+    assert (
+        main(["evaluate", "--data", str(real), "--weights", "input", "--recursive", "--out", str(tmp_path / "o")]) == 2
+    )
+    assert "--recursive goes with --real" in capsys.readouterr().err
+
+
 def test_interrupted_run_leaves_no_results(real_dir, tmp_path):
     def factory(weights, device):
         def restore(img):

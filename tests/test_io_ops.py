@@ -184,6 +184,11 @@ def test_png_levels_trade_size_and_bad_levels_are_refused(png_codec):
     for level in (-1, 10):
         with pytest.raises(D2TurbError, match="PNG level must be 0-9"):
             encode_png(rgb, level)
+    for shape in [(0, 5, 3), (4, 0), (4, 5, 5), (2, 3, 4, 5)]:
+        with pytest.raises(D2TurbError, match="cannot write an image of shape"):
+            encode_png(np.zeros(shape, np.uint8))
+    with Image.open(BytesIO(encode_png(rgb[..., :1]))) as single:
+        assert single.mode == "L" and np.array_equal(np.asarray(single), rgb[..., 0])
 
 
 def test_warp_integer_shift_and_gradcheck():

@@ -21,6 +21,11 @@ def register(sub):
     src.add_argument("--data", metavar="DATASET_DIR", help="synthetic dataset folder (from make_dataset)")
     src.add_argument("--real", metavar="DIR", help="folder of real degraded images (no ground truth)")
     p.add_argument(
+        "--recursive",
+        action="store_true",
+        help="with --real: also the images in DIR's sub-folders (e.g. one folder per clip), with means per folder",
+    )
+    p.add_argument(
         "--weights",
         nargs="+",
         metavar="W",
@@ -68,8 +73,13 @@ def run(args):
         raise D2TurbError(f"--max-samples must be at least 1, got {args.max_samples}")
     if not args.real and not args.weights:
         raise D2TurbError("--data needs --weights (model files/names, or 'input' for the unrestored baseline)")
+    if args.recursive and not args.real:
+        raise D2TurbError("--recursive goes with --real (a synthetic dataset is one folder)")
     device = str(resolve_device(args.device))
-    remove_stale_temp_files(check_output_dir(args.out) / "grids")
+    grids = check_output_dir(args.out) / "grids"
+    if grids.is_dir():  # grids/<folder>/ with --recursive
+        for folder in [grids, *(p for p in grids.rglob("*") if p.is_dir())]:
+            remove_stale_temp_files(folder)
     if args.real:
         # lazy: the no-reference metrics (scipy, MUSIQ) load only for --real
         from d2turb.eval.real import evaluate_real, parse_metrics
@@ -84,9 +94,15 @@ def run(args):
             musiq_weights=args.musiq_weights,
             fail_fast=args.fail_fast,
             on_skip=print_error,
+            recursive=args.recursive,
         )
         for model, scores in results["models"].items():
             print(model + ": " + ", ".join(f"{m} {v['mean']:.4f}" for m, v in scores.items()))
+        for folder, entry in results.get("folders", {}).items():
+            count = len(entry["images"])
+            for model, means in entry["models"].items():
+                scores = ", ".join(f"{m} {v:.4f}" for m, v in means.items())
+                print(f"{folder} ({count} image{'s' * (count != 1)}), {model}: {scores}")
         total = len(results["images"]) + len(results["skipped"])
     else:
         # lazy: the synthetic evaluator (datasets, models) loads only for --data

@@ -1,8 +1,9 @@
 """No-reference evaluation of real turbulence images (no ground truth), paper Table 2.
 
-``evaluate_real`` scores every image of a folder with NIQE / PIQE, optionally after restoring it with
-each model in ``weights`` ("input" = the unrestored image), and writes ``results.json``,
-``results.md`` and, with models, comparison grids ``grids/<name>.png`` (input | model 1 | ...).
+``evaluate_real`` scores every image of a folder (with ``recursive``, of its sub-folders too: one clip per
+folder, means per folder) with NIQE / PIQE, optionally after restoring it with each model in ``weights``
+("input" = the unrestored image), and writes ``results.json``, ``results.md`` and, with models, comparison
+grids ``grids/<name>.png`` (input | model 1 | ...).
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import torch
 
@@ -86,6 +87,18 @@ def _markdown(results: dict) -> str:
     ]
     for model in models:
         lines.append(f"| {model} | " + " | ".join(_fmt(results["models"][model][m]["mean"]) for m in metrics) + " |")
+    if "folders" in results:
+        lines += [
+            "",
+            "## Means per folder",
+            "",
+            "| folder | images | model | " + " | ".join(m.upper() for m in metrics) + " |",
+            "|---|---:|---|" + "---:|" * len(metrics),
+        ]
+        for folder, entry in results["folders"].items():
+            for model in models:
+                means = " | ".join(_fmt(entry["models"][model][m]) for m in metrics)
+                lines.append(f"| {folder} | {len(entry['images'])} | {model} | {means} |")
     for m in metrics:
         lines += [
             "",
@@ -115,6 +128,7 @@ def evaluate_real(
     musiq_weights: str | None = None,
     fail_fast: bool = False,
     on_skip: Callable[[str], None] | None = None,
+    recursive: bool = False,
 ) -> dict:
     """Score the images of ``real_dir``; returns the dict written to ``out_dir/results.json``.
 
@@ -126,18 +140,29 @@ def evaluate_real(
     An image that cannot be read, restored or scored is skipped: ``on_skip(message)`` is called, it is
     listed in ``results["skipped"]`` ({"file", "error"}) and left out of the means. With ``fail_fast``
     (or a single image) its ``D2TurbError`` is raised instead; if every image fails, too.
+
+    With ``recursive``, the images of the sub-folders count too: they are named by their path relative to
+    ``real_dir`` (``clip/frame.png``), their grids go to ``grids/clip/frame.png``, and
+    ``results["folders"][folder] = {"images": [...], "models": {model: {metric: mean}}}`` gives the means per
+    folder ("." for ``real_dir`` itself).
     """
     metric_names = parse_metrics(metrics)
     scorers = {m: no_reference_metric(m, device, musiq_weights) for m in metric_names}
-    paths = list_images(real_dir)
+    real_dir = Path(real_dir)
+    paths = list_images(real_dir, recursive=recursive)
     if max_samples is not None:
         paths = paths[:max_samples]
     if not paths:
-        raise D2TurbError(f"{real_dir}: no images found")
-    names = [p.name for p in paths]
+        nested = not recursive and list_images(real_dir, recursive=True)
+        raise D2TurbError(
+            f"{real_dir}: no images found" + (" (its sub-folders hold some: --recursive)" if nested else "")
+        )
+    relative = [p.relative_to(real_dir) for p in paths]
+    names = [r.as_posix() for r in relative]
     weights = list(weights) if weights else [IDENTITY]
     if any(str(w) != IDENTITY for w in weights):
-        check_unique_stems(paths)  # grids/<stem>.png per image
+        for folder in dict.fromkeys(r.parent for r in relative):  # grids/<folder>/<stem>.png per image
+            check_unique_stems(p for p, r in zip(paths, relative) if r.parent == folder)
     model_names = _model_names(weights)
     factory = restorer_factory or _default_restorer
     restorers = {n: (None if str(w) == IDENTITY else factory(str(w), device)) for n, w in zip(model_names, weights)}
@@ -145,7 +170,7 @@ def evaluate_real(
     values = {n: {m: {} for m in metric_names} for n in model_names}
     skipped: list[dict] = []
     out_dir = Path(out_dir)
-    for path, name in zip(paths, names):
+    for path, rel, name in zip(paths, relative, names):
         try:
             image = read_image(path)
             outputs = {}
@@ -169,7 +194,7 @@ def evaluate_real(
             values[n][m][name] = value
         if any(r is not None for r in restorers.values()):
             write_image(
-                out_dir / "grids" / f"{path.stem}.png",
+                out_dir / "grids" / rel.with_suffix(".png"),
                 _grid([image, *[outputs[n] for n in model_names if restorers[n] is not None]]),
             )
     if len(skipped) == len(paths):
@@ -188,6 +213,20 @@ def evaluate_real(
         },
     }
     results.update({m: results["models"][model_names[0]][m] for m in metric_names})
+    if recursive:
+        folders: dict[str, list[str]] = {}
+        for name in names:
+            folders.setdefault(PurePosixPath(name).parent.as_posix(), []).append(name)
+        results["folders"] = {
+            folder: {
+                "images": members,
+                "models": {
+                    n: {m: sum(values[n][m][k] for k in members) / len(members) for m in metric_names}
+                    for n in model_names
+                },
+            }
+            for folder, members in folders.items()
+        }
     write_json(out_dir / "results.json", results)
     write_text(out_dir / "results.md", _markdown(results))
     return results
