@@ -386,8 +386,13 @@ def test_stale_temp_files_are_removed_live_ones_kept(tmp_path):
     ]
     for p in stale + kept:
         p.write_bytes(b"")
+    nested = tmp_path / "clip" / stale[0].name  # grids/<folder>/ of evaluate --real --recursive
+    nested.parent.mkdir()
+    nested.write_bytes(b"")
     assert remove_stale_temp_files(tmp_path) == len(stale)
-    assert sorted(tmp_path.iterdir()) == sorted(kept)
+    assert sorted(tmp_path.iterdir()) == sorted([*kept, nested.parent]) and nested.exists()
+    assert remove_stale_temp_files(tmp_path, recursive=True) == 1 and not nested.exists()
+    assert sorted(tmp_path.iterdir()) == sorted([*kept, nested.parent])
 
 
 def test_rerun_removes_temp_files_a_kill_left(tmp_path, capsys):

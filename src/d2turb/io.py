@@ -307,14 +307,14 @@ def _owner_is_gone(token: str, mtime: float) -> bool:
     return False
 
 
-def remove_stale_temp_files(folder: str | os.PathLike) -> int:
-    """Delete the temporary files :func:`atomic_path` left in ``folder`` (not recursive) when its process was
-    killed; files of processes that still run are kept. Returns how many were removed."""
+def remove_stale_temp_files(folder: str | os.PathLike, recursive: bool = False) -> int:
+    """Delete the temporary files :func:`atomic_path` left in ``folder`` (with ``recursive``, in its sub-folders
+    too) when its process was killed; files of processes that still run are kept. Returns how many were removed."""
     folder = Path(folder)
     count = 0
     if not folder.is_dir():
         return 0
-    for p in folder.iterdir():
+    for p in folder.rglob(".*.tmp*") if recursive else folder.iterdir():
         m = _TEMP_RE.match(p.name)
         if m is None or (m.group("suffix") or "") != Path(m.group("name")).suffix:
             continue

@@ -76,10 +76,7 @@ def run(args):
     if args.recursive and not args.real:
         raise D2TurbError("--recursive goes with --real (a synthetic dataset is one folder)")
     device = str(resolve_device(args.device))
-    grids = check_output_dir(args.out) / "grids"
-    if grids.is_dir():  # grids/<folder>/ with --recursive
-        for folder in [grids, *(p for p in grids.rglob("*") if p.is_dir())]:
-            remove_stale_temp_files(folder)
+    remove_stale_temp_files(check_output_dir(args.out) / "grids", recursive=True)  # grids/<folder>/ with --recursive
     if args.real:
         # lazy: the no-reference metrics (scipy, MUSIQ) load only for --real
         from d2turb.eval.real import evaluate_real, parse_metrics
