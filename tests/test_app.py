@@ -255,12 +255,12 @@ def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(
 
 
 def test_weights_choices_follow_resolve_weights(tmp_path, monkeypatch):
-    import d2turb.restore
-    from d2turb.restore import resolve_weights
+    import d2turb.models.hub
+    from d2turb.models.hub import resolve_weights
 
     a, b, cache, package = tmp_path / "a", tmp_path / "b", tmp_path / "cache", tmp_path / "package"
     shipped = package / "resources" / "weights"
-    monkeypatch.setattr(d2turb.restore, "resources", SimpleNamespace(files=lambda name: package))
+    monkeypatch.setattr(d2turb.models.hub, "resources", SimpleNamespace(files=lambda name: package))
     monkeypatch.setenv("D2TURB_WEIGHTS_DIR", f"{a}:{b}")
     monkeypatch.setenv("D2TURB_CACHE_DIR", str(cache))
     assert core.weights_choices() == [("input", None)] and core.default_weights(core.weights_choices()) == "input"

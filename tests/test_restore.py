@@ -61,7 +61,7 @@ def test_tile_layout_covers_image_with_overlap():
 
 
 def test_strip_warp_equals_one_shot_warp(monkeypatch):
-    import d2turb.restore as r
+    import d2turb.restore.single as r
 
     monkeypatch.setattr(r, "_WARP_STRIP_PIXELS", 7 * 50)  # force many 7-row strips
     g = torch.Generator().manual_seed(1)

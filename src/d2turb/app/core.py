@@ -28,7 +28,6 @@ import torch
 from d2turb import __version__
 from d2turb.cli import build_parser
 from d2turb.commands.demo import sample_images
-from d2turb.commands.restore import VIDEO_HINT, VIDEO_SUFFIXES, _iter_video
 from d2turb.commands.simulate import make_params
 from d2turb.depth import depth_for_image
 from d2turb.depth.io import DEPTH_SUFFIXES
@@ -36,9 +35,10 @@ from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.eval.report import fit_cell, flow_to_rgb
 from d2turb.io import IMAGE_SUFFIXES, read_image, write_image, write_json, write_text
-from d2turb.restore import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
+from d2turb.models.hub import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
 from d2turb.sim import MODULATIONS, Simulator, depth_modulation, dr0_bin, fried_r0_spherical
 from d2turb.sim.geometry import footprint_px
+from d2turb.video import VIDEO_HINT, VIDEO_SUFFIXES, iter_video
 
 SAMPLES = ("astronaut", "coffee", "chelsea", "chart")  # d2turb.commands.demo.sample_images
 STRENGTHS = ("D/r0", "Cn²")
@@ -554,7 +554,7 @@ def run_restore(
     stem = Path(name).stem
     shutil.copyfile(src, run / name)
     if is_video:
-        first = next((f for _, f in _iter_video(run / name)), None)
+        first = next((f for _, f in iter_video(run / name)), None)
         if first is None:
             raise D2TurbError(f"{src.name}: the video has no frames")
     else:

@@ -17,11 +17,11 @@ from pathlib import Path
 import gradio as gr
 
 from d2turb.app import core
-from d2turb.commands.restore import VIDEO_SUFFIXES
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image, write_image
 from d2turb.sim import MODULATIONS
 from d2turb.sim.params import BINS_RULE
+from d2turb.video import VIDEO_SUFFIXES
 
 log = logging.getLogger("d2turb.app")
 

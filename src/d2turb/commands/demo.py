@@ -119,7 +119,7 @@ def run(args):
     print(f"wrote {out / 'demo.png'} ({len(names)} images x clean/weak/medium/strong/depth)")
     if args.weights != "none":
         # lazy: the restorer (models) loads only when restoration is asked for
-        from d2turb.restore import resolve_weights
+        from d2turb.models.hub import resolve_weights
 
         try:
             resolve_weights(args.weights)

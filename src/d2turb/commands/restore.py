@@ -7,9 +7,6 @@ from pathlib import Path
 from d2turb.commands.common import FileErrors, add_device_arg, add_fail_fast_arg, add_max_pixels_arg, add_png_level_arg
 from d2turb.errors import D2TurbError
 
-VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif"}
-VIDEO_HINT = "install the video extra: pip install 'd2turb[video]'"
-
 
 def register(sub):
     p = sub.add_parser(
@@ -38,33 +35,16 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def _iter_video(path: Path):
-    """Yield (index, (3,H,W) float tensor) for each frame of a video file."""
-    try:
-        import imageio.v3 as iio
-    except ImportError as exc:
-        raise D2TurbError(f"{path}: reading video needs imageio; {VIDEO_HINT}") from exc
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    from d2turb.restore import frame_to_tensor
-
-    try:
-        plugin = "pillow" if path.suffix.lower() == ".gif" else "pyav"  # pyav comes with the video extra
-        for i, frame in enumerate(iio.imiter(path, plugin=plugin)):
-            yield i, frame_to_tensor(frame)
-    except (OSError, ValueError, RuntimeError, ImportError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
-        raise D2TurbError(f"{path}: cannot read video ({first}); {VIDEO_HINT}") from exc
-
-
 def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
     """(image files, video files) named on the command line; output names must be unique."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.io import check_unique_stems, expand_inputs
+    from d2turb.video import is_video
 
     images, videos = [], []
     for item in inputs:
         p = Path(item)
-        if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES:
+        if is_video(p):
             videos.append(p)
         else:
             images.extend(expand_inputs([item]))
@@ -96,6 +76,7 @@ def run(args) -> int:
     from d2turb.device import resolve_device
     from d2turb.io import BackgroundWriter, check_output_dir, read_image
     from d2turb.restore import Restorer
+    from d2turb.video import iter_video
 
     images, videos = split_inputs(args.inputs)
     out_dir = check_output_dir(args.out)
@@ -117,7 +98,7 @@ def run(args) -> int:
             writer.submit(_save, out_dir, path.stem, details, *options)
             count += 1
         for video in videos:
-            bar = tqdm(_iter_video(video), desc=video.name, unit="frame")
+            bar = tqdm(iter_video(video), desc=video.name, unit="frame")
             frames = iter(bar)
             while True:
                 try:

@@ -5,11 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from d2turb.commands.common import add_max_pixels_arg, add_motion_args, add_seed_arg
-from d2turb.commands.restore import VIDEO_SUFFIXES, _iter_video
 from d2turb.commands.simulate import add_physics_args, make_params
 from d2turb.errors import D2TurbError
-
-VIDEO_HINT = "install the video extra for an mp4: pip install 'd2turb[video]'"
 
 
 def register(sub):
@@ -44,6 +41,7 @@ def _input_frames(path: Path, frames: int | None):
     """(iterator of (3,H,W) frames or a still tensor, number of frames or None, kind)."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.io import list_images, read_image
+    from d2turb.video import is_video, iter_video
 
     if path.is_dir():
         files = list_images(path)
@@ -51,28 +49,9 @@ def _input_frames(path: Path, frames: int | None):
             raise D2TurbError(f"{path}: no images in the folder")
         files = files[:frames] if frames else files
         return (read_image(f) for f in files), len(files), "frames"
-    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
-        return (frame for _, frame in _iter_video(path)), frames, "video"
+    if is_video(path):
+        return (frame for _, frame in iter_video(path)), frames, "video"
     return read_image(path), frames or 64, "image"
-
-
-class _Mp4:
-    """Streams frames into an mp4 (H.264, yuv420p: odd sizes are padded by one edge row/column)."""
-
-    def __init__(self, path: Path, fps: float):
-        import imageio.v3 as iio
-
-        self.file = iio.imopen(path, "w", plugin="pyav")
-        self.file.init_video_stream("libx264", fps=fps)
-
-    def write(self, frame):
-        import numpy as np
-
-        h, w = frame.shape[:2]
-        self.file.write_frame(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
-
-    def close(self):
-        self.file.close()
 
 
 def run(args):
@@ -85,10 +64,11 @@ def run(args):
 
     from d2turb.depth import depth_for_image
     from d2turb.device import resolve_device
-    from d2turb.io import atomic_path, check_output_dir, to_uint8, write_image, write_json, write_npy
+    from d2turb.io import check_output_dir, to_uint8, write_image, write_json, write_npy
     from d2turb.sim import Simulator, dr0_bin
     from d2turb.sim.sequence import check_sequence_args, wind_speeds
     from d2turb.sim.tilt import path_nodes
+    from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4
 
     src = Path(args.input)
     if not src.exists():
@@ -105,12 +85,9 @@ def run(args):
     gen = torch.Generator().manual_seed(args.seed)
     mp4 = None
     if not args.no_mp4:
-        try:
-            import av  # noqa: F401
-            import imageio.v3  # noqa: F401
-
+        if can_write_mp4():
             mp4 = out / "turb.mp4"
-        except ImportError:
+        else:
             print(f"note: no mp4 written; {VIDEO_HINT}")
 
     def depth_of(frame):
@@ -133,25 +110,18 @@ def run(args):
     )
     written, size, mean_mod = 0, None, []
     with contextlib.ExitStack() as stack:
-        writer = None
-        if mp4 is not None:
-            tmp = stack.enter_context(atomic_path(mp4))
-            writer = _Mp4(tmp, args.fps)
-        try:
-            for i, res in enumerate(tqdm(seq, total=n_frames, unit="frame", desc=src.name)):
-                write_image(out / "turb" / f"{i:06d}.png", res.turb[0])
-                if args.save_tilt:
-                    write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
-                if args.save_flow:
-                    write_npy(out / "flow" / f"{i:06d}.npy", res.flow[0].detach().cpu().numpy().astype(np.float32))
-                if writer is not None:
-                    writer.write(to_uint8(res.turb[0]))
-                size = tuple(res.turb.shape[-2:])
-                mean_mod.append(float(res.modulation.mean()))
-                written += 1
-        finally:
+        writer = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, args.fps))
+        for i, res in enumerate(tqdm(seq, total=n_frames, unit="frame", desc=src.name)):
+            write_image(out / "turb" / f"{i:06d}.png", res.turb[0])
+            if args.save_tilt:
+                write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
+            if args.save_flow:
+                write_npy(out / "flow" / f"{i:06d}.npy", res.flow[0].detach().cpu().numpy().astype(np.float32))
             if writer is not None:
-                writer.close()
+                writer.write(to_uint8(res.turb[0]))
+            size = tuple(res.turb.shape[-2:])
+            mean_mod.append(float(res.modulation.mean()))
+            written += 1
         if written == 0:
             raise D2TurbError(f"{src}: no frames to simulate")
     p = sim.params

@@ -13,19 +13,24 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
+from importlib import resources
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
-from d2turb.io import atomic_path
+from d2turb.io import atomic_path, cache_dir
 from d2turb.models.registry import create_model
 
 PICKLE_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin")
 NESTING_KEYS = ("params_ema", "params", "state_dict", "model")  # in order of preference
 
 CONFIG_KEY, CHECKSUM_KEY, FORMAT_KEY = "d2turb_config", "d2turb_sha256", "d2turb_format"
+IDENTITY_NAME = "input"  # the identity baseline: restore returns its input
+WEIGHTS_SUFFIX = ".safetensors"
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 FORMAT = "2"  # 2: the authors' architecture is the default (issue 8); files without the key are format 1
 
 
@@ -300,3 +305,36 @@ def load_pretrained(
         net = _build_for_loading(model, dict(config or {}))
         load_state_dict_strict(net, convert_official_state_dict(state), str(path), official_key if official else None)
     return net.to(device).eval()
+
+
+def weights_search_path(name: str) -> list[Path]:
+    """Where a weights *name* is looked for, in order: each folder of $D2TURB_WEIGHTS_DIR (os.pathsep
+    separated), $D2TURB_CACHE_DIR/weights (default ~/.cache/d2turb/weights), then the package's resources/weights."""
+    folders = [Path(p).expanduser() for p in os.environ.get("D2TURB_WEIGHTS_DIR", "").split(os.pathsep) if p]
+    folders.append(cache_dir("weights"))
+    folders.append(Path(str(resources.files("d2turb"))) / "resources" / "weights")
+    return [folder / f"{name}{WEIGHTS_SUFFIX}" for folder in folders]
+
+
+def resolve_weights(weights: str | os.PathLike) -> Path | str:
+    """A weights argument → an existing .safetensors path, or the identity name "input"."""
+    text = os.fspath(weights)
+    if text == IDENTITY_NAME:
+        return IDENTITY_NAME
+    path = Path(text).expanduser()
+    weight_suffixes = (WEIGHTS_SUFFIX, ".pt", ".pth", ".ckpt", ".bin")
+    looks_like_path = path.suffix.lower() in weight_suffixes or "/" in text or os.sep in text or path.exists()
+    if looks_like_path:
+        if path.suffix.lower() in weight_suffixes[1:]:
+            raise D2TurbError(f"{path}: only {WEIGHTS_SUFFIX} weights written by save_pretrained are supported")
+        if not path.is_file():
+            raise D2TurbError(f"{path}: weights file not found")
+        return path
+    if not _NAME_RE.match(text):
+        raise D2TurbError(f"invalid weights name {text!r}: use a {WEIGHTS_SUFFIX} path or a name like 'd2turb-nafnet'")
+    candidates = weights_search_path(text)
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    looked = ", ".join(str(c) for c in candidates)
+    raise D2TurbError(f"weights {text!r} not found; looked in: {looked} (set D2TURB_WEIGHTS_DIR or pass a path)")

@@ -41,7 +41,7 @@ from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import psnr, ssim
 from d2turb.io import atomic_path, write_json, write_text
 from d2turb.models import create_model, load_pretrained, save_pretrained
-from d2turb.restore import IDENTITY_NAME, resolve_weights
+from d2turb.models.hub import IDENTITY_NAME, resolve_weights
 from d2turb.sim import Simulator
 from d2turb.sim.geometry import geometry_bank
 from d2turb.train.config import Config, model_kwargs

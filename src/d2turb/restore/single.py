@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
-from importlib import resources
 from pathlib import Path
 
 import torch
@@ -23,13 +21,10 @@ from torch import nn
 
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
-from d2turb.io import cache_dir, check_image_tensor, read_image
-from d2turb.models import load_pretrained
+from d2turb.io import check_image_tensor, read_image
+from d2turb.models.hub import IDENTITY_NAME, load_pretrained, resolve_weights
 from d2turb.ops.warp import base_grid, sample_at
 
-IDENTITY_NAME = "input"
-WEIGHTS_SUFFIX = ".safetensors"
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _WARP_STRIP_PIXELS = 1 << 21  # output pixels per strip of the global warp (bounds its temporaries)
 _WINDOW_FLOOR = 1e-6  # tile windows never reach 0, so every pixel has a positive accumulated weight
 
@@ -39,39 +34,6 @@ class IdentityRestorer(nn.Module):
 
     def forward(self, x: torch.Tensor) -> dict:
         return {"deblurred": x, "restored": x, "flow": torch.zeros_like(x[:, :2]), "guide": None}
-
-
-def weights_search_path(name: str) -> list[Path]:
-    """Where a weights *name* is looked for, in order: each folder of $D2TURB_WEIGHTS_DIR (os.pathsep
-    separated), $D2TURB_CACHE_DIR/weights (default ~/.cache/d2turb/weights), then the package's resources/weights."""
-    folders = [Path(p).expanduser() for p in os.environ.get("D2TURB_WEIGHTS_DIR", "").split(os.pathsep) if p]
-    folders.append(cache_dir("weights"))
-    folders.append(Path(str(resources.files("d2turb"))) / "resources" / "weights")
-    return [folder / f"{name}{WEIGHTS_SUFFIX}" for folder in folders]
-
-
-def resolve_weights(weights: str | os.PathLike) -> Path | str:
-    """A weights argument → an existing .safetensors path, or the identity name "input"."""
-    text = os.fspath(weights)
-    if text == IDENTITY_NAME:
-        return IDENTITY_NAME
-    path = Path(text).expanduser()
-    weight_suffixes = (WEIGHTS_SUFFIX, ".pt", ".pth", ".ckpt", ".bin")
-    looks_like_path = path.suffix.lower() in weight_suffixes or "/" in text or os.sep in text or path.exists()
-    if looks_like_path:
-        if path.suffix.lower() in weight_suffixes[1:]:
-            raise D2TurbError(f"{path}: only {WEIGHTS_SUFFIX} weights written by save_pretrained are supported")
-        if not path.is_file():
-            raise D2TurbError(f"{path}: weights file not found")
-        return path
-    if not _NAME_RE.match(text):
-        raise D2TurbError(f"invalid weights name {text!r}: use a {WEIGHTS_SUFFIX} path or a name like 'd2turb-nafnet'")
-    candidates = weights_search_path(text)
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    looked = ", ".join(str(c) for c in candidates)
-    raise D2TurbError(f"weights {text!r} not found; looked in: {looked} (set D2TURB_WEIGHTS_DIR or pass a path)")
 
 
 def load_restoration_model(weights, device: str | torch.device = "cpu") -> tuple[nn.Module, str]:
@@ -128,22 +90,6 @@ def warp_in_strips(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
         grid[:, 1] += r0  # absolute rows, exact in floating point
         out[:, :, r0:r1] = sample_at(image, grid + flow[:, :, r0:r1])
     return out
-
-
-def frame_to_tensor(frame) -> torch.Tensor:
-    """A decoded video frame (H,W), (H,W,1|3|4) uint8/uint16/float array → (3,H,W) float32 in [0,1]."""
-    import numpy as np
-
-    arr = np.asarray(frame)
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    if arr.ndim != 3 or arr.shape[2] not in (1, 3, 4):
-        raise D2TurbError(f"unsupported video frame shape {arr.shape}")
-    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(arr.dtype, 1.0)
-    arr = arr[..., :3].astype(np.float32) / scale  # alpha dropped
-    if arr.shape[2] == 1:
-        arr = arr.repeat(3, axis=2)
-    return torch.from_numpy(np.clip(arr, 0, 1)).permute(2, 0, 1).contiguous()
 
 
 class Restorer:
