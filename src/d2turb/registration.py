@@ -1,0 +1,118 @@
+"""Registration of turbulent frames to a reference: a global shift (camera motion) and a dense displacement field
+(the tilt), both from OpenCV — phase correlation and DIS optical flow (Kroeger et al., ECCV 2016). Used by clip
+restoration (``d2turb.restore.clip``) and by turbulence measurement from a clip.
+
+Convention (the dataset's ``flow``, docs/flow.md): a *backward* flow ``bwd_flow_px`` maps a frame onto the
+reference, ``frame(x + bwd_flow_px(x)) ≈ ref(x)``, i.e. ``warp(frame, bwd_flow_px) ≈ ref``; (2, H, W), x then y,
+in pixels. Arrays here are numpy (OpenCV's types): grey frames (H, W) uint8, colour frames (H, W, C) float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from d2turb.device import usable_cores
+from d2turb.errors import D2TurbError
+
+# DIS settings: the tilt of long-range turbulence has structure of a few pixels, so the finest scale is full
+# resolution; patch 8 / stride 3 and variational refinement were chosen on simulated clips (docs/clips.md).
+DIS_PRESETS = {
+    "fast": dict(finest_scale=1, patch_size=8, patch_stride=4, grad_descent_iter=12, var_iter=1),
+    "medium": dict(finest_scale=0, patch_size=8, patch_stride=3, grad_descent_iter=16, var_iter=3),
+    "fine": dict(finest_scale=0, patch_size=8, patch_stride=2, grad_descent_iter=25, var_iter=5),
+}
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as OpenCV's cvtColor
+
+
+def to_hwc(frame) -> np.ndarray:
+    """A (3,H,W) tensor or (H,W[,C]) array in [0,1] → C-contiguous (H,W,C) float32 array."""
+    if isinstance(frame, torch.Tensor):
+        frame = frame.detach().cpu().float()
+        if frame.ndim != 3:
+            raise D2TurbError(f"expected a (C,H,W) frame, got shape {tuple(frame.shape)}")
+        frame = frame.permute(1, 2, 0).numpy()
+    arr = np.asarray(frame, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3:
+        raise D2TurbError(f"expected an (H,W,C) frame, got shape {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+def to_gray_u8(frame_hwc: np.ndarray) -> np.ndarray:
+    """(H,W,C) float in [0,1] → (H,W) uint8 luma (what DIS and phase correlation take)."""
+    gray = frame_hwc[..., 0] if frame_hwc.shape[2] == 1 else frame_hwc[..., :3] @ _LUMA
+    return np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def global_shift_px(ref_gray: np.ndarray, frame_gray: np.ndarray) -> tuple[float, float]:
+    """The translation (dx, dy) with ``frame(x + (dx, dy)) ≈ ref(x)``, to a fraction of a pixel, by phase correlation
+    with a Hann window (``cv2.phaseCorrelate``)."""
+    a, b = ref_gray.astype(np.float32), frame_gray.astype(np.float32)
+    window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(a, b, window)
+    return float(dx), float(dy)
+
+
+@dataclass
+class DenseFlow:
+    """Dense backward flow of a frame onto a reference with OpenCV's DIS (one solver reused for every call).
+
+    Args:
+        preset: one of ``DIS_PRESETS`` ("fast", "medium", "fine").
+    """
+
+    preset: str = "medium"
+
+    def __post_init__(self):
+        if self.preset not in DIS_PRESETS:
+            raise D2TurbError(f"unknown registration preset {self.preset!r}; choose one of {', '.join(DIS_PRESETS)}")
+        cv2.setNumThreads(usable_cores())
+        s = DIS_PRESETS[self.preset]
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        dis.setFinestScale(s["finest_scale"])
+        dis.setPatchSize(s["patch_size"])
+        dis.setPatchStride(s["patch_stride"])
+        dis.setGradientDescentIterations(s["grad_descent_iter"])
+        dis.setVariationalRefinementIterations(s["var_iter"])
+        dis.setUseMeanNormalization(True)  # robust to the frame-to-frame brightness flicker of scintillation
+        dis.setUseSpatialPropagation(True)
+        self._dis = dis
+
+    def __call__(self, ref_gray: np.ndarray, frame_gray: np.ndarray, init: np.ndarray | None = None) -> np.ndarray:
+        """``bwd_flow_px`` (H,W,2) float32 with ``frame(x + flow(x)) ≈ ref(x)``; ``init`` (H,W,2) starts the search.
+
+        Shape:
+            ref_gray, frame_gray: (H, W) uint8, H, W ≥ 2.
+        """
+        if ref_gray.shape != frame_gray.shape or ref_gray.dtype != np.uint8 or frame_gray.dtype != np.uint8:
+            raise D2TurbError(f"registration needs two (H,W) uint8 images of one size, got {ref_gray.shape}")
+        if init is not None:
+            self._dis.setUseSpatialPropagation(True)
+            return self._dis.calc(ref_gray, frame_gray, np.ascontiguousarray(init, dtype=np.float32))
+        return self._dis.calc(ref_gray, frame_gray, None)
+
+
+def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray) -> np.ndarray:
+    """``frame(x + flow(x))`` by bilinear interpolation (``cv2.remap``, edges replicated), (H,W,C) float32.
+
+    Shape:
+        frame_hwc: (H, W, C); bwd_flow_px: (H, W, 2), x then y.
+    """
+    h, w = bwd_flow_px.shape[:2]
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    out = cv2.remap(
+        frame_hwc, gx + bwd_flow_px[..., 0], gy + bwd_flow_px[..., 1], cv2.INTER_LINEAR, cv2.BORDER_REPLICATE
+    )
+    return out.reshape(frame_hwc.shape)
+
+
+def shift_flow(shape: tuple[int, int], dx: float, dy: float) -> np.ndarray:
+    """A constant (H,W,2) float32 flow."""
+    flow = np.empty((*shape, 2), dtype=np.float32)
+    flow[..., 0], flow[..., 1] = dx, dy
+    return flow
