@@ -5,6 +5,7 @@ summary, exit status 1; ``--fail-fast`` stops at the first), and the stderr hand
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
@@ -66,6 +67,25 @@ def add_motion_args(p) -> None:
     p.add_argument(
         "--boil", type=float, default=0.0, metavar="X", help="fraction of each layer's variance refreshed per frame"
     )
+
+
+def add_param_arg(p, help_text: str = "simulator parameter override (repeatable)") -> None:
+    """``--param KEY=VALUE`` (repeatable): a ``TurbulenceParams`` field, the value parsed as JSON (else text)."""
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help=help_text)
+
+
+def parse_params(texts: list[str]) -> dict:
+    """``--param`` values → {key: value}; a malformed item is a one-line error."""
+    params = {}
+    for text in texts:
+        key, sep, value = text.partition("=")
+        if not sep or not key:
+            raise D2TurbError(f"--param expects KEY=VALUE, got {text!r}")
+        try:
+            params[key] = json.loads(value)
+        except json.JSONDecodeError:
+            params[key] = value
+    return params
 
 
 def add_max_pixels_arg(p) -> None:

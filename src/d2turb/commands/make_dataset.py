@@ -4,18 +4,15 @@ from __future__ import annotations
 
 import json
 
-from d2turb.commands.common import add_device_arg, add_max_pixels_arg, add_motion_args, add_png_level_arg, add_seed_arg
-from d2turb.errors import D2TurbError
-
-
-def _param(text: str):
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise ValueError(text)
-    try:
-        return key, json.loads(value)
-    except json.JSONDecodeError:
-        return key, value
+from d2turb.commands.common import (
+    add_device_arg,
+    add_max_pixels_arg,
+    add_motion_args,
+    add_param_arg,
+    add_png_level_arg,
+    add_seed_arg,
+    parse_params,
+)
 
 
 def register(sub):
@@ -48,9 +45,7 @@ def register(sub):
     add_seed_arg(p, "dataset seed (default 0)")
     p.add_argument("--batch", type=int, default=8, help="samples per simulator call (part of the seed; default 8)")
     add_device_arg(p, "auto")
-    p.add_argument(
-        "--param", action="append", default=[], metavar="KEY=VALUE", help="simulator parameter override (repeatable)"
-    )
+    add_param_arg(p)
     p.add_argument(
         "--geometry",
         default="fixed",
@@ -72,10 +67,7 @@ def run(args):
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.data.generate import DatasetConfig, generate_dataset
 
-    try:
-        params = dict(_param(t) for t in args.param)
-    except ValueError as exc:
-        raise D2TurbError(f"--param expects KEY=VALUE, got {exc.args[0]!r}") from exc
+    params = parse_params(args.param)
     cfg = DatasetConfig(
         clean=args.clean,
         out=args.out,

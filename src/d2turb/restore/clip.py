@@ -29,10 +29,13 @@ import torch
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
 from d2turb.sim.otf import image_otf
+from d2turb.sim.params import MAX_DR0
 
 FUSIONS = ("mean", "robust")
 DEBLURS = ("none", "physics")  # or a model: weights name/path, or an nn.Module
 DEFAULT_TEMPORAL = 24
+DEFAULT_BALANCE = 0.01  # Laplacian prior weight of the physics deblur (docs/clips.md: chosen on the val clips)
+_RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
 
@@ -58,46 +61,75 @@ def window_start(index: int, temporal: int, length: int | None) -> int:
     return lo
 
 
-def wiener_deconvolve(image: torch.Tensor, otf: torch.Tensor, nsr: float) -> torch.Tensor:
-    """Wiener filter X = conj(H)·Y / (|H|² + nsr) with a real, symmetric OTF on the rfft2 grid of the padded image.
-    The image is mirror-padded by a quarter of its size on each side so the FFT's periodicity adds no edge ringing.
+def laplacian_power(height: int, width: int) -> torch.Tensor:
+    """|L(f)|² of the 5-point discrete Laplacian on the rfft2 grid: the Wiener filter's smoothness prior (natural
+    images have a spectrum falling like 1/f², so noise amplification is penalised most where signal is weakest)."""
+    fy = torch.fft.fftfreq(height, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(width, dtype=torch.float64)[None, :]
+    return (4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)) ** 2
+
+
+def wiener_padding(height: int, width: int) -> tuple[int, int]:
+    """Mirror padding (rows, columns) that keeps the FFT's periodic wrap-around away from the image."""
+    return min(height - 1, max(8, height // 4)), min(width - 1, max(8, width // 4))
+
+
+def wiener_deconvolve(image: torch.Tensor, otf: torch.Tensor, balance: float) -> torch.Tensor:
+    """Regularised Wiener filter X = H·Y / (H² + balance·|L|²) with a real OTF H on the rfft2 grid of the mirror-padded
+    image (the form of scikit-image's ``restoration.wiener``, here with the OTF given directly).
 
     Shape:
         image: (C, H, W); otf: (H + 2·ph, (W + 2·pw) // 2 + 1) for ph, pw = ``wiener_padding(H, W)``.
     """
     ph, pw = wiener_padding(*image.shape[-2:])
     padded = torch.nn.functional.pad(image[None].double(), (pw, pw, ph, ph), mode="reflect")[0]
-    spec = torch.fft.rfft2(padded)
-    out = torch.fft.irfft2(spec * (otf / (otf * otf + nsr)), s=padded.shape[-2:])
+    gain = otf / (otf * otf + balance * laplacian_power(*padded.shape[-2:]))
+    out = torch.fft.irfft2(torch.fft.rfft2(padded) * gain, s=padded.shape[-2:])
     return out[:, ph : ph + image.shape[-2], pw : pw + image.shape[-1]].float().clamp_(0, 1)
-
-
-def wiener_padding(height: int, width: int) -> tuple[int, int]:
-    return min(height - 1, max(8, height // 4)), min(width - 1, max(8, width // 4))
 
 
 class PhysicsDeblur:
     """Wiener deconvolution with the short-exposure (tilt-removed) turbulence OTF at ``dr0`` (docs/physics.md §4).
 
+    With depth modulation M (paper Eq. 4: blurred = M·(I ⊛ PSF) + (1 − M)·I), the effective OTF is
+    M·T·H + (1 − M); ``modulation`` is the image's mean M (1: the whole path at ``dr0``).
+
     Args:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
-        nsr: noise-to-signal ratio of the Wiener filter (regularisation).
+        balance: weight of the Laplacian smoothness prior (regularisation).
+        modulation: mean depth modulation M in (0, 1].
     """
 
-    def __init__(self, dr0: float, lambda_over_d_px: float = 2.0, nsr: float = 0.01, alpha: float = 1.0):
-        if not math.isfinite(dr0) or dr0 <= 0:
-            raise D2TurbError(f"--dr0 must be positive and finite, got {dr0!r}")
-        if not math.isfinite(nsr) or nsr <= 0:
-            raise D2TurbError(f"the Wiener noise-to-signal ratio must be positive, got {nsr!r}")
-        self.dr0, self.lambda_over_d_px, self.nsr, self.alpha = float(dr0), float(lambda_over_d_px), nsr, alpha
+    def __init__(
+        self,
+        dr0: float,
+        lambda_over_d_px: float = 2.0,
+        balance: float = DEFAULT_BALANCE,
+        modulation: float = 1.0,
+        alpha: float = 1.0,
+    ):
+        if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
+            raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
+        if not math.isfinite(balance) or balance <= 0:
+            raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
+        if not math.isfinite(lambda_over_d_px) or not 0.05 <= lambda_over_d_px <= 50:
+            raise D2TurbError(f"λ/(D·ifov) = {lambda_over_d_px:.3g} px is outside [0.05, 50] (check the optics)")
+        if not 0 < modulation <= 1:
+            raise D2TurbError(f"modulation must be in (0, 1], got {modulation!r}")
+        self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
+        self.modulation, self.alpha = float(modulation), float(alpha)
         self._otf: dict[tuple[int, int], torch.Tensor] = {}
 
+    def otf(self, height: int, width: int) -> torch.Tensor:
+        """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding``."""
+        if (height, width) not in self._otf:
+            ph, pw = wiener_padding(height, width)
+            h = image_otf(height + 2 * ph, width + 2 * pw, self.dr0, self.lambda_over_d_px, self.alpha)
+            self._otf[(height, width)] = self.modulation * h + (1 - self.modulation)
+        return self._otf[(height, width)]
+
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        h, w = image.shape[-2:]
-        if (h, w) not in self._otf:
-            ph, pw = wiener_padding(h, w)
-            self._otf[(h, w)] = image_otf(h + 2 * ph, w + 2 * pw, self.dr0, self.lambda_over_d_px, self.alpha)
-        return wiener_deconvolve(image, self._otf[(h, w)], self.nsr)
+        return wiener_deconvolve(image, self.otf(*image.shape[-2:]), self.balance)
 
 
 @dataclass
@@ -155,6 +187,8 @@ class ClipRestorer:
         done = [0] * (passes + 1)  # done[k]: frames whose round k is computed (k = 0: read); next output = done[0]
         emitted = 0
         source = iter(frames)
+        self._sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
+        self.buffered = 0  # frames held in memory (bounded by the window, not by the clip's length)
         while emitted < (length if length is not None else math.inf):
             progressed = False
             if length is None:
@@ -185,11 +219,13 @@ class ClipRestorer:
                 yield self._output(buf, emitted, length)
                 emitted += 1
                 progressed = True
-            needed = min(window_start(i, n, length) for i in [emitted, *done[1:]])
+            starts = [window_start(i, n, length) for i in [emitted, *done[1:]]]
+            needed = min(starts + [c[0] for c in self._sums.values()])  # running sums subtract their old frames
             if length is None:  # the end may still shift the last windows back by up to n frames
                 needed = min(needed, done[0] - n)
             for i in [i for i in buf if i < needed]:
                 del buf[i]
+            self.buffered = len(buf)
             if not progressed and length is not None:
                 raise RuntimeError("clip restoration made no progress")  # pragma: no cover - a logic error
 
@@ -204,8 +240,27 @@ class ClipRestorer:
         return list(range(lo, hi))
 
     def _reference(self, buf: dict, index: int, level: int, length: int | None) -> np.ndarray:
-        members = [buf[j].raw if level == 0 else buf[j].warped[level - 1] for j in self._window(buf, index, length)]
-        return np.mean(members, axis=0, dtype=np.float32)
+        """Mean of level ``level`` (0: raw frames, k: round k's unwarped frames) over W(index), from a running sum
+        updated by the frames entering and leaving the window (recomputed every ``_RESUM`` updates)."""
+        members = self._window(buf, index, length)
+        lo, hi = members[0], members[-1] + 1
+        cached = self._sums.get(level)
+
+        def image(j):
+            return buf[j].raw if level == 0 else buf[j].warped[level - 1]
+
+        if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
+            total = np.sum([image(j) for j in members], axis=0, dtype=np.float32)
+            count = 0
+        else:
+            c_lo, c_hi, total, count = cached
+            for j in range(c_hi, hi):
+                total += image(j)
+            for j in range(c_lo, lo):
+                total -= image(j)
+            count += 1
+        self._sums[level] = (lo, hi, total, count)
+        return total / np.float32(hi - lo)
 
     def _register(self, buf: dict, index: int, k: int, length: int | None) -> None:
         frame = buf[index]
@@ -220,18 +275,16 @@ class ClipRestorer:
         frame.warped.append(remap(frame.raw, flow))
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
-        members = self._window(buf, index, length)
-        stack = [buf[j].warped[-1] for j in members]
-        fused = np.mean(stack, axis=0, dtype=np.float32)
+        fused = self._reference(buf, index, self.passes, length)
         if self.fusion == "robust":
-            fused = self._robust(stack, fused)
+            fused = self._robust([buf[j].warped[-1] for j in self._window(buf, index, length)], fused)
         frame = buf[index]
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
             blend = self._fallback_share(frame.warped[-1], fused)
             if blend.any():
                 fused = fused + blend[..., None] * (frame.raw - fused)
-        fused_t = torch.from_numpy(np.ascontiguousarray(fused.transpose(2, 0, 1))).clamp_(0, 1)
+        fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1).transpose(2, 0, 1)))
         restored = fused_t if self.deblur is None else self.deblur(fused_t)
         flow = torch.from_numpy(np.ascontiguousarray(frame.flows[-1].transpose(2, 0, 1)))
         return ClipFrame(index, restored, fused_t, flow, torch.from_numpy(blend))

@@ -1,0 +1,253 @@
+"""Clip restoration (d2turb.restore.clip, d2turb.registration, d2turb.sim.otf) against known synthetic truths:
+frames that are known warps of one image, a pure translation, a moving square, identical frames; the OTF against
+Fried's formula by hand; the command's bad inputs."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from skimage import data as skdata
+
+from d2turb.registration import DenseFlow, global_shift_px, remap, to_gray_u8, to_hwc
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, window_start
+from d2turb.sim.otf import diffraction_otf, turbulence_otf
+
+
+def _scene(size=128) -> np.ndarray:
+    img = skdata.astronaut()[100 : 100 + size, 150 : 150 + size].astype(np.float32) / 255.0
+    return np.ascontiguousarray(img)
+
+
+def _smooth_field(rng, size, sigma_px, amplitude_px) -> np.ndarray:
+    f = np.stack([ndimage.gaussian_filter(rng.standard_normal((size, size)), sigma_px) for _ in range(2)], -1)
+    return (f / f.std() * amplitude_px).astype(np.float32)
+
+
+def _scipy_warp(img: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """img(x + flow(x)) with scipy's cubic spline interpolation (an implementation independent of OpenCV)."""
+    h, w = flow.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    coords = [yy + flow[..., 1], xx + flow[..., 0]]
+    return np.stack([ndimage.map_coordinates(img[..., c], coords, order=3, mode="nearest") for c in range(3)], -1)
+
+
+def test_otf_against_hand_computed_values():
+    # T(0.5) = (2/π)(arccos 0.5 − 0.5·√0.75) = (2/π)(π/3 − √3/4)
+    assert float(diffraction_otf(torch.tensor(0.5))) == pytest.approx((2 / math.pi) * (math.pi / 3 - 3**0.5 / 4))
+    assert float(diffraction_otf(torch.tensor(0.0))) == pytest.approx(1.0)
+    assert float(diffraction_otf(torch.tensor(1.2))) == 0.0
+    # long exposure at u = 0.25, D/r0 = 2: exp(−3.44·0.5^(5/3))·T(0.25); tilt removed: × exp(+3.44·0.5^(5/3)·0.25^(1/3))
+    u, dr0 = torch.tensor(0.25, dtype=torch.float64), 2.0
+    t = (2 / math.pi) * (math.acos(0.25) - 0.25 * math.sqrt(1 - 0.0625))
+    assert float(turbulence_otf(u, dr0, alpha=0)) == pytest.approx(t * math.exp(-3.44 * 0.5 ** (5 / 3)), rel=1e-9)
+    short = t * math.exp(-3.44 * 0.5 ** (5 / 3) * (1 - 0.25 ** (1 / 3)))
+    assert float(turbulence_otf(u, dr0, alpha=1)) == pytest.approx(short, rel=1e-9)
+
+
+def test_pure_translation_is_recovered_exactly():
+    img = _scene(128)
+    gray = to_gray_u8(img)
+    for dx, dy in [(3, -2), (-5, 4), (0, 7)]:
+        moved = np.roll(gray, shift=(-dy, -dx), axis=(0, 1))  # moved(x) = img(x + (dx, dy))
+        sx, sy = global_shift_px(gray, moved)
+        # moved(x − d) = img(x): the shift mapping the frame onto the reference is −d (phase correlation's
+        # sub-pixel peak fit is good to a few hundredths of a pixel on a natural image)
+        assert abs(sx + dx) < 0.05 and abs(sy + dy) < 0.05
+        flow = np.zeros((*gray.shape, 2), np.float32)
+        flow[..., 0], flow[..., 1] = sx, sy
+        back = remap(to_hwc(moved[..., None].astype(np.float32) / 255), flow)[..., 0]
+        inner = (slice(10, -10), slice(10, -10))
+        assert np.abs(back[inner] - gray[inner] / 255).mean() < 2e-3
+
+
+def test_known_warps_of_one_image_are_recovered():
+    """Frames = img(x + Δ_i(x)) with smooth random Δ_i (2 px rms): DIS recovers the backward flow onto img."""
+    rng = np.random.default_rng(0)
+    img = _scene(128)
+    flow = DenseFlow("medium")
+    errs, zero = [], []
+    for _ in range(4):
+        delta = _smooth_field(rng, 128, 10, 2.0)
+        frame = _scipy_warp(img, delta)
+        est = flow(to_gray_u8(img), to_gray_u8(frame))  # frame(x + est(x)) ≈ img(x)
+        # truth: the inverse of Δ, est(x) = −Δ(x + est(x)) ≈ −Δ(x − Δ(x)) to second order
+        h, w = delta.shape[:2]
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+        inv = -np.stack(
+            [ndimage.map_coordinates(delta[..., c], [yy - delta[..., 1], xx - delta[..., 0]], order=1) for c in (0, 1)],
+            -1,
+        )
+        inner = (slice(12, -12), slice(12, -12))
+        errs.append(np.linalg.norm(est - inv, axis=-1)[inner].mean())
+        zero.append(np.linalg.norm(inv, axis=-1)[inner].mean())
+    assert np.mean(errs) < 0.25 * np.mean(zero), (errs, zero)
+
+
+def test_identical_frames_come_back_unchanged():
+    img = torch.from_numpy(_scene(96)).permute(2, 0, 1).contiguous()
+    outs = list(ClipRestorer(temporal=4).restore([img] * 6))
+    assert [o.index for o in outs] == list(range(6))
+    for o in outs:
+        assert torch.abs(o.restored - img).max() < 2e-3
+        assert torch.abs(o.bwd_flow_px).max() < 0.05
+
+
+def test_registered_fusion_beats_the_single_frame_and_the_plain_mean():
+    """A static scene under zero-mean random warps: the fused frame is closer to the scene than a frame or the
+    unregistered temporal mean."""
+    rng = np.random.default_rng(1)
+    img = _scene(128)
+    deltas = [_smooth_field(rng, 128, 8, 1.5) for _ in range(12)]
+    mean_delta = np.mean(deltas, axis=0)
+    frames = [torch.from_numpy(_scipy_warp(img, d - mean_delta)).permute(2, 0, 1).contiguous() for d in deltas]
+    outs = list(ClipRestorer(temporal=12).restore(frames))
+    truth = torch.from_numpy(img).permute(2, 0, 1)
+    inner = (slice(None), slice(12, -12), slice(12, -12))
+
+    def mse(x):
+        return float(((x - truth)[inner] ** 2).mean())
+
+    fused = np.mean([mse(o.fused) for o in outs])
+    single = np.mean([mse(f) for f in frames])
+    plain = mse(torch.stack(frames).mean(0))
+    assert fused < 0.5 * single and fused < 0.75 * plain, (fused, single, plain)
+
+
+def test_moving_square_falls_back_to_the_frame_without_ghosts():
+    img = _scene(128)
+    frames, boxes = [], []
+    for i in range(8):
+        f = img.copy()
+        x0 = 10 + 12 * i
+        f[50:70, x0 : x0 + 20] = [1.0, 0.0, 0.0]
+        frames.append(torch.from_numpy(f).permute(2, 0, 1).contiguous())
+        boxes.append(x0)
+    outs = list(ClipRestorer(temporal=8).restore(frames))
+    plain = torch.stack(frames).mean(0)
+    for o in outs:
+        x0 = boxes[o.index]
+        square = o.restored[:, 52:68, x0 + 2 : x0 + 18]
+        assert torch.allclose(square.mean((1, 2)), torch.tensor([1.0, 0.0, 0.0]), atol=0.05)  # the object is there
+        # where the square is at other times (and not now), the output shows the background, not a ghost
+        others = [b for b in boxes if abs(b - x0) >= 24]
+        ghost = max(
+            float((o.restored - torch.from_numpy(img).permute(2, 0, 1))[:, 52:68, b + 2 : b + 18].abs().mean())
+            for b in others
+        )
+        plain_ghost = max(
+            float((plain - torch.from_numpy(img).permute(2, 0, 1))[:, 52:68, b + 2 : b + 18].abs().mean())
+            for b in others
+        )
+        assert ghost < 0.25 * plain_ghost, (ghost, plain_ghost)
+
+
+def test_wiener_undoes_a_known_turbulence_blur():
+    """Blur by the short-exposure OTF (applied by FFT on a mirror-padded copy), deconvolve with the same OTF."""
+    img = torch.from_numpy(_scene(128)).permute(2, 0, 1).double()
+    deb = PhysicsDeblur(dr0=2.0, lambda_over_d_px=2.0, balance=1e-4)
+    padded = torch.nn.functional.pad(img[None], (32, 32, 32, 32), mode="reflect")[0]
+    otf = deb.otf(128, 128)
+    blurred = torch.fft.irfft2(torch.fft.rfft2(padded) * otf, s=padded.shape[-2:])[:, 32:-32, 32:-32].float()
+    restored = deb(blurred)
+    err_blur = float(((blurred - img.float()) ** 2).mean())
+    err_rest = float(((restored - img.float()) ** 2).mean())
+    assert err_rest < 0.5 * err_blur, (err_rest, err_blur)
+
+
+def test_window_start_and_bounded_memory_on_a_long_stream():
+    assert [window_start(i, 4, 10) for i in (0, 1, 2, 5, 8, 9)] == [0, 0, 0, 3, 6, 6]
+    assert window_start(3, 8, 5) == 0  # clip shorter than the window
+    rng = np.random.default_rng(2)
+    base = _scene(32)
+    restorer = ClipRestorer(temporal=6, passes=2)
+    sizes = []
+    frames = (
+        torch.from_numpy(np.clip(base + 0.01 * rng.standard_normal(base.shape), 0, 1).astype(np.float32)).permute(
+            2, 0, 1
+        )
+        for _ in range(120)
+    )
+    count = 0
+    for _ in restorer.restore(frames):
+        sizes.append(restorer.buffered)
+        count += 1
+    assert count == 120
+    assert max(sizes) <= 4 * 6  # bounded by the window and the rounds, not the clip's length
+
+
+def test_clip_errors_are_one_line(tmp_path):
+    from d2turb.io import write_image
+
+    img = torch.from_numpy(_scene(64)).permute(2, 0, 1)
+    one = tmp_path / "one"
+    write_image(one / "a.png", img)
+    mixed = tmp_path / "mixed"
+    write_image(mixed / "a.png", img)
+    write_image(mixed / "b.png", img[:, :32])
+    good = tmp_path / "good"
+    for i in range(4):
+        write_image(good / f"f{i}.png", img)
+    (good / "f9.png").write_bytes(b"not a png")
+
+    def run(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "d2turb", "restore", *map(str, args)], capture_output=True, text=True
+        )
+
+    for args, needle in [
+        ((one, "--temporal", 4, "--out", tmp_path / "o1"), "at least 2 frames"),
+        ((mixed, "--temporal", 4, "--out", tmp_path / "o2"), "one size"),
+        ((good, "--temporal", 1, "--out", tmp_path / "o3"), "--temporal must be an integer >= 2"),
+        ((good, "--temporal", 4, "--deblur", "physics", "--out", tmp_path / "o4"), "give --dr0"),
+        ((good, "--temporal", 4, "--dr0", -1, "--out", tmp_path / "o5"), "dr0"),
+    ]:
+        r = run(*args)
+        assert r.returncode == 2, (args, r.stderr)
+        lines = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+        assert len(lines) == 1 and needle in lines[0], r.stderr
+        assert "Traceback" not in r.stderr
+    r = run(good, "--temporal", 3, "--out", tmp_path / "o6", "--save-flow")
+    assert r.returncode == 1 and "f9.png" in r.stderr and "Traceback" not in r.stderr
+    written = sorted(p.name for p in (tmp_path / "o6").glob("*_restored.png"))
+    assert written == [f"f{i}_restored.png" for i in range(4)]
+    flows = sorted((tmp_path / "o6" / "flow").glob("*.npy"))
+    assert len(flows) == 4 and np.load(flows[0]).shape == (2, 64, 64) and np.load(flows[0]).dtype == np.float32
+
+
+def test_clip_video_in_video_out(tmp_path):
+    pytest.importorskip("av")
+    from d2turb.video import Mp4Writer
+
+    img = torch.from_numpy(_scene(64)).permute(2, 0, 1)
+    with Mp4Writer(tmp_path / "clip.mp4", fps=12) as w:
+        for _ in range(5):
+            w.write(img)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "d2turb",
+            "restore",
+            str(tmp_path / "clip.mp4"),
+            "--temporal",
+            "3",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    import av
+
+    with av.open(str(tmp_path / "out" / "clip.mp4")) as c:
+        stream = c.streams.video[0]
+        frames = sum(1 for _ in c.decode(stream))
+        assert frames == 5 and float(stream.average_rate) == pytest.approx(12, rel=1e-3)
+    assert len(list((tmp_path / "out").glob("clip_*_restored.png"))) == 5
