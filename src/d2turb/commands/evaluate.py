@@ -20,6 +20,19 @@ def register(sub):
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", metavar="DATASET_DIR", help="synthetic dataset folder (from make_dataset)")
     src.add_argument("--real", metavar="DIR", help="folder of real degraded images (no ground truth)")
+    src.add_argument(
+        "--clips",
+        metavar="DATASET_DIR",
+        help="sequence dataset (make-dataset --frames N): clip restoration per bin (docs/clips.md)",
+    )
+    p.add_argument("--temporal", type=int, default=32, metavar="N", help="with --clips: window (default 32)")
+    p.add_argument(
+        "--deblur",
+        nargs="+",
+        default=["physics"],
+        metavar="D",
+        help="with --clips: deblur options after fusion, physics and/or weights (default physics)",
+    )
     p.add_argument(
         "--recursive",
         action="store_true",
@@ -71,12 +84,27 @@ def run(args):
 
     if args.max_samples is not None and args.max_samples < 1:
         raise D2TurbError(f"--max-samples must be at least 1, got {args.max_samples}")
-    if not args.real and not args.weights:
+    if args.data and not args.weights:
         raise D2TurbError("--data needs --weights (model files/names, or 'input' for the unrestored baseline)")
     if args.recursive and not args.real:
         raise D2TurbError("--recursive goes with --real (a synthetic dataset is one folder)")
     device = str(resolve_device(args.device))
     remove_stale_temp_files(check_output_dir(args.out) / "grids", recursive=True)  # grids/<folder>/ with --recursive
+    if args.clips:
+        # lazy: the clip pipeline (OpenCV) loads only for --clips
+        from d2turb.eval.clips import evaluate_clips, markdown
+
+        results = evaluate_clips(
+            args.clips,
+            args.out,
+            deblur=args.deblur,
+            temporal=args.temporal,
+            max_samples=args.max_samples,
+            device=device,
+        )
+        print(markdown(results))
+        print(f"wrote {os.path.join(args.out, 'results.json')}")
+        return 0
     if args.real:
         # lazy: the no-reference metrics (scipy, MUSIQ) load only for --real
         from d2turb.eval.real import evaluate_real, parse_metrics
