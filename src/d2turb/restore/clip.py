@@ -34,7 +34,14 @@ from d2turb.sim.params import MAX_DR0
 FUSIONS = ("mean", "robust")
 DEBLURS = ("none", "physics")  # or a model: weights name/path, or an nn.Module
 DEFAULT_TEMPORAL = 24
-DEFAULT_BALANCE = 0.01  # Laplacian prior weight of the physics deblur (docs/clips.md: chosen on the val clips)
+# Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
+# fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
+# (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md).
+BALANCE_AT_2 = 0.03
+
+
+def default_balance(dr0: float) -> float:
+    return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
@@ -96,7 +103,7 @@ class PhysicsDeblur:
 
     Args:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
-        balance: weight of the Laplacian smoothness prior (regularisation).
+        balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
         modulation: mean depth modulation M in (0, 1].
     """
 
@@ -104,12 +111,13 @@ class PhysicsDeblur:
         self,
         dr0: float,
         lambda_over_d_px: float = 2.0,
-        balance: float = DEFAULT_BALANCE,
+        balance: float | None = None,
         modulation: float = 1.0,
         alpha: float = 1.0,
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
             raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
+        balance = default_balance(dr0) if balance is None else balance
         if not math.isfinite(balance) or balance <= 0:
             raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
         if not math.isfinite(lambda_over_d_px) or not 0.05 <= lambda_over_d_px <= 50:
