@@ -1,6 +1,7 @@
 """Hostile input at the command line, round 2 (issue 25): no crash by signal, nothing read outside a dataset,
 no user file overwritten, one `error:` line instead of a traceback, no quiet wrong output."""
 
+import json
 import os
 import subprocess
 import sys
@@ -84,3 +85,128 @@ def test_every_fft_of_the_simulator_gets_a_contiguous_tensor(tmp_path, monkeypat
     assert main(args) == 0
     capsys.readouterr()
     assert seen and all(contiguous for _, _, contiguous in seen), [s for s in seen if not s[2]]
+
+
+# ------------------------------------------------------------------------------------------ 2. training
+TINY_MODEL = {
+    "name": "d2turb",
+    "backbone": "nafnet",
+    "injection": "aspi_cosine",
+    "rectifier": "unet",
+    "backbone_cfg": {"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1], "middle_blocks": 1},
+    "rectifier_cfg": {"width": 8, "mults": [1, 2, 2, 2], "depth": 3},
+}
+
+
+def tiny_pairs(root: Path, n: int = 4, size: int = 32, split: str = "train") -> Path:
+    """A make-dataset folder written by hand from its documented layout (docs/data.md): random images, zero flow."""
+    rng = np.random.default_rng(0)
+    lines = []
+    for i in range(n):
+        sid = f"{i:07d}"
+        for kind in ("turb", "tilt", "gt"):
+            rgb(root / kind / f"{sid}.png", size, size, seed=i)
+        (root / "depth").mkdir(exist_ok=True)
+        Image.fromarray(rng.integers(0, 65535, (size, size), dtype=np.uint16)).save(root / "depth" / f"{sid}.png")
+        (root / "flow").mkdir(exist_ok=True)
+        np.save(root / "flow" / f"{sid}.npy", np.zeros((2, size, size), np.float16))
+        lines.append(json.dumps({"id": sid, "index": i, "dr0": 2.0, "bin": "weak", "split": split}))
+    (root / "dataset.json").write_text(json.dumps({"version": 1, "pairs": n, "patch": size, "split": split}))
+    (root / "meta.jsonl").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def tiny_config(tmp_path: Path, **train) -> Path:
+    import yaml
+
+    cfg = {
+        "model": TINY_MODEL,
+        "data": {"pairs": str(tiny_pairs(tmp_path / "pairs")), "patch": 32, "num_workers": 0, "hflip": False},
+        "train": {"iterations": 6, "batch": 2, "lr": 1e-3, "device": "cpu", **train},
+        "loss": {"vgg": 0.0},
+        "log": {"every": 1, "progress": False},
+        "checkpoint": {"every": 1000},
+    }
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_diverging_training_stops_in_one_line_not_a_segfault(tmp_path):
+    """A learning rate that makes the loss inf/NaN: before, the NaN flow reached grid_sample's backward and the
+    process died by SIGSEGV with status.json still "running"."""
+    config = tiny_config(tmp_path)
+    run = tmp_path / "run"
+    proc = run_d2turb("train", "--config", config, "--out", run, "--set", "train.lr=1e6")
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+    line = one_error_line(proc.stderr, "loss became non-finite at iteration", "train.lr")
+    iteration = int(line.split("at iteration ")[1].split()[0])
+    status = json.loads((run / "status.json").read_text())
+    assert status["state"] == "failed" and "non-finite" in status["error"]
+    logged = [json.loads(s) for s in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["iter"] for r in logged] == list(range(1, iteration))  # the failed step is not logged
+    assert all(np.isfinite(r["loss"]) for r in logged)
+
+
+@pytest.mark.parametrize(
+    "setting, words",
+    [
+        ("train.lr_min=.inf", ["train.lr_min", "finite"]),
+        ("train.lr=.nan", ["train.lr", "finite"]),
+        ("train.lr=0", ["train.lr", "positive"]),
+        ("train.lr_min=1e-2", ["train.lr_min", "train.lr"]),  # above lr: the schedule would rise
+        ("train.seed=1.5", ["train.seed", "integer"]),
+        ("train.seed=abc", ["train.seed", "integer"]),
+        ("train.seed=-1", ["train.seed", "2**63"]),
+        ("val.seed=1.5", ["val.seed", "integer"]),
+        ("data.patch=100000", ["data.patch", "4096"]),
+    ],
+)
+def test_impossible_training_settings_are_one_line(setting, words, tmp_path, capsys):
+    config = tiny_config(tmp_path)
+    rc, _, err = run_cli(capsys, ["train", "--config", str(config), "--out", str(tmp_path / "run"), "--set", setting])
+    assert rc == 2
+    one_error_line(err, *words)
+    assert not (tmp_path / "run").exists()
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_train_removes_the_temp_checkpoint_a_killed_run_left(tmp_path, capsys):
+    config = tiny_config(tmp_path, iterations=2)
+    run = tmp_path / "run"
+    run.mkdir()
+    stale = run / f".last.pt.{_dead_pid()}-0123abcd.tmp.pt"
+    stale.write_bytes(b"\0" * 1000)
+    live = run / f".last.pt.{os.getppid()}-0123abcd.tmp.pt"  # a process that still runs may be writing it
+    live.write_bytes(b"")
+    assert main(["train", "--config", str(config), "--out", str(run)]) == 0
+    capsys.readouterr()
+    assert not stale.exists() and live.exists()
+
+
+def test_resume_after_a_kill_does_not_repeat_log_lines(tmp_path):
+    """A kill -9 between checkpoints leaves log lines of iterations the checkpoint does not hold; the resumed
+    run trains those iterations again, and the log must say each once (the state of such a kill is made
+    exactly: the checkpoint of iteration 2 put back after iterations 3 and 4 were logged)."""
+    import shutil
+
+    from d2turb.train import Trainer, load_config
+
+    cfg = load_config(tiny_config(tmp_path, iterations=6))
+    cfg.val.every = 1000
+    run = tmp_path / "run"
+    trainer = Trainer(cfg, run)
+    trainer.fit(max_steps=2)
+    shutil.copy(run / "last.pt", tmp_path / "at2.pt")
+    trainer.fit(max_steps=2)
+    shutil.copy(tmp_path / "at2.pt", run / "last.pt")  # what the kill left: log to 4, checkpoint at 2
+    assert [json.loads(s)["iter"] for s in (run / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4]
+    trainer = Trainer(cfg, run)
+    assert trainer.iteration == 2
+    trainer.fit()
+    assert [json.loads(s)["iter"] for s in (run / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5, 6]
