@@ -3,8 +3,11 @@ no user file overwritten, one `error:` line instead of a traceback, no quiet wro
 
 import json
 import os
+import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +46,11 @@ def one_error_line(err: str, *words: str) -> str:
 
 def error_lines(err: str) -> list[str]:
     return [line for line in err.splitlines() if line.startswith("error: ")]
+
+
+def make_dataset_args(clean, out, *extra):
+    args = ["make-dataset", "--clean", str(clean), "--out", str(out), "--pairs", "2", "--patch", "16", "--batch", "2"]
+    return [*args, "--depth", "none", "--device", "cpu", "--no-progress", *extra]
 
 
 def run_d2turb(*args, timeout: float = 300, **kwargs) -> subprocess.CompletedProcess:
@@ -111,7 +119,8 @@ def tiny_pairs(root: Path, n: int = 4, size: int = 32, split: str = "train") -> 
         (root / "flow").mkdir(exist_ok=True)
         np.save(root / "flow" / f"{sid}.npy", np.zeros((2, size, size), np.float16))
         lines.append(json.dumps({"id": sid, "index": i, "dr0": 2.0, "bin": "weak", "split": split}))
-    (root / "dataset.json").write_text(json.dumps({"version": 1, "pairs": n, "patch": size, "split": split}))
+    config = {"version": 1, "pairs": n, "patch": size, "split": split, "bin_ranges": {"weak": [1.0, 2.25]}}
+    (root / "dataset.json").write_text(json.dumps(config))
     (root / "meta.jsonl").write_text("\n".join(lines) + "\n")
     return root
 
@@ -210,3 +219,182 @@ def test_resume_after_a_kill_does_not_repeat_log_lines(tmp_path):
     assert trainer.iteration == 2
     trainer.fit()
     assert [json.loads(s)["iter"] for s in (run / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5, 6]
+
+
+# ------------------------------------------------------------------------ 3. nothing read outside a dataset
+def _dataset_with_meta(root: Path, records: list[dict]) -> Path:
+    tiny_pairs(root, n=2, size=16, split="test")
+    (root / "meta.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    return root
+
+
+def test_a_meta_id_that_leaves_the_dataset_is_refused(tmp_path, capsys):
+    root = tmp_path / "deep" / "ds"
+    tiny_pairs(root, n=2, size=16, split="test")
+    assert main(["check-dataset", str(root)]) == 0
+    # root/turb/../../secret.png, root/flow/../../secret.npy: the files a traversal would read
+    rgb(tmp_path / "deep" / "secret.png", 16, 16, seed=9)
+    np.save(tmp_path / "deep" / "secret.npy", np.zeros((2, 16, 16), np.float16))
+    good = {"id": "0000000", "index": 0, "dr0": 2.0, "bin": "weak", "split": "test"}
+    evil = {"id": "../../secret", "index": 1, "dr0": 2.0, "bin": "weak", "split": "test"}
+    (root / "meta.jsonl").write_text(json.dumps(good) + "\n" + json.dumps(evil) + "\n")
+    argv = ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "psnr", "--out", str(tmp_path / "o")]
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, "meta.jsonl", "line 2", "../../secret")
+    assert not (tmp_path / "o" / "results.json").exists()
+    rc, out, err = run_cli(capsys, ["check-dataset", str(root)])
+    assert rc == 1 and "../../secret" in err and "ok" not in out.split()
+
+
+@pytest.mark.parametrize("bad_id", ["/etc/passwd", "a/b", "..", ".hidden", "", 7, None])
+def test_meta_ids_must_be_plain_names(bad_id, tmp_path):
+    from d2turb.data import PairDataset
+    from d2turb.errors import D2TurbError
+
+    root = tiny_pairs(tmp_path / "ds", n=1, size=16)
+    (root / "meta.jsonl").write_text(json.dumps({"id": bad_id, "index": 0, "dr0": 2.0, "bin": "weak"}) + "\n")
+    with pytest.raises(D2TurbError, match="meta.jsonl line 1"):
+        PairDataset(root)
+
+
+def test_a_pack_entry_that_leaves_the_pack_is_refused(tmp_path):
+    from d2turb.data.pack import make_pack, read_pack
+    from d2turb.errors import D2TurbError
+
+    for i in range(2):
+        rgb(tmp_path / "clean" / "folder" / f"{i}.png", 64, 64, seed=i)
+    make_pack([tmp_path / "clean" / "folder"], tmp_path / "pack", patch=32, progress=False)
+    manifest = json.loads((tmp_path / "pack" / "pack.json").read_text())
+    manifest["images"][0]["file"] = "../clean/folder/0.png"
+    (tmp_path / "pack" / "pack.json").write_text(json.dumps(manifest))
+    with pytest.raises(D2TurbError, match=r"pack\.json.*\.\./clean/folder/0\.png"):
+        read_pack(tmp_path / "pack", verify=False)
+
+
+# -------------------------------------------------------------------------- 4. no user file overwritten
+def test_simulate_into_its_input_folder_is_refused(tmp_path, capsys):
+    folder = tmp_path / "photos"
+    rgb(folder / "a.png", 24, 32)
+    mine = rgb(folder / "a_tilt.png", 24, 32, seed=5)  # the user's own file, named like an output
+    before = mine.read_bytes()
+    for argv in (
+        ["simulate", str(folder), "--out", str(folder)],
+        ["simulate", str(folder / "a.png"), "--out", str(folder)],
+        ["simulate", str(folder / "a.png"), "--out", str(folder / "." / "")],
+    ):
+        rc, _, err = run_cli(capsys, argv)
+        assert rc == 2
+        one_error_line(err, "--out", "input")
+        assert mine.read_bytes() == before and sorted(p.name for p in folder.iterdir()) == ["a.png", "a_tilt.png"]
+    rc, _, err = run_cli(capsys, ["restore", str(folder), "--weights", "input", "--out", str(folder)])
+    assert rc == 2
+    one_error_line(err, "--out", "input")
+    assert main(["simulate", str(folder / "a.png"), "--out", str(tmp_path / "out")]) == 0  # elsewhere: fine
+    capsys.readouterr()
+
+
+def test_simulate_video_rerun_with_fewer_frames_leaves_a_consistent_folder(tmp_path, capsys):
+    image = rgb(tmp_path / "a.png", 24, 32)
+    out = tmp_path / "clip"
+    base = ["simulate-video", str(image), "--out", str(out), "--no-mp4"]
+    assert main([*base, "--frames", "4", "--save-tilt", "--save-flow"]) == 0
+    assert len(list((out / "turb").iterdir())) == 4
+    assert main([*base, "--frames", "2"]) == 0
+    capsys.readouterr()
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["frames"] == 2
+    assert sorted(p.name for p in (out / "turb").iterdir()) == ["000000.png", "000001.png"]
+    for kind in ("tilt", "flow"):  # not asked for this time: the earlier run's frames would not match turb/
+        assert not (out / kind).exists() or not any((out / kind).iterdir())
+
+
+def test_two_make_dataset_runs_into_one_folder(tmp_path, capsys):
+    """The second run is refused in one line naming the first one's process; a lock left by a killed run
+    (its process gone) is taken over."""
+    clean = tmp_path / "clean"
+    rgb(clean / "a.png", 40, 48)
+    out = tmp_path / "ds"
+    first = subprocess.Popen(
+        [sys.executable, "-m", "d2turb", *make_dataset_args(clean, out, "--pairs", "4000")],
+        env=ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and first.poll() is None and not (out / "dataset.json").is_file():
+            time.sleep(0.01)
+        assert first.poll() is None, "the first run ended before the second started"
+        rc, _, err = run_cli(capsys, make_dataset_args(clean, out))
+        assert first.poll() is None, "the first run ended before the second was refused"
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+    assert rc == 2
+    one_error_line(err, str(out), f"process {first.pid}")
+    assert first.returncode == -signal.SIGKILL
+    # the killed run's lock stays (docs/cli.md: DIR/.d2turb.lock); the rest is cleared to start a small dataset
+    for p in out.iterdir():
+        if p.name != ".d2turb.lock":
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    assert str(first.pid) in (out / ".d2turb.lock").read_text()
+    rc, _, err = run_cli(capsys, make_dataset_args(clean, out))  # the dead process's lock is taken over
+    assert rc == 0, err
+    assert main(["check-dataset", str(out)]) == 0
+    assert not (out / ".d2turb.lock").exists()  # released at the end
+    capsys.readouterr()
+
+
+# ------------------------------------------------------------------------------- 5. damaged dataset files
+GOOD_RECORD = {"id": "0000000", "index": 0, "dr0": 2.0, "bin": "weak", "split": "test"}
+
+
+@pytest.mark.parametrize(
+    "damage, words",
+    [
+        ({"meta": {k: v for k, v in GOOD_RECORD.items() if k != "index"}}, ["meta.jsonl line 1", "index"]),
+        ({"meta": {k: v for k, v in GOOD_RECORD.items() if k != "dr0"}}, ["meta.jsonl line 1", "dr0"]),
+        ({"meta": {**GOOD_RECORD, "index": "zero"}}, ["meta.jsonl line 1", "index"]),
+        ({"meta": {**GOOD_RECORD, "index": 1.5}}, ["meta.jsonl line 1", "index"]),
+        ({"meta": {**GOOD_RECORD, "dr0": "strong"}}, ["meta.jsonl line 1", "dr0"]),
+        ({"meta": [1, 2]}, ["meta.jsonl line 1"]),
+        ({"config": {"version": 1, "pairs": 2, "patch": "16", "split": "test"}}, ["dataset.json", "patch"]),
+        ({"config": {"version": 1, "pairs": 2, "patch": 16.5, "split": "test"}}, ["dataset.json", "patch"]),
+        ({"config": [1, 2, 3]}, ["dataset.json", "object"]),
+    ],
+)
+def test_damaged_dataset_files_are_one_line_everywhere(damage, words, tmp_path, capsys):
+    root = tiny_pairs(tmp_path / "ds", n=2, size=16, split="test")
+    if "meta" in damage:
+        second = {**GOOD_RECORD, "id": "0000001", "index": 1}
+        (root / "meta.jsonl").write_text(json.dumps(damage["meta"]) + "\n" + json.dumps(second) + "\n")
+    else:
+        (root / "dataset.json").write_text(json.dumps(damage["config"]))
+    argv = ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "psnr", "--out", str(tmp_path / "o")]
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, *words)
+    config = tiny_config(tmp_path)  # training with this folder as val.pairs
+    argv = ["train", "--config", str(config), "--out", str(tmp_path / "run"), "--set", f"val.pairs={root}"]
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, *words)
+    rc, out, err = run_cli(capsys, ["check-dataset", str(root)])  # the same checks: never "ok"
+    assert rc in (1, 2) and "ok" not in out.split() and "Traceback" not in err
+    assert words[0] in err
+
+
+def test_evaluate_epe_skips_a_flow_of_the_wrong_size(tmp_path, capsys):
+    root = tiny_pairs(tmp_path / "ds", n=3, size=16, split="test")
+    np.save(root / "flow" / "0000001.npy", np.zeros((2, 8, 8), np.float16))
+    out = tmp_path / "o"
+    rc, _, err = run_cli(
+        capsys, ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "epe", "--out", str(out)]
+    )
+    assert rc == 1
+    lines = error_lines(err)
+    assert len(lines) == 1 and "0000001" in lines[0] and "flow" in lines[0] and "Traceback" not in err
+    results = json.loads((out / "results.json").read_text())
+    assert results["samples_evaluated"] == 2 and [s["id"] for s in results["skipped"]] == ["0000001"]
+    assert results["table"]["input"]["epe"]["avg"] == 0.0  # zero flow against zero flow

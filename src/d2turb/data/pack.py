@@ -30,6 +30,7 @@ import torch
 from torch.utils.data import Dataset
 
 from d2turb.data.generate import make_depth_fn, resize_up
+from d2turb.data.layout import inside
 from d2turb.data.split import SPLITS, TEST_FOLDERS, VAL_FOLDERS, split_of
 from d2turb.errors import D2TurbError
 from d2turb.io import list_images, read_image, to_uint8, write_bytes, write_text
@@ -350,6 +351,9 @@ def read_pack(pack: str | os.PathLike, verify: bool = True) -> dict:
     if manifest.get("format") != PACK_FORMAT:
         raise D2TurbError(f"{path}: pack format {manifest.get('format')!r}, this d2turb reads {PACK_FORMAT}")
     for entry in images:
+        if not isinstance(entry, dict):
+            raise D2TurbError(f"{path}: not a valid pack manifest (an image entry is {json.dumps(entry)[:60]})")
+        inside(pack, entry.get("file"), str(path))  # every file the manifest names lies inside the pack
         if entry.get("split") not in SPLITS or entry["split"] == "test" or split_of(entry.get("folder", "")) == "test":
             raise D2TurbError(f"{pack}: holds a test image ({entry.get('file')}); packs are for training only")
         if verify:
