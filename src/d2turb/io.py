@@ -327,12 +327,157 @@ def remove_stale_temp_files(folder: str | os.PathLike, recursive: bool = False) 
     return count
 
 
-def check_output_dir(path: str | os.PathLike, option: str = "--out") -> Path:
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+LOCK_NAME = ".d2turb.lock"
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    if os.name != "posix":
+        return True  # no cheap probe: never take over
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: alive, another user's
+        return True
+    return True
+
+
+class FolderLock:
+    """Exclusive use of a folder by one run: ``FOLDER/.d2turb.lock`` holds the owner's pid, host and command.
+
+    Taken with an atomic create (a hard link of a complete temp file; O_EXCL where links are not supported); a
+    lock whose process no longer runs on this host (a killed run) is taken over; one held by a live process is a
+    one-line ``D2TurbError`` naming it. Released (the file removed) by :meth:`release` or on leaving the ``with``
+    block, only if it is still ours."""
+
+    def __init__(self, folder: str | os.PathLike, command: str):
+        self.folder, self.command = Path(folder), command
+        self.path = self.folder / LOCK_NAME
+        self.token = f"{os.getpid()}-{secrets.token_hex(8)}"
+        self.held = False
+
+    def _owner(self) -> dict | None:
+        """The lock's record, {} when it is unreadable or garbled, None when there is no lock."""
+        try:
+            record = json.loads(self.path.read_bytes())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError):
+            return {}
+        return record if isinstance(record, dict) else {}
+
+    def _create(self) -> bool:
+        data = json.dumps(
+            {
+                "pid": os.getpid(),
+                "host": _hostname(),
+                "command": self.command,
+                "token": self.token,
+                "since": time.time(),
+            }
+        ).encode()
+        tmp, fd = _open_temp(self.path)
+        try:
+            with open(fd, "wb") as f:
+                f.write(data)
+            try:
+                os.link(tmp, self.path)
+                return True
+            except FileExistsError:
+                return False
+            except OSError:  # no hard links on this file system
+                try:
+                    fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                except FileExistsError:
+                    return False
+                with open(fd, "wb") as f:
+                    f.write(data)
+                return True
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+    def acquire(self) -> FolderLock:
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            for _ in range(20):
+                if self._create():
+                    self.held = True
+                    return self
+                owner = self._owner()
+                if owner is None:  # released meanwhile
+                    continue
+                pid, host = owner.get("pid"), owner.get("host")
+                if isinstance(pid, int) and (host != _hostname() or _pid_alive(pid)):
+                    where = "" if host == _hostname() else f" on host {host}"
+                    raise D2TurbError(
+                        f"{self.folder} is in use by another {owner.get('command', 'd2turb')} run (process {pid}"
+                        f"{where}); wait for it to finish, or use another folder (if that process is gone, "
+                        f"remove {self.path})"
+                    )
+                # a dead process's lock (or a garbled one): take it over, unless another run did just now
+                stale = self.path.with_name(f"{LOCK_NAME}.{self.token}.stale")
+                try:
+                    os.rename(self.path, stale)
+                except FileNotFoundError:
+                    continue
+                try:
+                    taken = json.loads(stale.read_bytes())
+                except (OSError, ValueError):
+                    taken = {}
+                if taken != owner and isinstance(taken, dict) and taken:  # a run that took it over meanwhile
+                    with contextlib.suppress(OSError):
+                        os.link(stale, self.path)  # give it back
+                os.unlink(stale)
+        except OSError as exc:
+            raise D2TurbError(f"cannot lock {self.folder}: {_reason(exc)}") from exc
+        raise D2TurbError(f"cannot lock {self.folder}: the lock file {self.path} keeps changing")
+
+    def release(self) -> None:
+        if self.held and (self._owner() or {}).get("token") == self.token:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+        self.held = False
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _hostname() -> str:
+    import socket
+
+    return socket.gethostname()
+
+
+def check_output_dir(path: str | os.PathLike, option: str = "--out", inputs: Iterable[str | os.PathLike] = ()) -> Path:
     """Check that ``path`` is, or can be created as, a writable folder, without creating it; remove stale
-    temporary files of ours inside it. Raises ``D2TurbError`` in one line otherwise."""
+    temporary files of ours inside it. Raises ``D2TurbError`` in one line otherwise.
+
+    ``inputs``: the command's input files, for commands whose per-input outputs are named after the input
+    (``NAME_turb.png``): a folder holding one of them is refused, since outputs there could replace the user's
+    own files of those names (outputs never replace a file the run did not create)."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise D2TurbError(f"{option} {path}: exists and is not a folder")
+    if path.is_dir():
+        for parent in dict.fromkeys(Path(p).parent for p in inputs):
+            if _same_folder(parent, path):
+                raise D2TurbError(
+                    f"{option} {path}: is the folder of the input files; outputs written there could replace "
+                    "files of yours with the same names, choose another output folder"
+                )
     probe = path
     while not probe.exists() and probe.parent != probe:
         probe = probe.parent

@@ -79,7 +79,7 @@ def run(args) -> int:
     from d2turb.video import iter_video
 
     images, videos = split_inputs(args.inputs)
-    out_dir = check_output_dir(args.out)
+    out_dir = check_output_dir(args.out, inputs=images + videos)
     restorer = Restorer(
         args.weights, device=resolve_device(args.device), tile=args.tile, overlap=args.overlap, progress=True
     )
