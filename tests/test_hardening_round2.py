@@ -398,3 +398,16 @@ def test_evaluate_epe_skips_a_flow_of_the_wrong_size(tmp_path, capsys):
     results = json.loads((out / "results.json").read_text())
     assert results["samples_evaluated"] == 2 and [s["id"] for s in results["skipped"]] == ["0000001"]
     assert results["table"]["input"]["epe"]["avg"] == 0.0  # zero flow against zero flow
+
+
+# ----------------------------------------------------------------------------------------- 6. make-pack
+@pytest.mark.parametrize(
+    "option, value", [("--max-mib", "nan"), ("--max-mib", "inf"), ("--max-mib", "-1"), ("--max-side", "-5")]
+)
+def test_make_pack_limits_are_checked(option, value, tmp_path, capsys):
+    rgb(tmp_path / "clean" / "folder" / "a.png", 64, 64)
+    argv = ["make-pack", "--clean", str(tmp_path / "clean" / "folder"), "--out", str(tmp_path / "pack")]
+    rc, _, err = run_cli(capsys, [*argv, "--patch", "32", "--no-progress", option, value])
+    assert rc == 2
+    one_error_line(err, option, value)
+    assert not (tmp_path / "pack").exists()

@@ -19,6 +19,7 @@ import csv
 import hashlib
 import io
 import json
+import math
 import os
 import shutil
 from collections.abc import Sequence
@@ -37,6 +38,7 @@ from d2turb.io import list_images, read_image, to_uint8, write_bytes, write_text
 
 PACK_FORMAT = 1
 MANIFEST = "pack.json"
+MAX_MIB = 1 << 20  # --max-mib at most 1 TiB
 KIND = "d2turb-pack"
 LADDER: tuple[int | None, ...] = (None, 1024, 896, 768, 704, 640, 576, 512, 480, 448, 416, 384, 352, 320, 288, 256)
 _MIB = 1 << 20
@@ -250,8 +252,10 @@ def make_pack(
         raise D2TurbError(f"--quality must be between 1 and 100, got {quality}")
     if patch < 16:
         raise D2TurbError(f"--patch must be at least 16, got {patch}")
-    if max_mib <= 0:
-        raise D2TurbError(f"--max-mib must be positive, got {max_mib}")
+    if not (isinstance(max_mib, (int, float)) and math.isfinite(max_mib) and 0 < max_mib <= MAX_MIB):
+        raise D2TurbError(f"--max-mib must be a number above 0 and at most {MAX_MIB} (1 TiB), got {max_mib}")
+    if max_side is not None and not (isinstance(max_side, int) and patch <= max_side <= 65535):
+        raise D2TurbError(f"--max-side must be an integer from --patch ({patch}) to 65535, got {max_side}")
     if out.exists() and not (out / MANIFEST).is_file() and (not out.is_dir() or any(out.iterdir())):
         raise D2TurbError(f"{out}: exists and is not a d2turb pack; choose another --out")
     sources, excluded = collect_sources(clean)
