@@ -70,15 +70,37 @@ def expand_inputs(inputs: list[str]) -> list[Path]:
     return paths
 
 
-def _to_float_array(img: Image.Image) -> np.ndarray:
-    """PIL image of any mode → float32 HxWx3 RGB in [0, 1] (alpha dropped, grey replicated)."""
+FLOAT_TOLERANCE = 1e-3  # float pixels this far outside [0, 1] (rounding of an earlier computation) are clipped
+
+
+def _to_float_array(img: Image.Image, path: Path | str = "image") -> np.ndarray:
+    """PIL image of any mode → float32 HxWx3 RGB in [0, 1] (alpha dropped, grey replicated).
+
+    Integer images are scaled by their type's maximum (16-bit: 65535; 32-bit: 65535 when a value exceeds 255).
+    Float images (TIFF ``F``) must hold finite values in [0, 1]: NaN/inf, or values beyond [0, 1] by more than
+    :data:`FLOAT_TOLERANCE` (radiance, a 0-255 or 0-1000 scale), are refused naming the range found, rather than
+    clipped into a saturated image."""
     mode = img.mode
     if mode in ("I;16", "I;16B", "I;16L", "I"):
         arr = np.asarray(img, dtype=np.float64)
-        scale = 65535.0 if arr.max(initial=0) > 255 or mode.startswith("I;16") else 255.0
+        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+        if lo < 0 or hi > 65535:
+            raise D2TurbError(
+                f"{path}: 32-bit integer pixels span {lo:g} to {hi:g}, outside 0-65535; save the image as 8- or 16-bit"
+            )
+        scale = 65535.0 if hi > 255 or mode.startswith("I;16") else 255.0
         arr = (arr / scale)[..., None].repeat(3, axis=2)
     elif mode == "F":
-        arr = np.asarray(img, dtype=np.float64)[..., None].repeat(3, axis=2)
+        arr = np.asarray(img, dtype=np.float64)
+        if not np.isfinite(arr).all():
+            raise D2TurbError(f"{path}: image contains NaN or infinite values")
+        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+        if lo < -FLOAT_TOLERANCE or hi > 1 + FLOAT_TOLERANCE:
+            raise D2TurbError(
+                f"{path}: floating-point pixels span {lo:g} to {hi:g}, outside [0, 1]; rescale the image to [0, 1] "
+                "(or save it as 8- or 16-bit)"
+            )
+        arr = arr[..., None].repeat(3, axis=2)
     else:
         if mode not in ("RGB", "L"):
             img = img.convert("RGBA").convert("RGB") if "A" in mode or mode == "P" else img.convert("RGB")
@@ -191,7 +213,7 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         arr /= np.float32(255.0)
         return torch.from_numpy(arr)
     try:
-        arr = _to_float_array(img)
+        arr = _to_float_array(img, path)
     except (OSError, ValueError) as exc:
         raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
     if arr.shape[0] < 2 or arr.shape[1] < 2:
