@@ -442,3 +442,31 @@ def test_float_tiff_in_range_is_read_as_is(tmp_path):
     values = np.linspace(0, 1, 24 * 32).reshape(24, 32).astype(np.float32)
     image = read_image(_float_tiff(tmp_path / "ok.tif", values))
     assert image.shape == (3, 24, 32) and torch.equal(image[1], torch.from_numpy(values))
+
+
+# --------------------------------------------------------------------------------------- 8. long names
+def test_outputs_with_the_longest_legal_names_are_written(tmp_path, capsys):
+    stem = "é" + "x" * 234  # 236 bytes: NAME_meta.json is 250 bytes, within the 255 a file name may have
+    image = rgb(tmp_path / "in" / f"{stem}.png", 24, 32)
+    out = tmp_path / "out"
+    out.mkdir()
+    leftover = out / f".{stem[:200]}.png.{_dead_pid()}-deadbeef.tmp.png"  # a cut temp name of a killed run
+    leftover.write_bytes(b"")
+    rc, _, err = run_cli(capsys, ["simulate", str(image), "--out", str(out)])
+    assert rc == 0, err
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{stem}_{k}" for k in ("turb.png", "tilt.png", "meta.json"))
+    assert Image.open(out / f"{stem}_turb.png").size == (32, 24)
+
+
+def test_temp_names_fit_whenever_the_name_does():
+    from d2turb.io import temp_name
+
+    for name in ("a.png", "x" * 251 + ".png", "é" * 125 + ".json", "y" * 255, "z" * 248 + ".tar.gz"):
+        assert len(name.encode()) <= 255
+        tmp = temp_name(name, f"{2**22}-0123abcd")
+        assert (
+            len(tmp.encode()) <= 255
+            and tmp.startswith(".")
+            and tmp.endswith(f".{2**22}-0123abcd.tmp{Path(name).suffix}")
+        )
+        tmp.encode().decode()  # cut at a character boundary

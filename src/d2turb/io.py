@@ -245,11 +245,26 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc) or exc.__class__.__name__
 
 
+NAME_MAX = 255  # bytes in one file name (Linux, macOS, Windows)
+
+
+def temp_name(name: str, token: str) -> str:
+    """``.NAME.<token>.tmpSUFFIX``, with NAME's stem cut (at a character boundary, its suffix kept) so that the
+    temp name fits in :data:`NAME_MAX` bytes whenever ``name`` does; :func:`remove_stale_temp_files` reads both."""
+    suffix = Path(name).suffix
+    tail = f".{token}.tmp{suffix}"
+    if len(f".{name}{tail}".encode()) > NAME_MAX:
+        stem = name[: len(name) - len(suffix)]
+        room = NAME_MAX - len(f".{suffix}{tail}".encode())
+        name = stem.encode()[: max(room, 1)].decode(errors="ignore") + suffix
+    return f".{name}{tail}"
+
+
 def _open_temp(path: Path) -> tuple[Path, int]:
-    """A new temp file next to ``path``, ``.NAME.<pid>-<random>.tmpSUFFIX``, open for writing. Created with mode
-    0666, so the kernel applies the umask exactly as for a normal write (mkstemp would make it 0600)."""
+    """A new temp file next to ``path``, ``.NAME.<pid>-<random>.tmpSUFFIX`` (:func:`temp_name`), open for writing.
+    Created with mode 0666, so the kernel applies the umask exactly as for a normal write (mkstemp: 0600)."""
     for _ in range(100):
-        tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{path.suffix}")
+        tmp = path.with_name(temp_name(path.name, f"{os.getpid()}-{secrets.token_hex(4)}"))
         try:
             return tmp, os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0), 0o666)
         except FileExistsError:
