@@ -470,3 +470,23 @@ def test_temp_names_fit_whenever_the_name_does():
             and tmp.endswith(f".{2**22}-0123abcd.tmp{Path(name).suffix}")
         )
         tmp.encode().decode()  # cut at a character boundary
+
+
+# ------------------------------------------------------------------------------------ 9. broken links
+@pytest.mark.skipif(os.name != "posix", reason="symbolic links")
+@pytest.mark.parametrize("command", ["simulate", "restore"])
+def test_dangling_and_looping_links_in_a_folder_are_reported(command, tmp_path, capsys):
+    folder = tmp_path / "in"
+    rgb(folder / "a.png", 24, 32)
+    (folder / "b.png").symlink_to(tmp_path / "nowhere.png")
+    (folder / "c.png").symlink_to(folder / "c.png")
+    (folder / "d.png").symlink_to(folder / "a.png")  # a working link is an input like any other
+    out = tmp_path / "out"
+    argv = {"simulate": ["simulate", "--no-tilt"], "restore": ["restore", "--weights", "input"]}[command]
+    rc, _, err = run_cli(capsys, [*argv, str(folder), "--out", str(out)])
+    assert rc == 1
+    lines = error_lines(err)
+    assert len(lines) == 2 and "Traceback" not in err
+    assert "b.png" in lines[0] and "dangling" in lines[0] and "c.png" in lines[1] and "loop" in lines[1]
+    suffix = "turb.png" if command == "simulate" else "restored.png"
+    assert {f"a_{suffix}", f"d_{suffix}"} <= {p.name for p in out.iterdir()}

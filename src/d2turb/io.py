@@ -4,6 +4,7 @@ normal write gets, output-folder checks, and a background writer for batch comma
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import queue
@@ -49,9 +50,28 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     found = []
     for p in folder.rglob("*") if recursive else folder.iterdir():
         hidden = any(part.startswith(".") for part in p.relative_to(folder).parts)
-        if not hidden and p.suffix.lower() in IMAGE_SUFFIXES and p.is_file():
+        # a dangling or looping symbolic link is kept: reading it reports it, like any unreadable file
+        if not hidden and p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or _broken_link(p)):
             found.append(p)
     return sorted(found, key=lambda p: p.relative_to(folder).parts)
+
+
+def _broken_link(path: Path) -> bool:
+    return path.is_symlink() and not path.exists()
+
+
+def _missing_reason(path: Path) -> str:
+    """Why ``path`` is no readable file: a dangling or looping symbolic link, or absent."""
+    if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                return f"{path}: cannot read image (symbolic link loop)"
+            return f"{path}: cannot read image (dangling symbolic link to {os.readlink(path)})"
+    if path.is_dir():
+        return f"{path}: is a folder, not an image file"
+    return f"{path}: no such file"
 
 
 def expand_inputs(inputs: list[str]) -> list[Path]:
@@ -64,7 +84,7 @@ def expand_inputs(inputs: list[str]) -> list[Path]:
         elif p.is_file():
             paths.append(p)
         else:
-            raise D2TurbError(f"{p}: no such file or directory")
+            raise D2TurbError(_missing_reason(p) if p.is_symlink() else f"{p}: no such file or directory")
     if not paths:
         raise D2TurbError("no input images found")
     return paths
@@ -134,7 +154,7 @@ def open_image(path: str | os.PathLike, max_pixels: int | None = -1) -> Image.Im
     """
     path = Path(path)
     if not path.is_file():
-        raise D2TurbError(f"{path}: no such file")
+        raise D2TurbError(_missing_reason(path))
     limit = _limits["max_pixels"] if max_pixels == -1 else max_pixels
     saved = Image.MAX_IMAGE_PIXELS
     Image.MAX_IMAGE_PIXELS = None  # the limit is applied below, with a message that names the file

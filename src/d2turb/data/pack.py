@@ -55,9 +55,12 @@ class PackSource:
 
 def _sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+    except OSError as exc:  # unreadable, a dangling or looping link
+        raise D2TurbError(f"{path}: cannot read ({exc.strerror or exc.__class__.__name__})") from exc
     return digest.hexdigest()
 
 
