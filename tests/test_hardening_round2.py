@@ -568,3 +568,37 @@ def test_convert_refuses_an_impossible_config_and_a_missing_key(tmp_path, capsys
     assert not (tmp_path / "o.safetensors").exists()
     assert main([*argv, "--config", json.dumps(TINY_NAFNET)]) == 0  # the same file without --key converts
     capsys.readouterr()
+
+
+# ------------------------------------------------------------------------------------- 11. unreadable
+@pytest.mark.parametrize(
+    "thing", ["input folder", "input file", "clean folder", "config", "dataset.json", "meta.jsonl", "weights"]
+)
+def test_unreadable_things_are_one_line(thing, tmp_path, run_unprivileged):
+    """Mode 000, in a process that file permissions bind (as root too: see the run_unprivileged fixture)."""
+    from d2turb.models import create_model, save_pretrained
+
+    folder = tmp_path / "in"
+    image = rgb(folder / "a.png", 24, 32)
+    root = tiny_pairs(tmp_path / "ds", n=2, size=16, split="test")
+    config = tiny_config(tmp_path)
+    weights = save_pretrained(create_model("nafnet", **TINY_NAFNET), tmp_path / "w.safetensors")
+    evaluate = ["evaluate", "--data", root, "--weights", "input", "--metrics", "psnr", "--out", tmp_path / "o"]
+    locked, argv = {
+        "input folder": (folder, ["simulate", folder, "--out", tmp_path / "o"]),
+        "input file": (image, ["simulate", image, "--out", tmp_path / "o"]),
+        "clean folder": (folder, make_dataset_args(folder, tmp_path / "o")),
+        "config": (config, ["train", "--config", config, "--out", tmp_path / "o"]),
+        "dataset.json": (root / "dataset.json", evaluate),
+        "meta.jsonl": (root / "meta.jsonl", evaluate),
+        "weights": (weights, ["restore", image, "--weights", weights, "--out", tmp_path / "o"]),
+    }[thing]
+    mode = locked.stat().st_mode
+    locked.chmod(0)
+    try:
+        proc = run_unprivileged(*argv)
+    finally:
+        locked.chmod(mode)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    line = one_error_line(proc.stderr, str(locked), "Permission denied")
+    assert "corrupt" not in line and "FileNotFoundError" not in line

@@ -47,8 +47,12 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     folder = Path(folder)
     if not folder.is_dir():
         raise D2TurbError(f"{folder}: not a directory")
+    try:
+        entries = list(folder.rglob("*") if recursive else folder.iterdir())
+    except OSError as exc:
+        raise D2TurbError(f"{folder}: cannot read folder ({_reason(exc)})") from exc
     found = []
-    for p in folder.rglob("*") if recursive else folder.iterdir():
+    for p in entries:
         hidden = any(part.startswith(".") for part in p.relative_to(folder).parts)
         # a dangling or looping symbolic link is kept: reading it reports it, like any unreadable file
         if not hidden and p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or _broken_link(p)):

@@ -163,6 +163,8 @@ def read_config(root: Path) -> dict:
         raise D2TurbError(f"{root}: not a d2turb dataset (no {CONFIG_NAME})")
     try:
         return check_config(json.loads(_read_bytes(path)))
+    except D2TurbError:
+        raise
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise D2TurbError(f"{path}: unreadable ({exc})") from exc
     except ValueError as exc:

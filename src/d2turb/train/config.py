@@ -231,6 +231,8 @@ def load_config(
             raise D2TurbError(f"config file not found: {path}")
         try:
             user = yaml.safe_load(path.read_text()) or {}
+        except OSError as exc:
+            raise D2TurbError(f"{path}: cannot read config ({exc.strerror or exc.__class__.__name__})") from exc
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise D2TurbError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from exc
         if not isinstance(user, dict):
