@@ -602,3 +602,36 @@ def test_unreadable_things_are_one_line(thing, tmp_path, run_unprivileged):
     assert proc.returncode == 2, proc.stderr[-2000:]
     line = one_error_line(proc.stderr, str(locked), "Permission denied")
     assert "corrupt" not in line and "FileNotFoundError" not in line
+
+
+# ------------------------------------------------------------------------ 12. physics that cannot fit
+@pytest.mark.parametrize("ifov", ["1", "1e-9", "1e-3"])
+def test_a_pixel_scale_that_cannot_fit_in_memory_is_refused_before_allocating(ifov, tmp_path, capsys):
+    """--ifov 1 asked the PSF optics for a petabyte, 1e-9 for 1.2 TB, 1e-3 grew to 15 GB on a 32² image. The
+    supported range is 1/4 to 16 Nyquist pixels λ/(2D) (docs/cli.md): 6.56e-07 to 4.2e-05 rad at D = 0.1 m,
+    λ = 525 nm."""
+    image = rgb(tmp_path / "a.png", 32, 32)
+    rc, _, err = run_cli(capsys, ["simulate", str(image), "--out", str(tmp_path / "o"), "--ifov", ifov])
+    assert rc == 2
+    one_error_line(err, "--ifov", "6.56e-07", "4.2e-05")
+    argv = make_dataset_args(tmp_path, tmp_path / "ds", "--param", f"ifov_rad={ifov}")
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, "ifov_rad", "6.56e-07", "4.2e-05")
+    assert not (tmp_path / "o").exists() and not (tmp_path / "ds").exists()
+
+
+def test_the_ends_of_the_pixel_scale_range_simulate(tmp_path, capsys):
+    image = rgb(tmp_path / "a.png", 32, 32)
+    for ifov in ("6.6e-7", "4.1e-5"):
+        assert main(["simulate", str(image), "--out", str(tmp_path / ifov), "--ifov", ifov, "--no-tilt"]) == 0
+    capsys.readouterr()
+
+
+def test_make_dataset_patch_is_bounded(tmp_path, capsys):
+    rgb(tmp_path / "clean" / "a.png", 40, 48)
+    argv = make_dataset_args(tmp_path / "clean", tmp_path / "ds")
+    argv[argv.index("--patch") + 1] = "100000"
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, "--patch", "4096")

@@ -95,11 +95,14 @@ class SamplePlan:
     crop_v: float
 
 
+PATCH_MAX = 4096  # as train's data.patch: one 4096² sample already holds ~0.5 GB of float32 intermediates
+
+
 def validate(cfg: DatasetConfig) -> None:
     if cfg.pairs < 1:
         raise D2TurbError(f"--pairs must be at least 1, got {cfg.pairs}")
-    if cfg.patch < 16:
-        raise D2TurbError(f"--patch must be at least 16 px, got {cfg.patch}")
+    if not 16 <= cfg.patch <= PATCH_MAX:
+        raise D2TurbError(f"--patch must be from 16 to {PATCH_MAX} px, got {cfg.patch}")
     if cfg.split not in SPLITS:
         raise D2TurbError(f"--split must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
     bin_spans(cfg.bins)
