@@ -119,3 +119,30 @@ def tiny_d2turb_weights(tmp_path_factory) -> Path:
     )
     torch.nn.init.normal_(model.rectifier.flow_head.weight, std=2.0)
     return save_pretrained(model.eval(), tmp_path_factory.mktemp("weights") / "tiny-app.safetensors")
+
+
+@pytest.fixture
+def run_unprivileged():
+    """Run ``python -m d2turb ARGS`` in a process that file permissions bind: as root (CI), under ``setpriv`` with
+    CAP_DAC_OVERRIDE and CAP_DAC_READ_SEARCH dropped from the bounding set, so that mode 000 and read-only
+    folders refuse it as they refuse a normal user; as another user, directly. Returns the CompletedProcess."""
+    import shutil
+    import subprocess
+    import sys
+
+    if os.name != "posix":
+        pytest.skip("needs POSIX permissions")
+    prefix = []
+    if os.geteuid() == 0:
+        setpriv = shutil.which("setpriv")
+        if setpriv is None:
+            pytest.skip("running as root without setpriv (util-linux) to drop the permission override")
+        prefix = [setpriv, "--bounding-set=-dac_override,-dac_read_search"]
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+    def run(*args, timeout: float = 300):
+        cmd = [*prefix, sys.executable, "-m", "d2turb", *map(str, args)]
+        return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+
+    return run

@@ -204,19 +204,20 @@ def test_bad_out_is_one_line(command, kind, tmp_path, capsys):
     assert blocker.read_text() == "a file"
 
 
-@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="needs POSIX permissions and a non-root user")
 @pytest.mark.parametrize("command", ["simulate", "restore", "make-dataset", "evaluate"])
-def test_read_only_out_is_one_line(command, tmp_path, capsys):
+def test_read_only_out_is_one_line(command, tmp_path, run_unprivileged):
+    """In a process that file permissions bind (as root too: see the run_unprivileged fixture)."""
     image = rgb(tmp_path / "in" / "a.png", 64, 64)
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(0o555)
     try:
-        rc, _, err = run_cli(capsys, _command(command, image, locked / "out", image.parent))
+        proc = run_unprivileged(*_command(command, image, locked / "out", image.parent))
     finally:
         locked.chmod(0o755)
-    assert rc == 2
-    one_error_line(err, "not writable")
+    assert proc.returncode == 2
+    one_error_line(proc.stderr, "not writable")
+    assert not any(locked.iterdir())
 
 
 def test_write_failures_become_one_line_errors(tmp_path, monkeypatch):

@@ -4,6 +4,7 @@ normal write gets, output-folder checks, and a background writer for batch comma
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import queue
@@ -46,12 +47,35 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     folder = Path(folder)
     if not folder.is_dir():
         raise D2TurbError(f"{folder}: not a directory")
+    try:
+        entries = list(folder.rglob("*") if recursive else folder.iterdir())
+    except OSError as exc:
+        raise D2TurbError(f"{folder}: cannot read folder ({_reason(exc)})") from exc
     found = []
-    for p in folder.rglob("*") if recursive else folder.iterdir():
+    for p in entries:
         hidden = any(part.startswith(".") for part in p.relative_to(folder).parts)
-        if not hidden and p.suffix.lower() in IMAGE_SUFFIXES and p.is_file():
+        # a dangling or looping symbolic link is kept: reading it reports it, like any unreadable file
+        if not hidden and p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or _broken_link(p)):
             found.append(p)
     return sorted(found, key=lambda p: p.relative_to(folder).parts)
+
+
+def _broken_link(path: Path) -> bool:
+    return path.is_symlink() and not path.exists()
+
+
+def _missing_reason(path: Path) -> str:
+    """Why ``path`` is no readable file: a dangling or looping symbolic link, or absent."""
+    if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                return f"{path}: cannot read image (symbolic link loop)"
+            return f"{path}: cannot read image (dangling symbolic link to {os.readlink(path)})"
+    if path.is_dir():
+        return f"{path}: is a folder, not an image file"
+    return f"{path}: no such file"
 
 
 def expand_inputs(inputs: list[str]) -> list[Path]:
@@ -64,21 +88,43 @@ def expand_inputs(inputs: list[str]) -> list[Path]:
         elif p.is_file():
             paths.append(p)
         else:
-            raise D2TurbError(f"{p}: no such file or directory")
+            raise D2TurbError(_missing_reason(p) if p.is_symlink() else f"{p}: no such file or directory")
     if not paths:
         raise D2TurbError("no input images found")
     return paths
 
 
-def _to_float_array(img: Image.Image) -> np.ndarray:
-    """PIL image of any mode → float32 HxWx3 RGB in [0, 1] (alpha dropped, grey replicated)."""
+FLOAT_TOLERANCE = 1e-3  # float pixels this far outside [0, 1] (rounding of an earlier computation) are clipped
+
+
+def _to_float_array(img: Image.Image, path: Path | str = "image") -> np.ndarray:
+    """PIL image of any mode → float32 HxWx3 RGB in [0, 1] (alpha dropped, grey replicated).
+
+    Integer images are scaled by their type's maximum (16-bit: 65535; 32-bit: 65535 when a value exceeds 255).
+    Float images (TIFF ``F``) must hold finite values in [0, 1]: NaN/inf, or values beyond [0, 1] by more than
+    :data:`FLOAT_TOLERANCE` (radiance, a 0-255 or 0-1000 scale), are refused naming the range found, rather than
+    clipped into a saturated image."""
     mode = img.mode
     if mode in ("I;16", "I;16B", "I;16L", "I"):
         arr = np.asarray(img, dtype=np.float64)
-        scale = 65535.0 if arr.max(initial=0) > 255 or mode.startswith("I;16") else 255.0
+        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+        if lo < 0 or hi > 65535:
+            raise D2TurbError(
+                f"{path}: 32-bit integer pixels span {lo:g} to {hi:g}, outside 0-65535; save the image as 8- or 16-bit"
+            )
+        scale = 65535.0 if hi > 255 or mode.startswith("I;16") else 255.0
         arr = (arr / scale)[..., None].repeat(3, axis=2)
     elif mode == "F":
-        arr = np.asarray(img, dtype=np.float64)[..., None].repeat(3, axis=2)
+        arr = np.asarray(img, dtype=np.float64)
+        if not np.isfinite(arr).all():
+            raise D2TurbError(f"{path}: image contains NaN or infinite values")
+        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+        if lo < -FLOAT_TOLERANCE or hi > 1 + FLOAT_TOLERANCE:
+            raise D2TurbError(
+                f"{path}: floating-point pixels span {lo:g} to {hi:g}, outside [0, 1]; rescale the image to [0, 1] "
+                "(or save it as 8- or 16-bit)"
+            )
+        arr = arr[..., None].repeat(3, axis=2)
     else:
         if mode not in ("RGB", "L"):
             img = img.convert("RGBA").convert("RGB") if "A" in mode or mode == "P" else img.convert("RGB")
@@ -112,7 +158,7 @@ def open_image(path: str | os.PathLike, max_pixels: int | None = -1) -> Image.Im
     """
     path = Path(path)
     if not path.is_file():
-        raise D2TurbError(f"{path}: no such file")
+        raise D2TurbError(_missing_reason(path))
     limit = _limits["max_pixels"] if max_pixels == -1 else max_pixels
     saved = Image.MAX_IMAGE_PIXELS
     Image.MAX_IMAGE_PIXELS = None  # the limit is applied below, with a message that names the file
@@ -191,7 +237,7 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         arr /= np.float32(255.0)
         return torch.from_numpy(arr)
     try:
-        arr = _to_float_array(img)
+        arr = _to_float_array(img, path)
     except (OSError, ValueError) as exc:
         raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
     if arr.shape[0] < 2 or arr.shape[1] < 2:
@@ -223,11 +269,26 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc) or exc.__class__.__name__
 
 
+NAME_MAX = 255  # bytes in one file name (Linux, macOS, Windows)
+
+
+def temp_name(name: str, token: str) -> str:
+    """``.NAME.<token>.tmpSUFFIX``, with NAME's stem cut (at a character boundary, its suffix kept) so that the
+    temp name fits in :data:`NAME_MAX` bytes whenever ``name`` does; :func:`remove_stale_temp_files` reads both."""
+    suffix = Path(name).suffix
+    tail = f".{token}.tmp{suffix}"
+    if len(f".{name}{tail}".encode()) > NAME_MAX:
+        stem = name[: len(name) - len(suffix)]
+        room = NAME_MAX - len(f".{suffix}{tail}".encode())
+        name = stem.encode()[: max(room, 1)].decode(errors="ignore") + suffix
+    return f".{name}{tail}"
+
+
 def _open_temp(path: Path) -> tuple[Path, int]:
-    """A new temp file next to ``path``, ``.NAME.<pid>-<random>.tmpSUFFIX``, open for writing. Created with mode
-    0666, so the kernel applies the umask exactly as for a normal write (mkstemp would make it 0600)."""
+    """A new temp file next to ``path``, ``.NAME.<pid>-<random>.tmpSUFFIX`` (:func:`temp_name`), open for writing.
+    Created with mode 0666, so the kernel applies the umask exactly as for a normal write (mkstemp: 0600)."""
     for _ in range(100):
-        tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{path.suffix}")
+        tmp = path.with_name(temp_name(path.name, f"{os.getpid()}-{secrets.token_hex(4)}"))
         try:
             return tmp, os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0), 0o666)
         except FileExistsError:
@@ -327,12 +388,157 @@ def remove_stale_temp_files(folder: str | os.PathLike, recursive: bool = False) 
     return count
 
 
-def check_output_dir(path: str | os.PathLike, option: str = "--out") -> Path:
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+LOCK_NAME = ".d2turb.lock"
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    if os.name != "posix":
+        return True  # no cheap probe: never take over
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: alive, another user's
+        return True
+    return True
+
+
+class FolderLock:
+    """Exclusive use of a folder by one run: ``FOLDER/.d2turb.lock`` holds the owner's pid, host and command.
+
+    Taken with an atomic create (a hard link of a complete temp file; O_EXCL where links are not supported); a
+    lock whose process no longer runs on this host (a killed run) is taken over; one held by a live process is a
+    one-line ``D2TurbError`` naming it. Released (the file removed) by :meth:`release` or on leaving the ``with``
+    block, only if it is still ours."""
+
+    def __init__(self, folder: str | os.PathLike, command: str):
+        self.folder, self.command = Path(folder), command
+        self.path = self.folder / LOCK_NAME
+        self.token = f"{os.getpid()}-{secrets.token_hex(8)}"
+        self.held = False
+
+    def _owner(self) -> dict | None:
+        """The lock's record, {} when it is unreadable or garbled, None when there is no lock."""
+        try:
+            record = json.loads(self.path.read_bytes())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError):
+            return {}
+        return record if isinstance(record, dict) else {}
+
+    def _create(self) -> bool:
+        data = json.dumps(
+            {
+                "pid": os.getpid(),
+                "host": _hostname(),
+                "command": self.command,
+                "token": self.token,
+                "since": time.time(),
+            }
+        ).encode()
+        tmp, fd = _open_temp(self.path)
+        try:
+            with open(fd, "wb") as f:
+                f.write(data)
+            try:
+                os.link(tmp, self.path)
+                return True
+            except FileExistsError:
+                return False
+            except OSError:  # no hard links on this file system
+                try:
+                    fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                except FileExistsError:
+                    return False
+                with open(fd, "wb") as f:
+                    f.write(data)
+                return True
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+    def acquire(self) -> FolderLock:
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            for _ in range(20):
+                if self._create():
+                    self.held = True
+                    return self
+                owner = self._owner()
+                if owner is None:  # released meanwhile
+                    continue
+                pid, host = owner.get("pid"), owner.get("host")
+                if isinstance(pid, int) and (host != _hostname() or _pid_alive(pid)):
+                    where = "" if host == _hostname() else f" on host {host}"
+                    raise D2TurbError(
+                        f"{self.folder} is in use by another {owner.get('command', 'd2turb')} run (process {pid}"
+                        f"{where}); wait for it to finish, or use another folder (if that process is gone, "
+                        f"remove {self.path})"
+                    )
+                # a dead process's lock (or a garbled one): take it over, unless another run did just now
+                stale = self.path.with_name(f"{LOCK_NAME}.{self.token}.stale")
+                try:
+                    os.rename(self.path, stale)
+                except FileNotFoundError:
+                    continue
+                try:
+                    taken = json.loads(stale.read_bytes())
+                except (OSError, ValueError):
+                    taken = {}
+                if taken != owner and isinstance(taken, dict) and taken:  # a run that took it over meanwhile
+                    with contextlib.suppress(OSError):
+                        os.link(stale, self.path)  # give it back
+                os.unlink(stale)
+        except OSError as exc:
+            raise D2TurbError(f"cannot lock {self.folder}: {_reason(exc)}") from exc
+        raise D2TurbError(f"cannot lock {self.folder}: the lock file {self.path} keeps changing")
+
+    def release(self) -> None:
+        if self.held and (self._owner() or {}).get("token") == self.token:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+        self.held = False
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _hostname() -> str:
+    import socket
+
+    return socket.gethostname()
+
+
+def check_output_dir(path: str | os.PathLike, option: str = "--out", inputs: Iterable[str | os.PathLike] = ()) -> Path:
     """Check that ``path`` is, or can be created as, a writable folder, without creating it; remove stale
-    temporary files of ours inside it. Raises ``D2TurbError`` in one line otherwise."""
+    temporary files of ours inside it. Raises ``D2TurbError`` in one line otherwise.
+
+    ``inputs``: the command's input files, for commands whose per-input outputs are named after the input
+    (``NAME_turb.png``): a folder holding one of them is refused, since outputs there could replace the user's
+    own files of those names (outputs never replace a file the run did not create)."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise D2TurbError(f"{option} {path}: exists and is not a folder")
+    if path.is_dir():
+        for parent in dict.fromkeys(Path(p).parent for p in inputs):
+            if _same_folder(parent, path):
+                raise D2TurbError(
+                    f"{option} {path}: is the folder of the input files; outputs written there could replace "
+                    "files of yours with the same names, choose another output folder"
+                )
     probe = path
     while not probe.exists() and probe.parent != probe:
         probe = probe.parent

@@ -120,7 +120,7 @@ def run(args) -> int:
     if args.weights is None:
         raise D2TurbError("restore needs --weights (a .safetensors file or a weights name), or --temporal N for clips")
     images, videos = split_inputs(args.inputs)
-    out_dir = check_output_dir(args.out)
+    out_dir = check_output_dir(args.out, inputs=images + videos)
     restorer = Restorer(
         args.weights, device=resolve_device(args.device), tile=args.tile, overlap=args.overlap, progress=True
     )

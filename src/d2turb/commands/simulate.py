@@ -188,7 +188,7 @@ def run(args):
     _check_depth_spec(args.depth)
     params = make_params(args, args.dr0)
     device = resolve_device(args.device)
-    out = check_output_dir(args.out)
+    out = check_output_dir(args.out, inputs=paths)
     sim = Simulator(params, device=device)
     gen = torch.Generator().manual_seed(args.seed)
     if args.dr0_range is not None:

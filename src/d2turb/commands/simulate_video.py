@@ -54,6 +54,33 @@ def _input_frames(path: Path, frames: int | None):
     return read_image(path), frames or 64, "image"
 
 
+def _remove_stale_frames(out: Path, frames: int, kept: dict[str, bool]) -> None:
+    """Frames an earlier run into ``out`` wrote beyond this run's ``frames`` (and all of those of a kind this run
+    did not write), so that turb/, tilt/ and flow/ match meta.json. Only names of this command's pattern
+    (six digits) are touched; a folder left empty is removed, and turb.mp4 when the earlier meta.json names it
+    and this run wrote none."""
+    import json
+    import re
+
+    for kind, suffix in (("turb", ".png"), ("tilt", ".png"), ("flow", ".npy")):
+        folder = out / kind
+        if not folder.is_dir():
+            continue
+        for p in folder.iterdir():
+            m = re.fullmatch(r"(\d{6})" + re.escape(suffix), p.name)
+            if m and (not kept[kind] or int(m.group(1)) >= frames) and p.is_file():
+                p.unlink()
+        if not kept[kind] and not any(folder.iterdir()):
+            folder.rmdir()
+    if not kept["mp4"] and (out / "turb.mp4").is_file() and (out / "meta.json").is_file():
+        try:
+            earlier = json.loads((out / "meta.json").read_text())
+        except (OSError, ValueError):
+            earlier = None
+        if isinstance(earlier, dict) and earlier.get("mp4") == "turb.mp4":
+            (out / "turb.mp4").unlink()
+
+
 def run(args):
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import contextlib
@@ -74,7 +101,8 @@ def run(args):
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
     device = resolve_device(args.device)
-    out = check_output_dir(args.out)
+    # the input's folder (for a folder of frames, that folder itself) may not be the output folder
+    out = check_output_dir(args.out, inputs=[src] if src.is_file() else [src / "frame"])
     check_sequence_args(args.frames, args.fps, args.wind_dir, args.boil)
     wind = args.wind[0] if len(args.wind) == 1 else list(args.wind)
     params = make_params(args, args.dr0)
@@ -124,6 +152,11 @@ def run(args):
             written += 1
         if written == 0:
             raise D2TurbError(f"{src}: no frames to simulate")
+    kept = {"turb": True, "tilt": args.save_tilt, "flow": args.save_flow, "mp4": mp4 is not None}
+    try:
+        _remove_stale_frames(out, written, kept)
+    except OSError as exc:
+        raise D2TurbError(f"cannot remove the frames of an earlier run in {out}: {exc.strerror or exc}") from exc
     p = sim.params
     meta = p.to_dict()
     ifov_l = p.ifov_rad * p.path_length_m  # m per px at the object

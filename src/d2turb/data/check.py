@@ -10,7 +10,16 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from d2turb.data.layout import CONFIG_NAME, FILES, META_NAME, SHARD_DIR, file_path, read_depth_png
+from d2turb.data.layout import (
+    CONFIG_NAME,
+    FILES,
+    META_NAME,
+    SHARD_DIR,
+    file_path,
+    iter_meta,
+    read_config,
+    read_depth_png,
+)
 from d2turb.errors import D2TurbError
 
 
@@ -85,11 +94,11 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
         raise D2TurbError(f"{root}: not a directory")
     if not (root / CONFIG_NAME).is_file():
         raise D2TurbError(f"{root}: not a d2turb dataset (no {CONFIG_NAME})")
+    cfg = read_config(root)  # the checks every reader of a dataset applies
     try:
-        cfg = json.loads((root / CONFIG_NAME).read_text())
-        patch, pairs, ranges = int(cfg["patch"]), int(cfg["pairs"]), _bin_ranges(cfg["bin_ranges"])
-        frames = int(cfg.get("frames", 1))
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        patch, pairs, ranges = cfg["patch"], cfg["pairs"], _bin_ranges(cfg["bin_ranges"])
+        frames = cfg.get("frames", 1)
+    except (KeyError, TypeError, ValueError) as exc:
         raise D2TurbError(f"{root / CONFIG_NAME}: unreadable dataset config ({exc.__class__.__name__}: {exc})") from exc
     report = CheckReport(counts={b: 0 for b in sorted(ranges, key=lambda b: ranges[b][0])})
     problems = report.problems
@@ -102,15 +111,11 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
 
     ids: Counter[str] = Counter()
     records = []
-    for n, line in enumerate(meta_path.read_bytes().split(b"\n"), 1):
-        if not line.strip():
+    for n, rec, problem in iter_meta(meta_path):  # the checks every reader of a dataset applies
+        if problem is not None:
+            problems.append(f"{META_NAME} line {n}: {problem}")
             continue
-        try:
-            rec = json.loads(line)
-            sid, dr0, name = str(rec["id"]), float(rec["dr0"]), str(rec["bin"])
-        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
-            problems.append(f"{META_NAME} line {n}: not a valid sample record")
-            continue
+        sid, dr0, name = rec["id"], float(rec["dr0"]), rec["bin"]
         ids[sid] += 1
         if ids[sid] > 1:
             problems.append(f"{sid}: duplicate id in {META_NAME} (line {n})")

@@ -5,12 +5,11 @@ from __future__ import annotations
 from collections import OrderedDict
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch.utils.data import Dataset
 
 from d2turb.data.generate import make_depth_fn, resize_up
-from d2turb.data.layout import bin_index, file_path, read_config, read_depth_png, read_meta
+from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
 from d2turb.ops.splat import backward_flow
@@ -76,19 +75,28 @@ class PairDataset(Dataset):
         return len(self.records)
 
     def load(self, index: int) -> dict:
+        """The files of sample ``index``; one of the wrong shape is a ``D2TurbError`` naming it (a loader that
+        skips bad samples, as evaluate does, skips it)."""
         rec = self.records[index]
         sid = rec["id"]
-        flow = np.load(file_path(self.root, "flow", sid), allow_pickle=False)
-        return {
+        sample = {
             "turb": read_image(file_path(self.root, "turb", sid)),
             "tilt": read_image(file_path(self.root, "tilt", sid)),
             "gt": read_image(file_path(self.root, "gt", sid)),
-            "flow": torch.from_numpy(flow.astype(np.float32)),
+            "flow": torch.from_numpy(load_flow(file_path(self.root, "flow", sid))),
             "depth": read_depth_png(file_path(self.root, "depth", sid)),
             "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
             "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
             "id": sid,
         }
+        h, w = sample["gt"].shape[-2:]
+        for kind, channels in (("turb", 3), ("tilt", 3), ("flow", 2), ("depth", 1)):
+            if tuple(sample[kind].shape) != (channels, h, w):
+                raise D2TurbError(
+                    f"{file_path(self.root, kind, sid)}: {kind} has shape {tuple(sample[kind].shape)}, expected "
+                    f"({channels}, {h}, {w}) like gt/{sid}.png"
+                )
+        return sample
 
     def __getitem__(self, index: int) -> dict:
         sample = self.load(index)

@@ -9,6 +9,7 @@ seed, batch size and device the output does not depend on the number of processe
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import logging
@@ -43,6 +44,7 @@ from d2turb.errors import D2TurbError
 from d2turb.io import (
     DEFAULT_PNG_LEVEL,
     BackgroundWriter,
+    FolderLock,
     check_output_dir,
     expand_inputs,
     image_size,
@@ -93,11 +95,14 @@ class SamplePlan:
     crop_v: float
 
 
+PATCH_MAX = 4096  # as train's data.patch: one 4096² sample already holds ~0.5 GB of float32 intermediates
+
+
 def validate(cfg: DatasetConfig) -> None:
     if cfg.pairs < 1:
         raise D2TurbError(f"--pairs must be at least 1, got {cfg.pairs}")
-    if cfg.patch < 16:
-        raise D2TurbError(f"--patch must be at least 16 px, got {cfg.patch}")
+    if not 16 <= cfg.patch <= PATCH_MAX:
+        raise D2TurbError(f"--patch must be from 16 to {PATCH_MAX} px, got {cfg.patch}")
     if cfg.split not in SPLITS:
         raise D2TurbError(f"--split must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
     bin_spans(cfg.bins)
@@ -390,14 +395,23 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     bank = geometry_bank(cfg.geometry, cfg.params)
     params_full = params_record(bank[0]) if cfg.geometry == "fixed" else [params_record(p) for p in bank]
     record = dataset_config_record(cfg, sources, params_full)
-    # every rank checks, so a mismatch fails all of them before any barrier
-    write_config = check_same_config(root, record)
     created_root = not root.exists()
     initialized_here = False
     if info.world > 1 and not torch.distributed.is_initialized():
         torch.distributed.init_process_group("gloo", timeout=datetime.timedelta(hours=2))
         initialized_here = True
     try:
+        lock = _lock_folder(root, info)  # before anything is read or written: another run may be filling it
+    except BaseException:
+        if initialized_here:
+            torch.distributed.destroy_process_group()
+        if created_root:
+            with contextlib.suppress(OSError):
+                root.rmdir()
+        raise
+    try:
+        # every rank checks, so a mismatch fails all of them before any barrier
+        write_config = check_same_config(root, record)
         if info.rank == 0:
             root.mkdir(parents=True, exist_ok=True)
             remove_temp_files(root)
@@ -412,13 +426,36 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
             stats["total"] = merge_meta(root)
         _barrier(info)
     except BaseException:
+        if lock is not None:
+            lock.release()
         if info.world == 1 and root.is_dir():
             _discard_if_empty(root, created_root)
         raise
     finally:
+        if lock is not None:
+            lock.release()
         if initialized_here:
             torch.distributed.destroy_process_group()
     return stats
+
+
+def _lock_folder(root: Path, info: DistInfo) -> FolderLock | None:
+    """Rank 0 locks ``root`` (:class:`d2turb.io.FolderLock`: a second make-dataset into it is refused in one line
+    naming the first, a killed run's lock is taken over); every rank learns whether it succeeded."""
+    lock, error = None, None
+    if info.rank == 0:
+        try:
+            lock = FolderLock(root, "make-dataset").acquire()
+        except D2TurbError as exc:
+            error = exc
+    if info.world > 1:
+        flag = torch.tensor([0.0 if error is None else 1.0])
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        if flag.item() and error is None and info.rank != 0:
+            error = D2TurbError(f"{root} is in use by another make-dataset run (see rank 0)")
+    if error is not None:
+        raise error
+    return lock
 
 
 def _write_sample(root: Path, sid: str, sample: dict, meta: dict, shard: Path, lock, png_level: int) -> None:

@@ -13,7 +13,9 @@ out/depth/<id>.png               16-bit grey relative depth, value = round(depth
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +28,7 @@ from d2turb.io import float_array, write_image
 from d2turb.sim import BINS
 
 FORMAT_VERSION = 1
+PATCH_MAX = 16384  # a dataset.json patch beyond this is damaged (make-dataset crops are far smaller)
 FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "flow": ".npy", "depth": ".png"}
 META_NAME = "meta.jsonl"
 CONFIG_NAME = "dataset.json"
@@ -42,7 +45,32 @@ def sample_id(index: int) -> str:
     return f"{index:07d}"
 
 
+_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+
+
+def check_sample_id(sid) -> str:
+    """A sample id as a file name: one plain path component (letters, digits, ``_ . -``, not starting with a dot),
+    so that every path made from it stays inside the dataset folder. Raises ``ValueError`` otherwise."""
+    if not isinstance(sid, str) or not _NAME_RE.fullmatch(sid) or len(sid) > 200:
+        raise ValueError(f"id {json.dumps(sid)} is not a plain file name (letters, digits, _ . -)")
+    return sid
+
+
+def inside(root: str | os.PathLike, relative, what: str) -> Path:
+    """``root / relative`` for a relative path read from a dataset or pack file, refused (``D2TurbError`` naming
+    ``what``) unless it stays inside ``root``: a string of ``/``-separated names, none empty, ``.`` or ``..``, no
+    backslash or NUL, not absolute. The one check of every path that a dataset's own files name."""
+    parts = relative.split("/") if isinstance(relative, str) else None
+    if not parts or any(part in ("", ".", "..") or "\\" in part or "\0" in part for part in parts):
+        raise D2TurbError(f"{what}: path {json.dumps(relative)} is not a plain relative path inside {root}")
+    return Path(root).joinpath(*parts)
+
+
 def file_path(root: Path, kind: str, sid: str) -> Path:
+    try:
+        check_sample_id(sid)
+    except ValueError as exc:
+        raise D2TurbError(f"{root}: {exc}") from exc
     return Path(root) / kind / f"{sid}{FILES[kind]}"
 
 
@@ -63,34 +91,124 @@ def read_depth_png(path: Path) -> torch.Tensor:
     return torch.from_numpy(arr.astype(np.float32) / scale)[None]
 
 
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise D2TurbError(f"{path}: cannot read ({exc.strerror or exc.__class__.__name__})") from exc
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_config(cfg) -> dict:
+    """The fields of ``dataset.json`` that readers use, checked: a mapping with ``patch`` an integer from 1 to
+    PATCH_MAX, ``pairs`` (when present) a non-negative integer, ``frames`` (when present) a positive integer,
+    ``split`` (when present) a string. Raises ``ValueError`` naming the field."""
+    if not isinstance(cfg, dict):
+        raise ValueError(f"must be a JSON object, not {type(cfg).__name__}")
+    if "patch" not in cfg:
+        raise ValueError("no patch size ('patch')")
+    if not _is_int(cfg["patch"]) or not 1 <= cfg["patch"] <= PATCH_MAX:
+        raise ValueError(f"patch must be an integer from 1 to {PATCH_MAX}, got {json.dumps(cfg['patch'])}")
+    if "pairs" in cfg and (not _is_int(cfg["pairs"]) or cfg["pairs"] < 0):
+        raise ValueError(f"pairs must be a non-negative integer, got {json.dumps(cfg['pairs'])}")
+    if "frames" in cfg and (not _is_int(cfg["frames"]) or not 1 <= cfg["frames"] <= 10_000):
+        raise ValueError(f"frames must be an integer from 1 to 10000, got {json.dumps(cfg['frames'])}")
+    if "split" in cfg and not isinstance(cfg["split"], str):
+        raise ValueError(f"split must be a string, got {json.dumps(cfg['split'])}")
+    return cfg
+
+
+def check_record(rec) -> dict:
+    """One sample record of ``meta.jsonl``, checked: a mapping with ``id`` a plain file name
+    (:func:`check_sample_id`), ``index`` a non-negative integer, ``dr0`` a finite number, ``bin`` a string.
+    Raises ``ValueError`` naming the field."""
+    if not isinstance(rec, dict):
+        raise ValueError(f"not a JSON object: {json.dumps(rec)[:80]}")
+    for key in ("id", "index", "dr0", "bin"):
+        if key not in rec:
+            raise ValueError(f"no {key!r}")
+    check_sample_id(rec["id"])
+    if not _is_int(rec["index"]) or rec["index"] < 0:
+        raise ValueError(f"index must be a non-negative integer, got {json.dumps(rec['index'])}")
+    dr0 = rec["dr0"]
+    if not isinstance(dr0, (int, float)) or isinstance(dr0, bool) or not math.isfinite(dr0):
+        raise ValueError(f"dr0 must be a finite number, got {json.dumps(dr0)}")
+    if not isinstance(rec["bin"], str):
+        raise ValueError(f"bin must be a string, got {json.dumps(rec['bin'])}")
+    return rec
+
+
+def load_flow(path: Path) -> np.ndarray:
+    """A flow ``.npy`` of a dataset as float32 (no pickles); a file that does not load, or holds no finite float
+    array, is a ``D2TurbError`` naming it."""
+    try:
+        flow = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise D2TurbError(f"{path}: cannot read flow ({exc.__class__.__name__}: {exc})") from exc
+    if not isinstance(flow, np.ndarray) or flow.dtype.kind != "f":
+        raise D2TurbError(f"{path}: flow must be a float array, got {getattr(flow, 'dtype', type(flow).__name__)}")
+    flow = flow.astype(np.float32)
+    if not np.isfinite(flow).all():
+        raise D2TurbError(f"{path}: flow contains NaN or infinite values")
+    return flow
+
+
 def read_config(root: Path) -> dict:
+    """``dataset.json`` of ``root``, checked by :func:`check_config`; ``D2TurbError`` in one line otherwise."""
     path = Path(root) / CONFIG_NAME
     if not path.is_file():
         raise D2TurbError(f"{root}: not a d2turb dataset (no {CONFIG_NAME})")
     try:
-        return json.loads(path.read_text())
+        return check_config(json.loads(_read_bytes(path)))
+    except D2TurbError:
+        raise
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise D2TurbError(f"{path}: unreadable ({exc})") from exc
+    except ValueError as exc:
+        raise D2TurbError(f"{path}: not a valid dataset config: {exc}") from exc
 
 
 def parse_meta_lines(data: bytes) -> list[dict]:
-    """Complete, valid JSON lines of a meta file; a trailing partial line (killed writer) is dropped."""
+    """Complete, valid records of a meta file (:func:`check_record`); a trailing partial line (killed writer)
+    and invalid lines are dropped (the generator's resume state: a dropped sample is made again)."""
     records = []
     for line in data.split(b"\n")[:-1]:  # text after the last newline is a partial line
         try:
-            rec = json.loads(line)
-        except (json.JSONDecodeError, UnicodeDecodeError):
+            records.append(check_record(json.loads(line)))
+        except (json.JSONDecodeError, UnicodeDecodeError, ValueError):
             continue
-        if isinstance(rec, dict) and "id" in rec:
-            records.append(rec)
     return records
 
 
+def iter_meta(path: Path):
+    """(line number, record or None, problem or None) for each non-blank line of a meta file, each record
+    checked by :func:`check_record`: the one reading of ``meta.jsonl`` that loaders and the checker share."""
+    for n, line in enumerate(_read_bytes(path).split(b"\n"), 1):
+        if not line.strip():
+            continue
+        try:
+            yield n, check_record(json.loads(line)), None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            yield n, None, f"not valid JSON ({exc.__class__.__name__})"
+        except ValueError as exc:
+            yield n, None, f"not a valid sample record: {exc}"
+
+
 def read_meta(root: Path) -> list[dict]:
+    """The records of ``meta.jsonl``; the first invalid line (a damaged file, an id that would name a path outside
+    the folder) is a one-line ``D2TurbError`` naming the file and line."""
     path = Path(root) / META_NAME
     if not path.is_file():
         raise D2TurbError(f"{root}: no {META_NAME} (generation unfinished? rerun make-dataset)")
-    return parse_meta_lines(path.read_bytes())
+    records = []
+    for n, rec, problem in iter_meta(path):
+        if problem is not None:
+            raise D2TurbError(f"{path} line {n}: {problem}; check it with `d2turb check-dataset {root}`")
+        records.append(rec)
+    return records
 
 
 def append_line(path: Path, record: dict) -> None:

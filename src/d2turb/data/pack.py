@@ -19,6 +19,7 @@ import csv
 import hashlib
 import io
 import json
+import math
 import os
 import shutil
 from collections.abc import Sequence
@@ -30,12 +31,14 @@ import torch
 from torch.utils.data import Dataset
 
 from d2turb.data.generate import make_depth_fn, resize_up
+from d2turb.data.layout import inside
 from d2turb.data.split import SPLITS, TEST_FOLDERS, VAL_FOLDERS, split_of
 from d2turb.errors import D2TurbError
 from d2turb.io import list_images, read_image, to_uint8, write_bytes, write_text
 
 PACK_FORMAT = 1
 MANIFEST = "pack.json"
+MAX_MIB = 1 << 20  # --max-mib at most 1 TiB
 KIND = "d2turb-pack"
 LADDER: tuple[int | None, ...] = (None, 1024, 896, 768, 704, 640, 576, 512, 480, 448, 416, 384, 352, 320, 288, 256)
 _MIB = 1 << 20
@@ -52,9 +55,12 @@ class PackSource:
 
 def _sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+    except OSError as exc:  # unreadable, a dangling or looping link
+        raise D2TurbError(f"{path}: cannot read ({exc.strerror or exc.__class__.__name__})") from exc
     return digest.hexdigest()
 
 
@@ -249,8 +255,10 @@ def make_pack(
         raise D2TurbError(f"--quality must be between 1 and 100, got {quality}")
     if patch < 16:
         raise D2TurbError(f"--patch must be at least 16, got {patch}")
-    if max_mib <= 0:
-        raise D2TurbError(f"--max-mib must be positive, got {max_mib}")
+    if not (isinstance(max_mib, (int, float)) and math.isfinite(max_mib) and 0 < max_mib <= MAX_MIB):
+        raise D2TurbError(f"--max-mib must be a number above 0 and at most {MAX_MIB} (1 TiB), got {max_mib}")
+    if max_side is not None and not (isinstance(max_side, int) and patch <= max_side <= 65535):
+        raise D2TurbError(f"--max-side must be an integer from --patch ({patch}) to 65535, got {max_side}")
     if out.exists() and not (out / MANIFEST).is_file() and (not out.is_dir() or any(out.iterdir())):
         raise D2TurbError(f"{out}: exists and is not a d2turb pack; choose another --out")
     sources, excluded = collect_sources(clean)
@@ -350,6 +358,9 @@ def read_pack(pack: str | os.PathLike, verify: bool = True) -> dict:
     if manifest.get("format") != PACK_FORMAT:
         raise D2TurbError(f"{path}: pack format {manifest.get('format')!r}, this d2turb reads {PACK_FORMAT}")
     for entry in images:
+        if not isinstance(entry, dict):
+            raise D2TurbError(f"{path}: not a valid pack manifest (an image entry is {json.dumps(entry)[:60]})")
+        inside(pack, entry.get("file"), str(path))  # every file the manifest names lies inside the pack
         if entry.get("split") not in SPLITS or entry["split"] == "test" or split_of(entry.get("folder", "")) == "test":
             raise D2TurbError(f"{pack}: holds a test image ({entry.get('file')}); packs are for training only")
         if verify:

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import bin_index, file_path, read_config, read_depth_png, read_meta
+from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
 from d2turb.ops.splat import backward_flow
@@ -88,7 +88,7 @@ class SequenceDataset(Dataset):
         sid, n, p = rec["id"], self.frames, self.patch
         f0 = int(torch.randint(0, n - self.window + 1, ())) if self.window < n else 0
         sl = slice(f0, f0 + self.window)
-        flow = np.load(file_path(self.root, "flow", sid), allow_pickle=False)[sl]
+        flow = load_flow(file_path(self.root, "flow", sid))[sl]
         return {
             "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
             "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),

@@ -130,6 +130,9 @@ def convert_official_state_dict(state_dict: dict[str, torch.Tensor]) -> dict[str
 def _unwrap(obj, path: Path, key: str | None) -> dict:
     """The state dict inside a checkpoint: nested under ``key`` or one of NESTING_KEYS, ``module.`` prefixes
     stripped."""
+    if key is not None and not (isinstance(obj, dict) and isinstance(obj.get(key), dict)):
+        keys = ", ".join(map(str, list(obj)[:10])) if isinstance(obj, dict) else type(obj).__name__
+        raise D2TurbError(f"{path}: no state dict found under {key!r} (top-level keys: {keys or 'none'})")
     while isinstance(obj, dict) and not (obj and all(isinstance(v, torch.Tensor) for v in obj.values())):
         found = [k for k in ([key] if key else NESTING_KEYS) if k in obj and isinstance(obj[k], dict)]
         if not found:
@@ -172,6 +175,11 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
     from safetensors import safe_open
 
     try:
+        with open(path, "rb"):  # a file we may not read is no corrupt file (safetensors says FileNotFoundError)
+            pass
+    except OSError as exc:
+        raise D2TurbError(f"{path}: cannot read weights file ({exc.strerror or exc.__class__.__name__})") from exc
+    try:
         with safe_open(str(path), framework="pt") as f:
             metadata = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}
@@ -183,6 +191,16 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
 def _listing(names: list[str], limit: int = 8) -> str:
     shown = ", ".join(names[:limit])
     return shown + (f" (and {len(names) - limit} more)" if len(names) > limit else "")
+
+
+def _dtype_kind(dtype: torch.dtype) -> str:
+    """bool, integer, floating or complex: a file's tensor must be of the model's kind (a float16 file loads into a
+    float32 model; a bool or integer tensor never stands for weights)."""
+    if dtype == torch.bool:
+        return "bool"
+    if dtype.is_complex:
+        return "complex"
+    return "floating" if dtype.is_floating_point else "integer"
 
 
 def load_state_dict_strict(model: nn.Module, state_dict: dict, source: str, display=None) -> None:
@@ -218,6 +236,13 @@ def load_state_dict_strict(model: nn.Module, state_dict: dict, source: str, disp
     ]
     if problems:
         raise D2TurbError(f"{source}: weights do not match model {name!r}; " + "; ".join(problems))
+    kinds = sorted(
+        f"{display(k)} {state_dict[k].dtype} vs {expected[k].dtype}"
+        for k in expected
+        if _dtype_kind(state_dict[k].dtype) != _dtype_kind(expected[k].dtype)
+    )
+    if kinds:
+        raise D2TurbError(f"{source}: tensors of the wrong type (file vs model): {_listing(kinds)}")
     nonfinite = sorted(
         display(k) for k, v in state_dict.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())
     )
@@ -234,13 +259,23 @@ def load_state_dict_strict(model: nn.Module, state_dict: dict, source: str, disp
         model.load_state_dict(state_dict, strict=True)
 
 
-def _build_for_loading(name: str, config: dict) -> nn.Module:
+MAX_PARAMETERS = 4_000_000_000  # a config asking for more (16 GB of float32) is taken as damaged
+
+
+def _build_for_loading(name: str, config: dict, source: Path) -> nn.Module:
     """The model on the meta device (no random initialisation: loading replaces every tensor), unless it has
-    tensors outside its state dict (non-persistent buffers), which need a real initialisation."""
-    with torch.device("meta"):
-        net = create_model(name, **config)
-    if sum(1 for _ in net.parameters()) + sum(1 for _ in net.buffers()) != len(net.state_dict()):
-        net = create_model(name, **config)
+    tensors outside its state dict (non-persistent buffers), which need a real initialisation. A config that
+    cannot be built (an unknown model, a negative width, 64 levels) is a ``D2TurbError`` naming ``source``."""
+    try:
+        with torch.device("meta"):
+            net = create_model(name, **config)
+        size = sum(t.numel() for t in net.state_dict().values())
+        if size > MAX_PARAMETERS:
+            raise D2TurbError(f"model {name!r} of config {json.dumps(config)[:200]} would hold {size:,} values")
+        if sum(1 for _ in net.parameters()) + sum(1 for _ in net.buffers()) != len(net.state_dict()):
+            net = create_model(name, **config)
+    except D2TurbError as exc:
+        raise D2TurbError(f"{source}: cannot build its model: {exc}") from exc
     return net
 
 
@@ -293,16 +328,24 @@ def load_pretrained(
         try:
             config = dict(json.loads(metadata[CONFIG_KEY]))
             name = config.pop("name")
+            if not isinstance(name, str):
+                raise TypeError(name)
         except (ValueError, KeyError, TypeError) as exc:
             raise D2TurbError(f"{path}: unreadable model config in its metadata") from exc
-        if FORMAT_KEY not in metadata:
+        version = metadata.get(FORMAT_KEY, "1")
+        if version not in ("1", FORMAT):
+            raise D2TurbError(
+                f"{path}: weights format {version!r} is not one this d2turb reads (1, {FORMAT}); "
+                "a newer d2turb wrote it"
+            )
+        if version == "1":
             config = legacy_config(name, config)
-        net = _build_for_loading(name, config)
+        net = _build_for_loading(name, config, path)
         load_state_dict_strict(net, tensors, str(path))
     else:
         state = read_state_dict(path, key)
         official = is_official_layout(state)
-        net = _build_for_loading(model, dict(config or {}))
+        net = _build_for_loading(model, dict(config or {}), path)
         load_state_dict_strict(net, convert_official_state_dict(state), str(path), official_key if official else None)
     return net.to(device).eval()
 

@@ -62,10 +62,22 @@ def _build(table: dict, kind: str, name: str, cfg: dict) -> nn.Module:
         json.dumps(cfg)
     except TypeError as exc:
         raise D2TurbError(f"{kind} {name!r}: config must be JSON-serialisable ({exc})") from exc
+    return _construct(kind, name, table[name], cfg)
+
+
+# What a constructor raises for a config it cannot build: an unknown / missing keyword, inconsistent values, and
+# what torch raises while allocating layers of impossible sizes (a negative width; 64 levels overflow the size).
+BUILD_ERRORS = (TypeError, ValueError, RuntimeError, ArithmeticError, IndexError, KeyError)
+
+
+def _construct(kind: str, name: str, factory: Callable[..., nn.Module], cfg: dict, *args) -> nn.Module:
     try:
-        return table[name](**cfg)
-    except (TypeError, ValueError) as exc:  # unknown / missing keyword, inconsistent values
-        raise D2TurbError(f"{kind} {name!r}: bad config {cfg} ({exc})") from exc
+        return factory(*args, **cfg)
+    except BUILD_ERRORS as exc:
+        if isinstance(exc, D2TurbError):
+            raise
+        first = (str(exc).strip().splitlines() or [exc.__class__.__name__])[0]
+        raise D2TurbError(f"{kind} {name!r}: bad config {json.dumps(cfg)[:300]} ({first})") from exc
 
 
 def create_backbone(name: str, **cfg) -> nn.Module:
@@ -84,7 +96,7 @@ def create_model(name: str, **cfg) -> nn.Module:
             json.dumps(cfg)
         except TypeError as exc:
             raise D2TurbError(f"model {name!r}: config must be JSON-serialisable ({exc})") from exc
-        model = _STANDALONE["wrapper"](name, **cfg)
+        model = _construct("model", name, _STANDALONE["wrapper"], cfg, name)
     else:
         model = _build(_MODELS, "model", name, cfg)
     model.config = {"name": name, **cfg}

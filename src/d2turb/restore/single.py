@@ -22,6 +22,7 @@ from torch import nn
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import check_image_tensor, read_image
+from d2turb.models.common import pad_to_multiple
 from d2turb.models.hub import IDENTITY_NAME, load_pretrained, resolve_weights
 from d2turb.ops.warp import base_grid, sample_at
 
@@ -78,17 +79,23 @@ def axis_window(size: int, overlap: int, taper_start: bool, taper_end: bool) -> 
     return w.clamp_min(_WINDOW_FLOOR).float()
 
 
-def warp_in_strips(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+def warp_in_strips(image: torch.Tensor, flow: torch.Tensor, pad_to: int = 1) -> torch.Tensor:
     """``d2turb.ops.warp(image, flow)`` (border padding, align_corners=True) computed in row strips so
-    the sampling grid of a 12-megapixel image never exists at once. Same result as the one-shot warp."""
+    the sampling grid of a 12-megapixel image never exists at once. Same result as the one-shot warp.
+
+    ``pad_to`` > 1: the warp samples the image padded at the bottom/right to a multiple of ``pad_to`` (reflect,
+    replicate where the pad is not smaller than the side: as D²Turb pads its input), and the result is cropped
+    back, as the authors' model warps its padded canvas: a flow that points up to the pad past the bottom/right
+    edge then sees mirrored content, not the clamped edge."""
     _, _, h, w = image.shape
+    canvas = pad_to_multiple(image, pad_to)[0] if pad_to > 1 else image
     out = torch.empty_like(image)
     rows = max(1, _WARP_STRIP_PIXELS // max(w, 1))
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
         grid = base_grid(r1 - r0, w, flow.device, flow.dtype)
         grid[:, 1] += r0  # absolute rows, exact in floating point
-        out[:, :, r0:r1] = sample_at(image, grid + flow[:, :, r0:r1])
+        out[:, :, r0:r1] = sample_at(canvas, grid + flow[:, :, r0:r1])
     return out
 
 
@@ -138,7 +145,7 @@ class Restorer:
             raise D2TurbError(f"restore input: image is too small ({x.shape[-1]}x{x.shape[-2]})")
         return x.float().clamp(0, 1), single
 
-    def _run_model(self, x: torch.Tensor) -> dict:
+    def _run_model(self, x: torch.Tensor, keep_restored: bool = False) -> dict:
         x = x.to(self.device)
         with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.device.type == "cuda"):
             out = self.model(x)
@@ -153,7 +160,7 @@ class Restorer:
         result = {"deblurred": deblurred.float().cpu()}
         if flow is not None:
             result["flow"] = flow.float().cpu()
-        else:  # a model without a rectifier: its restored output is blended as is
+        if flow is None or keep_restored:  # a model without a rectifier: its restored output is blended as is
             result["restored"] = out.get("restored", deblurred).float().cpu()
         return result
 
@@ -169,8 +176,9 @@ class Restorer:
             from tqdm import tqdm
 
             bar = tqdm(total=len(boxes), desc="tiles", unit="tile", leave=False)
+        single = len(boxes) == 1
         for y0, x0, th, tw in boxes:
-            out = self._run_model(x[:, :, y0 : y0 + th, x0 : x0 + tw])
+            out = self._run_model(x[:, :, y0 : y0 + th, x0 : x0 + tw], keep_restored=single)
             win = (
                 axis_window(th, self.overlap, y0 > 0, y0 + th < h)[:, None]
                 * axis_window(tw, self.overlap, x0 > 0, x0 + tw < w)[None, :]
@@ -191,10 +199,13 @@ class Restorer:
         for value in acc.values():
             value.div_(weight)
         deblurred = acc["deblurred"]
-        if "flow" in acc:
+        if "flow" in acc and single and "restored" in acc:  # one tile: the model's own Eq. 9, on its padded canvas
+            flow, restored = acc["flow"], acc["restored"]
+        elif "flow" in acc:
             flow = acc["flow"]
-            if flow.any():  # Eq. 9, on the whole blended image (on the model's device)
-                restored = warp_in_strips(deblurred.to(self.device), flow.to(self.device)).cpu()
+            if flow.any():  # Eq. 9, on the whole blended image (on the model's device), on the model's canvas
+                pad_to = int(getattr(self.model, "multiple", 1) or 1)
+                restored = warp_in_strips(deblurred.to(self.device), flow.to(self.device), pad_to).cpu()
             else:
                 restored = deblurred.clone()
         else:

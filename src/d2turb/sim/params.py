@@ -15,6 +15,7 @@ BINS_RULE = f"weak < {BINS['medium'][0]:g} ≤ medium ≤ {BINS['medium'][1]:g} 
 MODULATIONS = ("uniform", "linear", "linear_offset", "power", "power_offset")
 GEOMETRIES = ("path", "layer")
 MAX_DR0 = 10.0
+SAMPLING = (0.25, 16.0)  # pixel size ifov over the Nyquist pixel λ/(2D): the range the simulator supports
 
 
 def _positive(name: str, value) -> float:
@@ -86,6 +87,7 @@ class TurbulenceParams:
             if self.ifov_rad is None
             else _positive("ifov_rad", self.ifov_rad)
         )
+        self._check_sampling()
         if not isinstance(self.n_zernike, int) or not 4 <= self.n_zernike <= 120:
             raise D2TurbError(f"n_zernike must be an integer in [4, 120], got {self.n_zernike!r}")
         s = float(self.offset_s)
@@ -100,6 +102,22 @@ class TurbulenceParams:
             raise D2TurbError(f"layer_z_frac must be in (0, 1), got {self.layer_z_frac!r}")
         if not isinstance(self.psf_grid_px, int) or self.psf_grid_px < 2:
             raise D2TurbError(f"psf_grid_px must be an integer >= 2, got {self.psf_grid_px!r}")
+
+    def _check_sampling(self) -> None:
+        """The pixel must be within SAMPLING × of the Nyquist pixel λ/(2D) at every wavelength: the pupil grid (a
+        box of ~32·ifov·2D/λ samples across, per channel), and the PSF window (~(2.5·D/r0 + 3)·λ/(D·ifov) px),
+        grow with its inverse and with it; outside, the optics would ask for gigabytes to terabytes before any
+        image is touched (``--ifov 1`` asked for a petabyte). Checked here, before anything is allocated."""
+        lo, hi = SAMPLING
+        nyquist = [w / (2 * self.aperture_m) for w in self.wavelengths]
+        ratio = [self.ifov_rad / n for n in nyquist]
+        if min(ratio) < lo or max(ratio) > hi:
+            raise D2TurbError(
+                f"ifov_rad (--ifov) = {self.ifov_rad:.3g} rad is {min(ratio) if min(ratio) < lo else max(ratio):.3g}× "
+                f"the Nyquist pixel λ/(2D); the simulator supports {lo:g}× to {hi:g}×: ifov_rad from "
+                f"{lo * max(nyquist):.3g} to {hi * min(nyquist):.3g} rad for this aperture and wavelength "
+                f"(docs/cli.md, physical parameters)"
+            )
 
     @property
     def wavelengths(self) -> tuple:

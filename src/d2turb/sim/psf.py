@@ -196,23 +196,25 @@ def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Ten
     hp, wp = fast_size(padded.shape[-2]), fast_size(padded.shape[-1])  # zero-extended: no wrap into the crop
     kern = torch.zeros(basis.shape[0], basis.shape[1], hp, wp, dtype=image.dtype, device=image.device)
     kern[..., : 2 * half + 1, : 2 * half + 1] = basis.to(image)
-    kern_f = torch.fft.rfft2(torch.roll(kern, shifts=(-half, -half), dims=(-2, -1)))
+    kern_f = torch.fft.rfft2(torch.roll(kern, shifts=(-half, -half), dims=(-2, -1)).contiguous())
     if b == 1:  # nothing to pair with
-        img_f = torch.fft.rfft2(padded, s=(hp, wp))
+        img_f = torch.fft.rfft2(padded.contiguous(), s=(hp, wp))
         out = None
         for k in range(basis.shape[1]):
-            conv = torch.fft.irfft2(img_f * kern_f[:, k], s=(hp, wp))[..., half : half + hgt, half : half + wid]
+            conv = torch.fft.irfft2((img_f * kern_f[:, k]).contiguous(), s=(hp, wp))[
+                ..., half : half + hgt, half : half + wid
+            ]
             out = conv.clone() if k == 0 else out.addcmul_(conv, weights[:, :, k - 1])
         return out
     na = (b + 1) // 2  # images 0..na-1 in the real parts, na..b-1 in the imaginary parts
     nb = b - na
     second = padded[na:] if nb == na else torch.cat([padded[na:], torch.zeros_like(padded[:1])])
-    img_f = torch.fft.fft2(torch.complex(padded[:na], second), s=(hp, wp))
+    img_f = torch.fft.fft2(torch.complex(padded[:na], second).contiguous(), s=(hp, wp))
     kern_f = _full_spectrum(kern_f, wp)
     w_a, w_b = (weights[:na], weights[na:]) if weights.shape[0] > 1 else (weights, weights)
     out_a = out_b = None
     for k in range(basis.shape[1]):
-        conv = torch.fft.ifft2(img_f * kern_f[:, k])[..., half : half + hgt, half : half + wid]
+        conv = torch.fft.ifft2((img_f * kern_f[:, k]).contiguous())[..., half : half + hgt, half : half + wid]
         if k == 0:
             out_a, out_b = conv.real.clone(), conv.imag[:nb].clone()
         else:

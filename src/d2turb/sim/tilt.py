@@ -271,7 +271,9 @@ class VectorFieldSampler:
             self.root = self.root.to(xi.device)
             self.sub_root = [r.to(xi.device) for r in self.sub_root]
             self.sub_basis = [(ey.to(xi.device), ex.to(xi.device)) for ey, ex in self.sub_basis]
-        spec = torch.einsum("hwab,phwb->pahw", self.root, xi)
+        # einsum returns a permuted view; torch.fft.fft2 on it aborted the process (SIGABRT, "malloc(): invalid
+        # size") for 2-5 px high images: every FFT input in d2turb.sim is made contiguous first
+        spec = torch.einsum("hwab,phwb->pahw", self.root, xi).contiguous()
         field = torch.fft.fft2(spec)[..., : self.height, : self.width]
         for root, (ey, ex) in zip(self.sub_root, self.sub_basis):
             n = root.shape[0]
@@ -306,7 +308,7 @@ class ScalarFieldSampler:
         xi = torch.complex(noise[..., 0], noise[..., 1])
         if self.root.device != xi.device:
             self.root = self.root.to(xi.device)
-        field = torch.fft.fft2(self.root * xi)[..., : self.height, : self.width]
+        field = torch.fft.fft2((self.root * xi).contiguous())[..., : self.height, : self.width]
         return torch.cat([field.real, field.imag], 0)[:count].float()
 
 
@@ -379,5 +381,5 @@ class PlaneWaveGrid:
         vals = (amps.to(torch.complex64) * plan["shift"])[..., None] * plan["weights"]
         grid = torch.zeros(plan["batch"] * gh * gw, dtype=torch.complex64, device=amps.device)
         grid.index_add_(0, plan["index"], vals.reshape(-1))
-        field = torch.fft.ifft2(grid.view(plan["batch"], gh, gw))
+        field = torch.fft.ifft2(grid.view(plan["batch"], gh, gw))  # a fresh 1-D buffer: contiguous
         return field[:, plan["rows"]][:, :, plan["cols"]] * plan["deconv"]

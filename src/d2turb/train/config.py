@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +19,9 @@ from typing import Any
 from d2turb.errors import D2TurbError
 from d2turb.sim.geometry import GEOMETRIES
 from d2turb.sim.params import BINS
+
+PATCH_MAX = 4096  # training crops: a 4096² batch of 8 already needs gigabytes per activation
+SEED_MAX = 2**63 - 1  # torch generators take [0, 2**63 - 1] (as d2turb.commands.common.SEED_MAX)
 
 
 @dataclass
@@ -227,6 +231,8 @@ def load_config(
             raise D2TurbError(f"config file not found: {path}")
         try:
             user = yaml.safe_load(path.read_text()) or {}
+        except OSError as exc:
+            raise D2TurbError(f"{path}: cannot read config ({exc.strerror or exc.__class__.__name__})") from exc
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise D2TurbError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from exc
         if not isinstance(user, dict):
@@ -258,8 +264,11 @@ def validate(cfg: Config) -> None:
         )
     if data.clean is not None and not (isinstance(data.clean, list) and all(isinstance(c, str) for c in data.clean)):
         raise D2TurbError(f"config: data.clean must be a folder or a list of folders, got {data.clean!r}")
-    if not isinstance(data.patch, int) or isinstance(data.patch, bool) or data.patch < 16:
-        raise D2TurbError(f"config: data.patch must be an integer >= 16, got {data.patch!r}")
+    if not isinstance(data.patch, int) or isinstance(data.patch, bool) or not 16 <= data.patch <= PATCH_MAX:
+        raise D2TurbError(
+            f"config: data.patch must be an integer from 16 to {PATCH_MAX} (the paper trains on 256), "
+            f"got {data.patch!r}"
+        )
     if not isinstance(data.num_workers, int) or data.num_workers < 0:
         raise D2TurbError(f"config: data.num_workers must be a non-negative integer, got {data.num_workers!r}")
     otf = data.on_the_fly
@@ -279,8 +288,21 @@ def validate(cfg: Config) -> None:
         if value is not None and not _positive_int(value):
             raise D2TurbError(f"config: train.{key} must be a positive integer, got {value!r}")
     for key in ("lr", "lr_min", "weight_decay"):
-        if not _number_at_least(getattr(train, key)):
-            raise D2TurbError(f"config: train.{key} must be a non-negative number, got {getattr(train, key)!r}")
+        value = getattr(train, key)
+        if not _number_at_least(value) or not math.isfinite(value):
+            raise D2TurbError(f"config: train.{key} must be a finite non-negative number, got {value!r}")
+    if train.lr <= 0:
+        raise D2TurbError(f"config: train.lr must be positive, got {train.lr!r}")
+    if train.lr_min > train.lr:
+        raise D2TurbError(
+            f"config: train.lr_min ({train.lr_min!r}) must not exceed train.lr ({train.lr!r}): the cosine schedule "
+            "anneals from train.lr down to train.lr_min"
+        )
+    for section, value in (("train", train.seed), ("val", val.seed)):
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise D2TurbError(f"config: {section}.seed must be an integer, got {value!r}")
+        if not 0 <= value <= SEED_MAX:
+            raise D2TurbError(f"config: {section}.seed must be between 0 and 2**63 - 1, got {value}")
     if train.grad_clip is not None and not (_number_at_least(train.grad_clip) and train.grad_clip > 0):
         raise D2TurbError(f"config: train.grad_clip must be a positive number or null, got {train.grad_clip!r}")
     if not (

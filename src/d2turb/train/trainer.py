@@ -39,7 +39,7 @@ from d2turb.data.split import split_of
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import psnr, ssim
-from d2turb.io import atomic_path, write_json, write_text
+from d2turb.io import atomic_path, remove_stale_temp_files, write_json, write_text
 from d2turb.models import create_model, load_pretrained, save_pretrained
 from d2turb.models.hub import IDENTITY_NAME, resolve_weights
 from d2turb.sim import Simulator
@@ -174,6 +174,8 @@ class Trainer:
     # ---------------------------------------------------------------- construction steps
     def _check_resume(self, resume: bool) -> None:
         self.checkpoint_path = self.run_dir / CHECKPOINT
+        if _env_int("RANK", 0) == 0:  # temp checkpoints (hundreds of MB) of a killed run, before anything is written
+            remove_stale_temp_files(self.run_dir)
         self.resuming = self.checkpoint_path.is_file()
         if resume and not self.resuming:
             raise D2TurbError(f"--resume: no checkpoint {self.checkpoint_path}")
@@ -444,6 +446,8 @@ class Trainer:
         self.scheduler.load_state_dict(state["scheduler"])
         self.iteration, self.best_psnr = int(state["iteration"]), float(state["best_psnr"])
         self._checkpoint_iteration = self.iteration
+        if self.is_main:
+            self._truncate_log(self.iteration)
         if self.ema is not None:
             if "ema" in state:
                 self.ema.load_state_dict(state["ema"])
@@ -463,6 +467,28 @@ class Trainer:
     def eval_model(self) -> torch.nn.Module:
         """The weights that validate and ship: the EMA when ``train.ema`` is set, else the trained model."""
         return self.ema.model if self.ema is not None else self.model
+
+    def _truncate_log(self, iteration: int) -> None:
+        """Drop the ``log.jsonl`` lines of iterations after ``iteration`` (those a killed run logged after its last
+        checkpoint: the resumed run trains them again), atomically."""
+        path = self.run_dir / "log.jsonl"
+        try:
+            lines = path.read_text().splitlines(keepends=True)
+        except FileNotFoundError:
+            return
+        except (OSError, UnicodeDecodeError) as exc:
+            raise D2TurbError(f"{path}: cannot read ({exc.__class__.__name__}: {exc})") from exc
+
+        def kept(line: str) -> bool:
+            try:
+                record = json.loads(line)
+            except ValueError:
+                return False  # a line cut by the kill
+            return not (isinstance(record, dict) and isinstance(record.get("iter"), int) and record["iter"] > iteration)
+
+        keep = [line for line in lines if kept(line)]
+        if keep != lines:
+            write_text(path, "".join(line if line.endswith("\n") else line + "\n" for line in keep))
 
     def _log(self, record: dict) -> None:
         if self.is_main:
@@ -522,6 +548,7 @@ class Trainer:
         with self._autocast():
             out = self.forward(self._input(batch["turb"]))
         loss, terms = self.loss(out, batch)
+        self._check_finite(loss)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         clip = self.cfg.train.grad_clip
@@ -532,6 +559,22 @@ class Trainer:
         if self.ema is not None:
             self.ema.update(self.model)
         return float(loss.detach()), terms
+
+    def _check_finite(self, loss: torch.Tensor) -> None:
+        """Stop before the backward pass of an inf/NaN loss (agreed by all ranks): a NaN flow reaching
+        ``grid_sample``'s backward crashes the process (SIGSEGV on the CPU), and the step would spoil the weights."""
+        finite = torch.isfinite(loss.detach()).float().reshape(1)
+        if self.world > 1:
+            backend_device = self.device if dist.get_backend() == "nccl" else torch.device("cpu")
+            finite = finite.to(backend_device)
+            dist.all_reduce(finite, op=dist.ReduceOp.MIN)
+        if finite.item() == 0:
+            tcfg = self.cfg.train
+            raise D2TurbError(
+                f"loss became non-finite at iteration {self.iteration + 1} ({float(loss.detach())} on rank "
+                f"{self.rank}): training diverged; lower train.lr (now {tcfg.lr}) or set train.grad_clip "
+                f"(now {tcfg.grad_clip}); the last checkpoint is kept"
+            )
 
     @torch.no_grad()
     def validate(self) -> dict:
