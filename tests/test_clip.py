@@ -206,6 +206,7 @@ def test_clip_errors_are_one_line(tmp_path):
         ((good, "--temporal", 1, "--out", tmp_path / "o3"), "--temporal must be an integer >= 2"),
         ((good, "--temporal", 4, "--deblur", "physics", "--out", tmp_path / "o4"), "give --dr0"),
         ((good, "--temporal", 4, "--dr0", -1, "--out", tmp_path / "o5"), "dr0"),
+        ((good, "--temporal", 4, "--out", good), "folder of the input files"),
     ]:
         r = run(*args)
         assert r.returncode == 2, (args, r.stderr)

@@ -235,7 +235,7 @@ def run_clips(args) -> int:
     from tqdm import tqdm
 
     from d2turb.device import resolve_device
-    from d2turb.io import BackgroundWriter, check_output_dir, write_image, write_npy
+    from d2turb.io import BackgroundWriter, check_output_dir, list_images, write_image, write_npy
     from d2turb.ops.splat import backward_flow
     from d2turb.restore.clip import ClipRestorer
     from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, video_fps
@@ -252,7 +252,7 @@ def run_clips(args) -> int:
     device = resolve_device(args.device)
     deblur, deblur_name = _clip_deblur(args, device)
     restorer.deblur = deblur
-    out_dir = check_output_dir(args.out)
+    out_dir = check_output_dir(args.out, inputs=list_images(src) if src.is_dir() else [src])
     errors = FileErrors(2, args.fail_fast)  # per frame: a bad one is reported and skipped
     names, frames = _clip_frames(src, errors)
     fps = video_fps(src) if is_video(src) else (args.fps or 30.0)
