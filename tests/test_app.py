@@ -336,3 +336,39 @@ def test_a_folder_named_gradio_is_not_the_extra(tmp_path, monkeypatch, capsys):
     assert importlib.util.find_spec("gradio") is not None  # the folder is importable as a namespace package
     assert main(["app"]) == 2
     assert capsys.readouterr().err.strip() == "error: d2turb app needs the app extra: pip install 'd2turb[app]'"
+
+
+def test_clip_tab_simulates_from_an_image_and_restores_with_the_known_strength(workspace, tmp_path):
+    """An uploaded image becomes a simulated clip at D/r0 = 2 and is restored with that D/r0; the command lines
+    reproduce the run (the restored frames are byte-identical when run again from the download)."""
+    path = tmp_path / "scene.png"
+    Image.fromarray(_rgb(48, 56)).save(path)
+    r = core.run_clip(str(path), workspace, temporal=4, dr0=2.0)
+    assert r.frames == core.CLIP_SIM_FRAMES
+    lines = r.command.splitlines()
+    assert lines[0].startswith("d2turb simulate-video scene.png --out clip --frames 32 --dr0 2")
+    assert lines[1] == "d2turb restore clip/turb --temporal 4 --out out --save-intermediate --dr0 2"
+    assert np.asarray(Image.open(r.after)).shape == (48, 56, 3)
+    restored = sorted((r.run_dir / "out").glob("*_restored.png"))
+    assert len(restored) == 32
+    again = tmp_path / "again"
+    with zipfile.ZipFile(r.files[0]) as zf:
+        zf.extractall(again)
+    (folder,) = list(again.iterdir())
+    shutil.rmtree(folder / "out")
+    for line in lines:
+        argv = shlex.split(line)[1:]
+        argv = [str(folder / a) if a in ("scene.png", "clip", "clip/turb", "out") else a for a in argv]
+        assert main(argv) == 0
+    for p in restored:
+        assert (folder / "out" / p.name).read_bytes() == p.read_bytes(), p.name
+
+
+def test_clip_tab_refuses_bad_uploads(workspace, tmp_path):
+    with pytest.raises(D2TurbError, match="upload a short video"):
+        core.run_clip(None, workspace)
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(D2TurbError, match="not a video or image"):
+        core.run_clip(str(tmp_path / "notes.txt"), workspace)
+    with pytest.raises(D2TurbError, match="window"):
+        core.run_clip(str(tmp_path / "notes.txt"), workspace, temporal=1)

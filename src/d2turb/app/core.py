@@ -601,3 +601,103 @@ def niqe_markdown(values: dict) -> str:
         "| NIQE (lower is better) | value |\n|---|---|\n"
         f"| input | {cell(values['input'])} |\n| restored | {cell(values['restored'])} |"
     )
+
+
+@dataclass
+class ClipOutput:
+    before: Path  # the middle input frame
+    after: Path  # the middle restored frame
+    command: str  # the command lines that reproduce the run (simulate-video first for an image)
+    files: list[Path]
+    run_dir: Path
+    frames: int
+    notes: list[str] = field(default_factory=list)
+
+
+CLIP_SIM_FRAMES = 32  # frames simulated from an uploaded image
+
+
+def clip_argv(clip: str, temporal: int, dr0: float | None, out: str = "out") -> list[str]:
+    argv = ["restore", clip, "--temporal", str(temporal), "--out", out, "--save-intermediate"]
+    return argv + (["--dr0", f"{dr0:g}"] if dr0 else [])
+
+
+def run_clip(
+    upload: str | None,
+    workspace: Workspace,
+    temporal: int = 32,
+    dr0: float | None = None,
+    limits: Limits | None = None,
+) -> ClipOutput:
+    """Clip restoration in the page: an uploaded video is restored across frames (``d2turb restore --temporal``);
+    an uploaded image is first made into a turbulent clip of ``CLIP_SIM_FRAMES`` frames at ``dr0``
+    (``d2turb simulate-video``, wind 2 m/s, boiling 0.1) and then restored with that known D/r0. ``dr0`` empty or
+    0 with a video: fusion without deblurring."""
+    limits = limits or Limits()
+    if not upload:
+        raise D2TurbError("upload a short video (or an image to simulate a clip from) first")
+    src = Path(upload)
+    if not src.is_file():
+        raise D2TurbError(f"{src.name}: the uploaded file is gone; upload it again")
+    if not float(temporal).is_integer() or temporal < 2:
+        raise D2TurbError(f"the window must be a whole number of frames >= 2, got {temporal}")
+    temporal = int(temporal)
+    dr0 = float(dr0) if dr0 else None
+    run = workspace.new_run("clip")
+    name = safe_stem(src.name) + src.suffix.lower()
+    shutil.copyfile(src, run / name)
+    commands, notes = [], []
+    if src.suffix.lower() in VIDEO_SUFFIXES:
+        frames, w, h = _video_size(run / name)
+        if frames > limits.video_frames:
+            raise D2TurbError(
+                f"{src.name}: {frames} frames is more than the app takes ({limits.video_frames}); "
+                "trim the video or use the command line"
+            )
+        check_pixels(src.name, w, h, limits.restore_pixels)
+        clip, stem, mp4 = name, Path(name).stem, f"{Path(name).stem}.mp4"
+        names = [f"{stem}_{i:06d}" for i in range(frames)]
+    elif src.suffix.lower() in IMAGE_SUFFIXES:
+        w, h = image_size(src)
+        check_pixels(src.name, w, h, limits.sim_pixels)
+        sim_dr0 = dr0 or 3.0
+        sim = ["simulate-video", name, "--out", "clip", "--frames", str(CLIP_SIM_FRAMES), "--dr0", f"{sim_dr0:g}"]
+        sim += ["--wind", "2", "--boil", "0.1", "--no-mp4"]
+        run_cli([str(run / a) if a in (name, "clip") else a for a in sim])
+        commands.append(sim)
+        clip, frames, mp4, dr0 = "clip/turb", CLIP_SIM_FRAMES, "turb.mp4", sim_dr0
+        names = [f"{i:06d}" for i in range(frames)]
+        notes.append(f"a {frames}-frame clip was simulated from the image at D/r0 = {sim_dr0:g} and restored with it")
+    else:
+        raise D2TurbError(f"{src.name}: not a video or image file type ({_known(IMAGE_SUFFIXES | VIDEO_SUFFIXES)})")
+    argv = clip_argv(clip, temporal, dr0)
+    run_argv = [str(run / a) if a in (name, clip) else a for a in argv]
+    run_argv[run_argv.index("--out") + 1] = str(run / "out")
+    run_cli(run_argv)
+    commands.append(argv)
+    text = "\n".join(shlex.join(["d2turb", *a]) for a in commands)
+    write_text(run / "command.sh", f"#!/bin/sh\n# written by d2turb {__version__} app; run it in this folder\n{text}\n")
+    (run / "command.sh").chmod(0o755)
+    out, views = run / "out", run / "views"
+    middle = names[min(len(names) - 1, len(names) // 2)]
+    restored_png = out / f"{middle}_restored.png"
+    if not restored_png.is_file():
+        raise D2TurbError(f"{src.name}: the clip gave no restored frame {middle}")
+    if src.suffix.lower() in VIDEO_SUFFIXES:
+        before_img = next(f for i, f in iter_video(run / name) if i == names.index(middle))
+    else:
+        before_img = read_image(run / clip / f"{middle}.png")
+    if not dr0:
+        notes.append("no D/r0 given: the frames are registered and fused, not deblurred")
+    result = ClipOutput(
+        before=preview(before_img, views / "input.png"),
+        after=preview(read_image(restored_png), views / "restored.png", restored_png),
+        command=text,
+        files=[],
+        run_dir=run,
+        frames=frames,
+        notes=notes,
+    )
+    zipped = bundle(run, f"d2turb_clip_{Path(name).stem}")
+    result.files = [zipped, restored_png, run / "command.sh"] + ([out / mp4] if (out / mp4).is_file() else [])
+    return result

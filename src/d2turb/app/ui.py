@@ -77,7 +77,7 @@ def _weights_label(name: str, path: Path | None) -> str:
 
 
 def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> gr.Blocks:
-    """The Blocks page: Simulate and Restore tabs. API names: ``/simulate``, ``/restore``."""
+    """The Blocks page: Simulate, Restore and Clip tabs. API names: ``/simulate``, ``/restore``, ``/clip``."""
     limits = limits or core.Limits()
     guard = page_errors(workspace)
 
@@ -172,6 +172,13 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             r.command,
             [str(f) for f in r.files],
         )
+
+    @guard
+    def clip(upload, temporal, dr0, progress=gr.Progress(track_tqdm=True)):  # noqa: B008
+        progress(0, desc="restoring the clip")
+        r = core.run_clip(upload, workspace, temporal, dr0, limits)
+        notes = "\n".join(f"* {n}" for n in r.notes)
+        return (str(r.before), str(r.after)), notes, r.command, [str(f) for f in r.files]
 
     def refresh_weights(current):
         found = core.weights_choices()
@@ -295,6 +302,34 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             )
             refresh.click(refresh_weights, weights, weights, api_name=False)
             r_upload.upload(show_restore_input, r_upload, r_shown, api_name=False)
+
+        with gr.Tab("Clip", id="clip"):
+            with gr.Row():
+                with gr.Column(scale=1, min_width=300):
+                    c_upload = gr.File(
+                        label="short video (a static scene), or an image to simulate a clip from",
+                        file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
+                        type="filepath",
+                        height=120,
+                        elem_id="clip-upload",
+                    )
+                    c_temporal = gr.Slider(2, 64, value=32, step=1, label="window (frames)")
+                    c_dr0 = gr.Number(
+                        value=0, label="D/r0 for the physics deblur (0 = none; an image is simulated at it, default 3)"
+                    )
+                    run_clip = gr.Button("Restore clip", variant="primary", elem_id="clip-button")
+                with gr.Column(scale=2):
+                    c_compare = gr.ImageSlider(label="input | restored, middle frame", type="filepath")
+                    c_notes = gr.Markdown()
+                    c_command = gr.Code(label="command line", language="shell", **_code_kwargs())
+                    c_files = gr.File(label="downloads", file_count="multiple")
+            run_clip.click(
+                clip,
+                [c_upload, c_temporal, c_dr0],
+                [c_compare, c_notes, c_command, c_files],
+                api_name="clip",
+                concurrency_limit=1,
+            )
     return demo
 
 
