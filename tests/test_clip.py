@@ -15,7 +15,7 @@ from scipy import ndimage
 from skimage import data as skdata
 
 from d2turb.registration import DenseFlow, global_shift_px, remap, to_gray_u8, to_hwc
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, window_start
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, wiener_padding, window_start
 from d2turb.sim.otf import diffraction_otf, turbulence_otf
 
 
@@ -151,9 +151,11 @@ def test_wiener_undoes_a_known_turbulence_blur():
     """Blur by the short-exposure OTF (applied by FFT on a mirror-padded copy), deconvolve with the same OTF."""
     img = torch.from_numpy(_scene(128)).permute(2, 0, 1).double()
     deb = PhysicsDeblur(dr0=2.0, lambda_over_d_px=2.0, balance=1e-4)
-    padded = torch.nn.functional.pad(img[None], (32, 32, 32, 32), mode="reflect")[0]
+    top, bottom, left, right = wiener_padding(128, 128)
+    padded = torch.nn.functional.pad(img[None], (left, right, top, bottom), mode="reflect")[0]
     otf = deb.otf(128, 128)
-    blurred = torch.fft.irfft2(torch.fft.rfft2(padded) * otf, s=padded.shape[-2:])[:, 32:-32, 32:-32].float()
+    blurred = torch.fft.irfft2(torch.fft.rfft2(padded) * otf, s=padded.shape[-2:])
+    blurred = blurred[:, top : top + 128, left : left + 128].float()
     restored = deb(blurred)
     err_blur = float(((blurred - img.float()) ** 2).mean())
     err_rest = float(((restored - img.float()) ** 2).mean())

@@ -78,23 +78,44 @@ def laplacian_power(height: int, width: int) -> torch.Tensor:
     return (4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)) ** 2
 
 
-def wiener_padding(height: int, width: int) -> tuple[int, int]:
-    """Mirror padding (rows, columns) that keeps the FFT's periodic wrap-around away from the image."""
-    return min(height - 1, max(8, height // 4)), min(width - 1, max(8, width // 4))
+def _smooth_size(n: int) -> int:
+    """The smallest 2·3·5-smooth integer >= n (sizes the FFT handles fast)."""
+    while True:
+        m = n
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 1
 
 
-def wiener_deconvolve(image: torch.Tensor, otf: torch.Tensor, balance: float) -> torch.Tensor:
-    """Regularised Wiener filter X = H·Y / (H² + balance·|L|²) with a real OTF H on the rfft2 grid of the mirror-padded
-    image (the form of scikit-image's ``restoration.wiener``, here with the OTF given directly).
+def wiener_padding(height: int, width: int) -> tuple[int, int, int, int]:
+    """Mirror padding (top, bottom, left, right) that keeps the FFT's periodic wrap-around away from the image: an
+    eighth of the shorter side (at least 8 px), then up to an FFT-friendly size."""
+    pad = max(8, min(height, width) // 8)
+    top, left = min(height - 1, pad), min(width - 1, pad)
+    bottom = min(height - 1, _smooth_size(height + 2 * top) - height - top)
+    right = min(width - 1, _smooth_size(width + 2 * left) - width - left)
+    return top, bottom, left, right
+
+
+def wiener_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """Apply a Wiener filter's gain G = H / (H² + balance·|L|²) (see :func:`wiener_gain`) to the rfft2 of the
+    mirror-padded image (the form of scikit-image's ``restoration.wiener``, here with the OTF given directly).
 
     Shape:
-        image: (C, H, W); otf: (H + 2·ph, (W + 2·pw) // 2 + 1) for ph, pw = ``wiener_padding(H, W)``.
+        image: (C, H, W); gain: the rfft2 grid of the image padded by ``wiener_padding(H, W)``.
     """
-    ph, pw = wiener_padding(*image.shape[-2:])
-    padded = torch.nn.functional.pad(image[None].double(), (pw, pw, ph, ph), mode="reflect")[0]
-    gain = otf / (otf * otf + balance * laplacian_power(*padded.shape[-2:]))
+    top, bottom, left, right = wiener_padding(*image.shape[-2:])
+    padded = torch.nn.functional.pad(image[None].float(), (left, right, top, bottom), mode="reflect")[0]
     out = torch.fft.irfft2(torch.fft.rfft2(padded) * gain, s=padded.shape[-2:])
-    return out[:, ph : ph + image.shape[-2], pw : pw + image.shape[-1]].float().clamp_(0, 1)
+    return out[:, top : top + image.shape[-2], left : left + image.shape[-1]].clamp_(0, 1)
+
+
+def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int]) -> torch.Tensor:
+    """G = H / (H² + balance·|L|²) on the rfft2 grid of ``shape``, float32."""
+    return (otf / (otf * otf + balance * laplacian_power(*shape))).float()
 
 
 class PhysicsDeblur:
@@ -128,18 +149,22 @@ class PhysicsDeblur:
             raise D2TurbError(f"modulation must be in (0, 1], got {modulation!r}")
         self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
         self.modulation, self.alpha = float(modulation), float(alpha)
-        self._otf: dict[tuple[int, int], torch.Tensor] = {}
+        self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
 
     def otf(self, height: int, width: int) -> torch.Tensor:
-        """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding``."""
-        if (height, width) not in self._otf:
-            ph, pw = wiener_padding(height, width)
-            h = image_otf(height + 2 * ph, width + 2 * pw, self.dr0, self.lambda_over_d_px, self.alpha)
-            self._otf[(height, width)] = self.modulation * h + (1 - self.modulation)
-        return self._otf[(height, width)]
+        """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding`` (float64)."""
+        top, bottom, left, right = wiener_padding(height, width)
+        shape = (height + top + bottom, width + left + right)
+        return self.modulation * image_otf(*shape, self.dr0, self.lambda_over_d_px, self.alpha) + (1 - self.modulation)
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        return wiener_deconvolve(image, self.otf(*image.shape[-2:]), self.balance)
+        """Shape: (C, H, W) → (C, H, W), float32 in [0, 1]."""
+        size = tuple(image.shape[-2:])
+        if size not in self._gain:
+            top, bottom, left, right = wiener_padding(*size)
+            shape = (size[0] + top + bottom, size[1] + left + right)
+            self._gain[size] = wiener_gain(self.otf(*size), self.balance, shape)
+        return wiener_deconvolve(image, self._gain[size])
 
 
 @dataclass
