@@ -9,6 +9,7 @@ in pixels. Arrays here are numpy (OpenCV's types): grey frames (H, W) uint8, col
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -49,13 +50,22 @@ def to_gray_u8(frame_hwc: np.ndarray) -> np.ndarray:
     return np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
-def global_shift_px(ref_gray: np.ndarray, frame_gray: np.ndarray) -> tuple[float, float]:
+@functools.lru_cache(maxsize=4)
+def _hann(shape: tuple[int, int]) -> np.ndarray:
+    return cv2.createHanningWindow(shape[::-1], cv2.CV_32F)
+
+
+def global_shift_px(ref_gray: np.ndarray, frame_gray: np.ndarray, max_side: int = 512) -> tuple[float, float]:
     """The translation (dx, dy) with ``frame(x + (dx, dy)) ≈ ref(x)``, to a fraction of a pixel, by phase correlation
-    with a Hann window (``cv2.phaseCorrelate``)."""
+    with a Hann window (``cv2.phaseCorrelate``); frames larger than ``max_side`` are correlated at a reduced size
+    (area averaging) and the shift scaled back: it only starts the dense registration."""
     a, b = ref_gray.astype(np.float32), frame_gray.astype(np.float32)
-    window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(a, b, window)
-    return float(dx), float(dy)
+    scale = min(1.0, max_side / max(a.shape))
+    if scale < 1.0:
+        size = (max(2, round(a.shape[1] * scale)), max(2, round(a.shape[0] * scale)))
+        a, b = (cv2.resize(x, size, interpolation=cv2.INTER_AREA) for x in (a, b))
+    (dx, dy), _ = cv2.phaseCorrelate(a, b, _hann(a.shape))
+    return float(dx) / scale if scale < 1.0 else float(dx), float(dy) / scale if scale < 1.0 else float(dy)
 
 
 @dataclass
@@ -103,12 +113,19 @@ def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray) -> np.ndarray:
     Shape:
         frame_hwc: (H, W, C); bwd_flow_px: (H, W, 2), x then y.
     """
-    h, w = bwd_flow_px.shape[:2]
-    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    out = cv2.remap(
-        frame_hwc, gx + bwd_flow_px[..., 0], gy + bwd_flow_px[..., 1], cv2.INTER_LINEAR, cv2.BORDER_REPLICATE
-    )
+    maps = bwd_flow_px + _pixel_grid(bwd_flow_px.shape[:2])  # absolute coordinates (H,W,2), one map for cv2.remap
+    out = cv2.remap(frame_hwc, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(frame_hwc.shape)
+
+
+@functools.lru_cache(maxsize=4)
+def _pixel_grid(shape: tuple[int, int]) -> np.ndarray:
+    h, w = shape
+    grid = np.empty((h, w, 2), dtype=np.float32)
+    grid[..., 0] = np.arange(w, dtype=np.float32)[None, :]
+    grid[..., 1] = np.arange(h, dtype=np.float32)[:, None]
+    grid.flags.writeable = False
+    return grid
 
 
 def shift_flow(shape: tuple[int, int], dx: float, dy: float) -> np.ndarray:

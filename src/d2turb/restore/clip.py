@@ -44,6 +44,7 @@ def default_balance(dr0: float) -> float:
     return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
 
 
+AUTO_FAST_PIXELS = 1_000_000  # preset "auto": from ~1 MP per frame (720p is 0.92 MP) the flow is computed at half size
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
@@ -183,7 +184,8 @@ class ClipRestorer:
         passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion.
         fusion: "mean" or "robust" (pixels weighted by their agreement with the reference).
         deblur: "none", a :class:`PhysicsDeblur`, or any callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
-        preset: registration accuracy, a key of ``d2turb.registration.DIS_PRESETS``.
+        preset: registration accuracy, a key of ``d2turb.registration.DIS_PRESETS``, or "auto": "medium" below
+            ``AUTO_FAST_PIXELS`` pixels per frame, "fast" (flow at half resolution, ~8x faster) from there on.
         stabilise: remove a global shift per frame (camera shake) before the dense registration.
         fallback: use the single frame where its residual against the fusion stays high (moving objects).
     """
@@ -194,7 +196,7 @@ class ClipRestorer:
         passes: int = 2,
         fusion: str = "mean",
         deblur="none",
-        preset: str = "medium",
+        preset: str = "auto",
         stabilise: bool = True,
         fallback: bool = True,
     ):
@@ -209,7 +211,10 @@ class ClipRestorer:
         self.temporal, self.passes, self.fusion = temporal, passes, fusion
         self.deblur = None if deblur == "none" else deblur
         self.stabilise, self.fallback = stabilise, fallback
-        self.flow = DenseFlow(preset)
+        if preset != "auto":
+            DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
+        self.preset = preset
+        self.flow = None  # created for the clip's frame size (preset "auto")
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
@@ -241,6 +246,9 @@ class ClipRestorer:
                             f"frame {done[0]} is {raw.shape[1]}x{raw.shape[0]}, the clip's first is "
                             f"{shape[1]}x{shape[0]}: all frames of a clip must have one size"
                         )
+                    if self.flow is None:
+                        large = raw.shape[0] * raw.shape[1] >= AUTO_FAST_PIXELS
+                        self.flow = DenseFlow(("fast" if large else "medium") if self.preset == "auto" else self.preset)
                     buf[done[0]] = _Frame(raw, to_gray_u8(raw))
                     done[0] += 1
                 progressed = True
