@@ -19,9 +19,9 @@ def register(sub):
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, or a video file")
     p.add_argument(
         "--weights",
-        required=True,
         help="a .safetensors file from save_pretrained, a weights name looked up in $D2TURB_WEIGHTS_DIR, "
-        "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline)",
+        "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline); default: the "
+        "recommended shipped model (d2turb models lists it)",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--tile", type=int, default=512, help="tile size in pixels (default 512)")
