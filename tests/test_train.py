@@ -112,6 +112,23 @@ def test_plain_backbone_trains_on_clean_target_only():
     assert total.item() == pytest.approx(np.abs(out["restored"].numpy() - batch["gt"].numpy()).mean(), rel=1e-5)
 
 
+def test_plain_backbone_with_explicit_native_loss_uses_it_against_clean():
+    from d2turb.eval.metrics import psnr
+    from d2turb.models import create_model
+
+    out, batch = fake_batch(b=3)
+    out["flow"] = None
+    loss = MultiStageLoss(photo=2.0, plain="psnr")
+    total, terms = loss(out, batch)
+    assert set(terms) == {"photo"}
+    assert total.item() == pytest.approx(-2.0 * psnr(out["restored"], batch["gt"]).mean().item(), rel=1e-5)
+    model = create_model("nafnet", width=8, enc_blocks=(1,), dec_blocks=(1,), middle_blocks=1)
+    assert build_loss({"native": "psnr"}, model).plain == "psnr"
+    assert build_loss({}, model).plain == "l1"  # no explicit native loss: L1 as in Table 1
+    with pytest.raises(D2TurbError, match="unknown native loss"):
+        MultiStageLoss(plain="l3")
+
+
 def test_psnr_native_loss_is_minus_psnr():
     from d2turb.eval.metrics import psnr
 
@@ -205,7 +222,8 @@ def test_every_config_builds_model_and_loss(path):
     assert sum(p.numel() for p in model.parameters()) > 1e6
     loss = build_loss({**vars(cfg.loss), "vgg_weights": None}, model, warn=False)
     assert (loss.w_flow, loss.w_photo) == (5.0, 1.0)  # Sec. 3.3 weights
-    if path.stem.startswith("d2turb_small"):  # shipped-model recipes: no local VGG16 weights, so no perceptual term
+    # shipped-model recipes: no local VGG16 weights, so no perceptual term
+    if path.stem.startswith(("d2turb_small", "nafnet_cpu")):
         assert cfg.loss.vgg == 0.0 or cfg.loss.vgg_weights is None
     else:
         assert cfg.loss.vgg == 0.02 and loss.w_deblur == (0.0 if "no_deblur" in path.stem else 1.0)

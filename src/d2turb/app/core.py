@@ -35,7 +35,14 @@ from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.eval.report import fit_cell, flow_to_rgb
 from d2turb.io import IMAGE_SUFFIXES, read_image, write_image, write_json, write_text
-from d2turb.models.hub import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
+from d2turb.models.hub import (
+    IDENTITY_NAME,
+    RECOMMENDED_WEIGHTS,
+    WEIGHTS_SUFFIX,
+    resolve_weights,
+    shipped_weights_dir,
+    weights_search_path,
+)
 from d2turb.sim import MODULATIONS, Simulator, depth_modulation, dr0_bin, fried_r0_spherical
 from d2turb.sim.geometry import footprint_px
 from d2turb.video import VIDEO_HINT, VIDEO_SUFFIXES, iter_video
@@ -451,15 +458,12 @@ def weights_choices() -> list[tuple[str, Path | None]]:
     return [(IDENTITY_NAME, None), *found.items()]
 
 
-def shipped_weights_dir() -> Path:
-    """The package's ``resources/weights`` (the last folder of ``weights_search_path``): the shipped weights."""
-    return weights_search_path("x")[-1].parent
-
-
 def default_weights(choices: list[tuple[str, Path | None]]) -> str:
-    """The weights preselected in the page: the first shipped one, else the first found, else "input"."""
+    """The weights preselected in the page: the recommended shipped one (``RECOMMENDED_WEIGHTS``), else the first
+    shipped one, else the first found, else "input"."""
     found = [(name, path) for name, path in choices if path is not None]
     shipped = [name for name, path in found if path.parent == shipped_weights_dir()]
+    shipped.sort(key=lambda name: name != RECOMMENDED_WEIGHTS)
     return (shipped or [name for name, _ in found] or [choices[0][0]])[0]
 
 

@@ -1,6 +1,6 @@
 """`d2turb demo`: built-in samples under weak/medium/strong depth-aware turbulence, restored with the shipped
-model: a simulation grid, a restoration grid (input | restored | clean | predicted and true flow) and a per-bin
-PSNR/SSIM table."""
+model: a simulation grid, a restoration grid (input | restored | clean, plus predicted and true flow for a model
+with a rectifier) and a per-bin PSNR/SSIM table."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from d2turb.errors import D2TurbError
 
 LEVELS = (("weak", 1.5), ("medium", 3.0), ("strong", 4.5))
 SIZE = (192, 256)  # H, W of every demo image
-DEFAULT_WEIGHTS = "d2turb-small"  # the model shipped in the package (MODEL_CARD.md)
 DEMO_PATH_LENGTH_M = 3000.0  # D = 0.1 m at Nyquist: tilt footprint 12.7 px, inside the training geometries
 
 
@@ -19,16 +18,16 @@ def register(sub):
         "demo",
         help="simulate turbulence on built-in sample images and write a labelled grid",
         description="Writes DIR/demo.png (rows: images; columns: clean | weak | medium | strong | depth and M), "
-        "DIR/restore.png (input | restored | clean | predicted flow | true flow, with the shipped model), "
+        "DIR/restore.png (input | restored | clean, with the recommended shipped model; predicted and true flow "
+        "too for a model with a rectifier), "
         "DIR/demo_results.md (PSNR/SSIM per bin) and per-image PNGs.",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     add_seed_arg(p)
     p.add_argument(
         "--weights",
-        default=DEFAULT_WEIGHTS,
         metavar="NAME|FILE",
-        help=f"restoration model (default {DEFAULT_WEIGHTS}, shipped in the package); 'none' skips restoration",
+        help="restoration model (default: the recommended shipped model, see d2turb models); 'none' skips restoration",
     )
     add_physics_args(p, path_length_m=DEMO_PATH_LENGTH_M)
     p.set_defaults(func=run)
@@ -119,22 +118,24 @@ def run(args):
     print(f"wrote {out / 'demo.png'} ({len(names)} images x clean/weak/medium/strong/depth)")
     if args.weights != "none":
         # lazy: the restorer (models) loads only when restoration is asked for
-        from d2turb.models.hub import resolve_weights
+        from d2turb.models.hub import recommended_weights, resolve_weights
 
+        weights = args.weights
         try:
-            resolve_weights(args.weights)
-        except D2TurbError:
-            if args.weights != DEFAULT_WEIGHTS:
+            weights = resolve_weights(weights) if weights is not None else recommended_weights()
+        except D2TurbError as exc:
+            if args.weights is not None:
                 raise
-            print(f"note: the shipped model {DEFAULT_WEIGHTS!r} is not installed; restoration skipped")
+            print(f"note: restoration skipped: {exc}")
         else:
-            meta["restoration"] = restore_demo(args.weights, res, names, out, args.device)
+            meta["restoration"] = restore_demo(weights, res, names, out, args.device)
     write_json(out / "demo_meta.json", meta)
     return 0
 
 
-def restore_demo(weights: str, res, names: list[str], out, device) -> dict:
-    """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table."""
+def restore_demo(weights, res, names: list[str], out, device) -> dict:
+    """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table.
+    A model with a rectifier also gets predicted | true flow columns and the flow end-point errors."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import numpy as np
 
@@ -146,57 +147,60 @@ def restore_demo(weights: str, res, names: list[str], out, device) -> dict:
 
     restorer = Restorer(weights, device=device)
     details = restorer.restore_with_details(res.turb.float().cpu())
+    has_flow = bool(details["flow"].any())  # a plain restorer (no rectifier) predicts no flow
     true_flow = backward_flow(res.flow).float().cpu()
     gt = res.clean.float().cpu()
     b = len(names)
     rows, labels, table = [], [], {}
     for k, (level, value) in enumerate(LEVELS):
-        scores = {"input": [], restorer.name: []}
+        scores = {"input": [], "restored": [], "epe": []}
         for i, name in enumerate(names):
             j = k * b + i
             restored = (details["restored"][j].clamp(0, 1) * 255).round() / 255  # what the saved PNG holds
             write_image(out / f"{name}_{level}_restored.png", restored)
-            for label, image in (("input", res.turb[j].float().cpu()), (restorer.name, restored)):
+            for label, image in (("input", res.turb[j].float().cpu()), ("restored", restored)):
                 scores[label].append((float(psnr(image, gt[j])), float(ssim(image, gt[j]))))
             epe_zero = float(true_flow[j].norm(dim=0).mean())
             epe = float((details["flow"][j] - true_flow[j]).norm(dim=0).mean())
-            scores.setdefault("epe", []).append((epe_zero, epe))
-            peak = float(true_flow[j].norm(dim=0).max())
-            rows.append(
-                [
-                    res.turb[j].float().cpu(),
-                    restored,
-                    gt[j],
-                    flow_to_rgb(details["flow"][j], peak),
-                    flow_to_rgb(true_flow[j], peak),
-                ]
-            )
+            scores["epe"].append((epe_zero, epe))
+            row = [res.turb[j].float().cpu(), restored, gt[j]]
+            if has_flow:
+                peak = float(true_flow[j].norm(dim=0).max())
+                row += [flow_to_rgb(details["flow"][j], peak), flow_to_rgb(true_flow[j], peak)]
+            rows.append(row)
             labels.append(f"{name} {level}")
         table[level] = {
             "dr0": value,
             "psnr_input": float(np.mean([p for p, _ in scores["input"]])),
-            "psnr_restored": float(np.mean([p for p, _ in scores[restorer.name]])),
+            "psnr_restored": float(np.mean([p for p, _ in scores["restored"]])),
             "ssim_input": float(np.mean([s for _, s in scores["input"]])),
-            "ssim_restored": float(np.mean([s for _, s in scores[restorer.name]])),
-            "epe_zero_flow_px": float(np.mean([e for e, _ in scores["epe"]])),
-            "epe_px": float(np.mean([e for _, e in scores["epe"]])),
+            "ssim_restored": float(np.mean([s for _, s in scores["restored"]])),
         }
-    grid = comparison_grid(rows, ["input", restorer.name, "clean", "predicted flow", "true flow"], labels, cell=SIZE[1])
-    write_image(out / "restore.png", grid)
+        if has_flow:
+            table[level]["epe_zero_flow_px"] = float(np.mean([e for e, _ in scores["epe"]]))
+            table[level]["epe_px"] = float(np.mean([e for _, e in scores["epe"]]))
+    columns = ["input", restorer.name, "clean"] + (["predicted flow", "true flow"] if has_flow else [])
+    write_image(out / "restore.png", comparison_grid(rows, columns, labels, cell=SIZE[1]))
+    header = "| bin | D/r0 | PSNR input | PSNR restored | SSIM input | SSIM restored |"
+    rule = "|---|---:|---:|---:|---:|---:|"
+    if has_flow:
+        header, rule = header + " EPE zero flow (px) | EPE (px) |", rule + "---:|---:|"
     lines = [
         f"# d2turb demo: restoration with {restorer.name}\n",
         f"{len(names)} built-in images per bin, {SIZE[1]}x{SIZE[0]} px (a demo, not a benchmark: see MODEL_CARD.md).\n",
-        "| bin | D/r0 | PSNR input | PSNR restored | SSIM input | SSIM restored | EPE zero flow (px) | EPE (px) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        header,
+        rule,
     ]
     for level, row in table.items():
-        lines.append(
+        line = (
             f"| {level} | {row['dr0']:g} | {row['psnr_input']:.2f} | {row['psnr_restored']:.2f} | "
-            f"{row['ssim_input']:.3f} | {row['ssim_restored']:.3f} | {row['epe_zero_flow_px']:.3f} | "
-            f"{row['epe_px']:.3f} |"
+            f"{row['ssim_input']:.3f} | {row['ssim_restored']:.3f} |"
         )
+        if has_flow:
+            line += f" {row['epe_zero_flow_px']:.3f} | {row['epe_px']:.3f} |"
+        lines.append(line)
     text = "\n".join(lines) + "\n"
     write_text(out / "demo_results.md", text)
     print(text, end="")
-    print(f"wrote {out / 'restore.png'} (input | restored | clean | predicted flow | true flow)")
+    print(f"wrote {out / 'restore.png'} ({' | '.join(columns)})")
     return {"weights": restorer.name, "table": table}

@@ -33,7 +33,8 @@ def register(sub):
         "--weights",
         default=None,
         help="a .safetensors file from save_pretrained, a weights name looked up in $D2TURB_WEIGHTS_DIR, "
-        "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline)",
+        "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline); default: the "
+        "recommended shipped model (d2turb models lists it)",
     )
     clip = p.add_argument_group("clips (--temporal)")
     clip.add_argument(
@@ -117,8 +118,6 @@ def run(args) -> int:
 
     if args.temporal is not None:
         return run_clips(args)
-    if args.weights is None:
-        raise D2TurbError("restore needs --weights (a .safetensors file or a weights name), or --temporal N for clips")
     images, videos = split_inputs(args.inputs)
     out_dir = check_output_dir(args.out, inputs=images + videos)
     restorer = Restorer(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 from importlib import resources
@@ -32,6 +33,9 @@ IDENTITY_NAME = "input"  # the identity baseline: restore returns its input
 WEIGHTS_SUFFIX = ".safetensors"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 FORMAT = "2"  # 2: the authors' architecture is the default (issue 8); files without the key are format 1
+# The shipped weights recommended for single-frame restoration: the default of `d2turb restore`, Restorer(), the demo
+# and the page (MODEL_CARD.md). Shipped weights are the package's resources/weights/NAME.safetensors.
+RECOMMENDED_WEIGHTS = "nafnet-cpu-small"
 
 
 def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
@@ -350,12 +354,58 @@ def load_pretrained(
     return net.to(device).eval()
 
 
+def shipped_weights_dir() -> Path:
+    """The package's ``resources/weights``: the weights shipped with d2turb."""
+    return Path(str(resources.files("d2turb"))) / "resources" / "weights"
+
+
+def shipped_weights() -> list[str]:
+    """Names of the weights shipped in the package (``resources/weights/NAME.safetensors``), the recommended one
+    (:data:`RECOMMENDED_WEIGHTS`) first, then the others in name order."""
+    folder = shipped_weights_dir()
+    files = folder.glob(f"*{WEIGHTS_SUFFIX}") if folder.is_dir() else []
+    names = sorted(f.stem for f in files if _NAME_RE.match(f.stem))
+    return sorted(names, key=lambda n: n != RECOMMENDED_WEIGHTS)
+
+
+def recommended_weights() -> Path:
+    """The file of the recommended shipped weights (:data:`RECOMMENDED_WEIGHTS` in the package's resources/weights,
+    never a same-named file elsewhere): what restoration uses when no weights are given.
+
+    Raises:
+        D2TurbError: it is not shipped with this installation.
+    """
+    path = shipped_weights_dir() / f"{RECOMMENDED_WEIGHTS}{WEIGHTS_SUFFIX}"
+    if not path.is_file():
+        raise D2TurbError(
+            f"no restoration model is shipped with this installation ({path.name} not in {path.parent}); "
+            f"pass --weights (a .safetensors file or a weights name), or 'input' for the identity baseline"
+        )
+    return path
+
+
+def weights_info(path: str | os.PathLike) -> dict:
+    """What a save_pretrained file holds, without loading it: ``{"model": registered name, "params": count,
+    "bytes": file size}`` (``model`` None for a file without a d2turb config)."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            metadata = f.metadata() or {}
+            params = sum(math.prod(f.get_slice(k).get_shape()) for k in f.keys())
+        model = json.loads(metadata[CONFIG_KEY])["name"] if CONFIG_KEY in metadata else None
+    except Exception as exc:  # safetensors' own error types for truncated / garbage files; a bad config
+        raise D2TurbError(f"{path}: corrupt weights file ({exc.__class__.__name__})") from exc
+    return {"model": model, "params": int(params), "bytes": path.stat().st_size}
+
+
 def weights_search_path(name: str) -> list[Path]:
     """Where a weights *name* is looked for, in order: each folder of $D2TURB_WEIGHTS_DIR (os.pathsep
     separated), $D2TURB_CACHE_DIR/weights (default ~/.cache/d2turb/weights), then the package's resources/weights."""
     folders = [Path(p).expanduser() for p in os.environ.get("D2TURB_WEIGHTS_DIR", "").split(os.pathsep) if p]
     folders.append(cache_dir("weights"))
-    folders.append(Path(str(resources.files("d2turb"))) / "resources" / "weights")
+    folders.append(shipped_weights_dir())
     return [folder / f"{name}{WEIGHTS_SUFFIX}" for folder in folders]
 
 

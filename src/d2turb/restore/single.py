@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from pathlib import Path
 
 import torch
@@ -23,7 +24,7 @@ from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import check_image_tensor, read_image
 from d2turb.models.common import pad_to_multiple
-from d2turb.models.hub import IDENTITY_NAME, load_pretrained, resolve_weights
+from d2turb.models.hub import IDENTITY_NAME, load_pretrained, recommended_weights, resolve_weights
 from d2turb.ops.warp import base_grid, sample_at
 
 _WARP_STRIP_PIXELS = 1 << 21  # output pixels per strip of the global warp (bounds its temporaries)
@@ -103,19 +104,24 @@ class Restorer:
     """Restore turbulence-degraded images of any size.
 
     ``weights``: a .safetensors path from ``save_pretrained``, a weights name (see
-    :func:`weights_search_path`), ``"input"`` (identity baseline) or an ``nn.Module`` returning the model
-    output dict (deblurred, restored, flow). ``device``: see :func:`d2turb.device.resolve_device`. Images
+    :func:`weights_search_path`), ``"input"`` (identity baseline), an ``nn.Module`` returning the model
+    output dict (deblurred, restored, flow), or None: the recommended shipped model
+    (:func:`d2turb.models.hub.recommended_weights`, named in one line on stderr; D2TurbError if none is
+    shipped). ``device``: see :func:`d2turb.device.resolve_device`. Images
     larger than ``tile`` are processed in overlapping tiles (``overlap`` pixels shared) and blended
     seamlessly; CUDA runs under bf16 autocast. A model output with NaN/inf raises ``D2TurbError``.
     """
 
-    def __init__(self, weights, device: str = "cpu", tile: int = 512, overlap: int = 64, progress: bool = False):
+    def __init__(self, weights=None, device: str = "cpu", tile: int = 512, overlap: int = 64, progress: bool = False):
         if not isinstance(tile, int) or tile < 16:
             raise D2TurbError(f"tile size must be an integer >= 16, got {tile}")
         if not isinstance(overlap, int) or overlap < 0 or overlap > tile // 2:
             raise D2TurbError(f"overlap must be between 0 and tile/2 = {tile // 2}, got {overlap}")
         self.device = resolve_device(device)
         self.tile, self.overlap, self.progress = tile, overlap, progress
+        if weights is None:
+            weights = recommended_weights()
+            print(f"restoring with the shipped model {weights.stem} (MODEL_CARD.md)", file=sys.stderr)
         self.model, self.name = load_restoration_model(weights, self.device)
 
     # -- public API -------------------------------------------------------------------------------

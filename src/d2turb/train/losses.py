@@ -5,7 +5,8 @@
 * L_flow = ‖V̂ − V_bwd‖₁ (Eq. 12), mean absolute error in pixels.
 * L_detilt = λ_photo‖Î_clean − I_gt‖₁ + λ_vgg‖φ(Î_clean) − φ(I_gt)‖²₂ (Eq. 13); φ = VGG16 relu1_2…relu5_3 on
   ImageNet-normalised input, the squared norm taken as the mean squared difference per layer, summed over layers.
-* Plain backbones (flow None, Table 1 baselines): λ_photo·L1(restored, I_gt) (+ λ_vgg·VGG term).
+* Plain backbones (flow None, Table 1 baselines): λ_photo·L1(restored, I_gt) (+ λ_vgg·VGG term); with an explicit
+  ``loss.native`` (e.g. ``psnr``), λ_photo·that loss against I_gt instead of L1 (``plain=`` of MultiStageLoss).
 * A method's own extra terms (e.g. TurbNet's re-degradation), already weighted: ``model.extra_loss(out, batch)`` or,
   failing that, its backbone's (see :func:`extra_loss_of`).
 All norms are means over elements, so a batch split across processes averages to the full-batch loss.
@@ -87,22 +88,27 @@ class MultiStageLoss(nn.Module):
         perceptual: nn.Module | None = None,
         native: str = "l1",
         extra: Callable[[dict, dict], dict] | None = None,
+        plain: str = "l1",
     ):
         super().__init__()
-        if native not in NATIVE_LOSSES:
-            raise D2TurbError(f"unknown native loss {native!r}; choose from {', '.join(NATIVE_LOSSES)}")
+        for name in (native, plain):
+            if name not in NATIVE_LOSSES:
+                raise D2TurbError(f"unknown native loss {name!r}; choose from {', '.join(NATIVE_LOSSES)}")
+        self.plain = plain  # the photometric loss of a plain backbone (flow None) against I_gt
         self.w_deblur, self.w_flow, self.w_photo = float(deblur), float(flow), float(photo)
         self.w_vgg = float(vgg) if perceptual is not None else 0.0
         self.perceptual, self.native, self.extra = perceptual, native, extra
 
     def forward(self, out: dict, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
         restored, gt = out["restored"].float(), batch["gt"]
-        terms: dict[str, torch.Tensor] = {"photo": l1_loss(restored, gt)}  # Eq. 13, first term
+        two_stage = out.get("flow") is not None
+        photo = l1_loss if two_stage else NATIVE_LOSSES[self.plain]  # Eq. 13, first term (plain: l1 or psnr)
+        terms: dict[str, torch.Tensor] = {"photo": photo(restored, gt)}
         total = self.w_photo * terms["photo"]
         if self.w_vgg > 0:
             terms["vgg"] = self.perceptual(restored, gt)  # Eq. 13, second term
             total = total + self.w_vgg * terms["vgg"]
-        if out.get("flow") is not None:  # two-stage model; plain baselines train on the clean target only
+        if two_stage:  # two-stage model; plain baselines train on the clean target only
             terms["deblur"] = NATIVE_LOSSES[self.native](out["deblurred"].float(), batch["tilt"])  # Eq. 11
             terms["flow"] = l1_loss(out["flow"].float(), batch["flow"])  # Eq. 12
             total = total + self.w_deblur * terms["deblur"] + self.w_flow * terms["flow"]  # Eq. 14
@@ -137,4 +143,5 @@ def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True
         perceptual=perceptual,
         native=native_loss_name(model, loss_cfg.get("native")),
         extra=extra_loss_of(model),
+        plain=native_loss_name(model, loss_cfg["native"]) if loss_cfg.get("native") else "l1",
     )
