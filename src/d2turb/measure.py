@@ -12,7 +12,7 @@ its expectation under Kolmogorov theory with frozen flow and boiling is
 
 with G the path-integrated differential-tilt covariance of ``d2turb.sim.tilt.differential_tilt_covariance``
 (I0 ± I2 layer correlations, (1 − z/L)^(5/3) weights) and ε_j the registration's loss of differential-tilt power
-at separation j, measured on simulated clips (``REGISTRATION_GAIN``). The wind (speed per frame, direction) and
+at separation j, measured on simulated clips (``GAIN_TABLE``). The wind (speed per frame, direction) and
 the boiling are nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is then a ratio of sums.
 The 90 % interval is a bootstrap over spatial tiles (the fit redone per resample) widened by the scatter of the
 registration calibration.
@@ -33,13 +33,25 @@ from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
 MIN_VALID_FRACTION = 0.25  # of the analysed area; below it the clip is refused
 TEXTURE_MIN = 0.3  # smallest eigenvalue of the 9×9 structure tensor of the reference, grey levels²/px²
-RESIDUAL_MAX = 10.0  # mean |frame(x + d) − ref| in grey levels above which a pixel is excluded (moving objects)
+# mean |frame(x + d) − ref| above RESIDUAL_REL times its median and above RESIDUAL_FLOOR grey levels excludes a pixel
+# (moving objects, failed registration); the floor keeps the mask from following the tilt itself on clean clips
+RESIDUAL_REL, RESIDUAL_FLOOR = 3.0, 8.0
 MARGIN_PX = 8
-SEPARATIONS_PX = (4, 8, 16, 32, 64)
-# registration gain ε(r): DIS-measured / true differential-tilt power at separation r px (docs/measure.md);
-# from simulated calibration clips (bsds500 crops, not the validation images); log-scatter REGISTRATION_LOG_SD.
-REGISTRATION_GAIN = {4: 1.0, 8: 1.0, 16: 1.0, 32: 1.0, 64: 1.0}
-REGISTRATION_LOG_SD = 0.0
+SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
+# registration gain ε(r, D/r0): DIS-measured / true differential-tilt power at separation r px, measured on four
+# simulated calibration clips (bsds500 crops, not the validation images; 256², 64 frames, default optics, wind
+# 1.4–3 m/s; docs/measure.md). Rows: D/r0 of the clip; columns: separations. Linear in D/r0 between rows, in log r
+# between columns, clamped outside. REGISTRATION_LOG_SD: the uncertainty of ln ε added to the interval (twice the
+# 0.021 rms residual of a log-linear fit of the table, given only four clips).
+GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
+GAIN_SEPARATIONS_PX = (8, 16, 32, 64)
+GAIN_TABLE = (
+    (0.568, 0.714, 0.827, 0.897),
+    (0.578, 0.703, 0.819, 0.890),
+    (0.678, 0.772, 0.861, 0.913),
+    (0.854, 0.858, 0.902, 0.926),
+)
+REGISTRATION_LOG_SD = 0.04
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
 BOIL_GRID = (0.0, 0.03, 0.1, 0.3)
@@ -153,7 +165,8 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
     ry = cv2.Sobel(ref, cv2.CV_32F, 0, 1, ksize=3) / 8
     sxx, syy, sxy = (cv2.boxFilter(a, -1, (9, 9)) for a in (rx * rx, ry * ry, rx * ry))
     lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
-    mask = (lam_min > TEXTURE_MIN) & (residual < RESIDUAL_MAX)
+    inner_res = residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX]
+    mask = (lam_min > TEXTURE_MIN) & (residual < max(RESIDUAL_REL * float(np.median(inner_res)), RESIDUAL_FLOOR))
     mask[:MARGIN_PX], mask[-MARGIN_PX:], mask[:, :MARGIN_PX], mask[:, -MARGIN_PX:] = False, False, False, False
     inner = (h - 2 * MARGIN_PX) * (w - 2 * MARGIN_PX)
     diag = {
@@ -204,6 +217,13 @@ def lag_sums(flows: np.ndarray, mask: np.ndarray, seps, tiles: int = 4, stride: 
                 counts.append(np.bincount(tile, minlength=n_tiles).astype(np.float64))
                 series.append((r, orient, comp))
     return np.stack(nums, 1), np.stack(counts, 1), series
+
+
+def registration_gain(sep_px, dr0: float) -> np.ndarray:
+    """ε for separations ``sep_px`` at strength ``dr0`` from ``GAIN_TABLE``."""
+    table = np.asarray(GAIN_TABLE)
+    at_dr0 = np.array([np.interp(dr0, GAIN_DR0, table[:, k]) for k in range(table.shape[1])])
+    return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
 
 
 # ---- the fit ----------------------------------------------------------------------------------------------------
@@ -305,10 +325,12 @@ def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, see
     t_len = flows.shape[0]
     num, pairs, series = lag_sums(flows, mask, seps)
     models = _models(series, t_len, footprints)
-    gains = np.array([REGISTRATION_GAIN.get(r, 1.0) for r, _, _ in series])
-    sig2, best = _fit(num.sum(0), pairs.sum(0), t_len, models, gains)
     unit = (optics.aperture_m, optics.wavelength_m, optics.ifov_rad)
-    dr0 = float(dr0_from_tilt_variance(sig2, *unit))
+    dr0 = 2.5
+    for _ in range(3):  # the gain depends on the strength: a fixed point (converges in 2–3 steps, ε varies slowly)
+        gains = registration_gain([r for r, _, _ in series], dr0)
+        sig2, best = _fit(num.sum(0), pairs.sum(0), t_len, models, gains)
+        dr0 = float(dr0_from_tilt_variance(sig2, *unit))
     rng = np.random.default_rng(seed)
     n_tiles = num.shape[0]
     boot = []
