@@ -31,11 +31,12 @@ from d2turb.registration import DenseFlow, global_shift_px, to_hwc
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
-MIN_VALID_FRACTION = 0.25  # of the analysed area; below it the clip is refused
+MIN_VALID_FRACTION = 0.15  # of the analysed area; below it the clip is refused
 TEXTURE_MIN = 0.3  # smallest eigenvalue of the 9×9 structure tensor of the reference, grey levels²/px²
 # mean |frame(x + d) − ref| above RESIDUAL_REL times its median and above RESIDUAL_FLOOR grey levels excludes a pixel
 # (moving objects, failed registration); the floor keeps the mask from following the tilt itself on clean clips
 RESIDUAL_REL, RESIDUAL_FLOOR = 3.0, 8.0
+RESIDUAL_REFUSE = 15.0  # median registration residual (grey levels) above which the frames are not one static scene
 MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
 # registration gain ε(r, D/r0): DIS-measured / true differential-tilt power at separation r px, measured on four
@@ -283,9 +284,15 @@ def measure_clip(
         raise D2TurbError(f"window must be between {MIN_FRAMES} and the {len(gray)} frames of the clip, got {window}")
     gray, crop = _crop(gray, max_size)
     flows, mask, diag = register_clip(gray, preset)
+    if diag["median_residual_grey"] > RESIDUAL_REFUSE:
+        raise D2TurbError(
+            f"cannot measure this clip: the frames do not register onto one static scene (median residual "
+            f"{diag['median_residual_grey']:.1f} grey levels, limit {RESIDUAL_REFUSE:g}): a moving camera or scene, a "
+            "cut, or frames of different scenes"
+        )
     if diag["valid_fraction"] < MIN_VALID_FRACTION:
         raise D2TurbError(
-            f"cannot measure this clip: only {100 * diag['valid_fraction']:.0f} % of the analysed area has the texture "
+            f"cannot measure this clip: only {100 * diag['valid_fraction']:.1f} % of the analysed area has the texture "
             f"and registration quality needed (need {100 * MIN_VALID_FRACTION:.0f} %; textured "
             f"{100 * diag['textured_fraction']:.0f} %, median registration residual {diag['median_residual_grey']:.1f} "
             "grey levels)"
