@@ -304,13 +304,14 @@ def measure_clip(
         if optics.path_length_m is not None
         else list(FOOTPRINT_GRID)
     )
-    result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed)
+    models: dict = {}  # unit models per window length, shared by the windows
+    result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed, models)
     result.update(diag)
     if window:
         starts = list(range(0, len(gray) - int(window) + 1, int(window)))
         series = []
         for s in starts:
-            est = _estimate(flows[s : s + int(window)], mask, seps, optics, footprints, bootstrap, seed)
+            est = _estimate(flows[s : s + int(window)], mask, seps, optics, footprints, bootstrap, seed, models)
             series.append({"start_frame": s, "frames": int(window), **{k: est[k] for k in ("dr0", "dr0_ci")}})
         result["windows"] = series
     result["inputs"] = {
@@ -328,10 +329,12 @@ def measure_clip(
     return result
 
 
-def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, seed: int) -> dict:
+def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, seed: int, cache: dict) -> dict:
     t_len = flows.shape[0]
     num, pairs, series = lag_sums(flows, mask, seps)
-    models = _models(series, t_len, footprints)
+    if t_len not in cache:
+        cache[t_len] = _models(series, t_len, footprints)
+    models = cache[t_len]
     unit = (optics.aperture_m, optics.wavelength_m, optics.ifov_rad)
     dr0 = 2.5
     for _ in range(3):  # the gain depends on the strength: a fixed point (converges in 2–3 steps, ε varies slowly)
