@@ -32,10 +32,13 @@ from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
 MIN_VALID_FRACTION = 0.15  # of the analysed area; below it the clip is refused
-TEXTURE_MIN = 0.3  # smallest eigenvalue of the 9×9 structure tensor of the reference, grey levels²/px²
+TEXTURE_MIN = 1.0  # smallest eigenvalue of the 9×9 structure tensor of the reference, grey levels²/px²
 # mean |frame(x + d) − ref| above RESIDUAL_REL times its median and above RESIDUAL_FLOOR grey levels excludes a pixel
 # (moving objects, failed registration); the floor keeps the mask from following the tilt itself on clean clips
 RESIDUAL_REL, RESIDUAL_FLOOR = 3.0, 8.0
+# the tilt field is statistically homogeneous: a pixel whose temporal rms displacement (global part removed) exceeds
+# HOMOGENEITY_MAX times the median is a registration failure (the true flow's 99th percentile is ~1.2× the median)
+HOMOGENEITY_MAX = 1.6
 RESIDUAL_REFUSE = 15.0  # median registration residual (grey levels) above which the frames are not one static scene
 MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
@@ -169,6 +172,10 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
     inner_res = residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX]
     mask = (lam_min > TEXTURE_MIN) & (residual < max(RESIDUAL_REL * float(np.median(inner_res)), RESIDUAL_FLOOR))
     mask[:MARGIN_PX], mask[-MARGIN_PX:], mask[:, :MARGIN_PX], mask[:, -MARGIN_PX:] = False, False, False, False
+    if mask.any():
+        local = flows - np.median(flows[:, mask], axis=1)[:, None, None, :]
+        rms = np.sqrt(local.var(axis=0).mean(-1))
+        mask &= rms < HOMOGENEITY_MAX * max(float(np.median(rms[mask])), 1e-3)
     inner = (h - 2 * MARGIN_PX) * (w - 2 * MARGIN_PX)
     diag = {
         "valid_fraction": float(mask.sum() / inner),
