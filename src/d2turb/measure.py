@@ -50,10 +50,10 @@ SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the di
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
 GAIN_SEPARATIONS_PX = (8, 16, 32, 64)
 GAIN_TABLE = (
-    (0.568, 0.714, 0.827, 0.897),
-    (0.578, 0.703, 0.819, 0.890),
-    (0.678, 0.772, 0.861, 0.913),
-    (0.854, 0.858, 0.902, 0.926),
+    (0.571, 0.720, 0.833, 0.902),
+    (0.582, 0.711, 0.826, 0.894),
+    (0.694, 0.799, 0.872, 0.911),
+    (0.849, 0.860, 0.914, 0.933),
 )
 REGISTRATION_LOG_SD = 0.04
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
