@@ -6,7 +6,8 @@ import numpy as np
 
 rows = [json.loads(line) for line in open(sys.argv[1] if len(sys.argv) > 1 else "val.jsonl")]
 print(
-    "| D/r0 | clips | refused | bias | rms rel. error | 90 % coverage | median CI width | with shake: bias | rms | coverage |"
+    "| D/r0 | clips | refused | bias | rms rel. error | 90 % coverage | median CI width "
+    "| with shake: bias | rms | coverage |"
 )
 print("|---|---|---|---|---|---|---|---|---|---|")
 for x in sorted({r["dr0_true"] for r in rows}):
