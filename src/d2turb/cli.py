@@ -24,6 +24,7 @@ COMMANDS = [
     "bench",
     "convert",
     "restore",
+    "measure",
     "evaluate",
     "train",
     "pack",

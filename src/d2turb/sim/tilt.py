@@ -383,3 +383,73 @@ class PlaneWaveGrid:
         grid.index_add_(0, plan["index"], vals.reshape(-1))
         field = torch.fft.ifft2(grid.view(plan["batch"], gh, gw))  # a fresh 1-D buffer: contiguous
         return field[:, plan["rows"]][:, :, plan["cols"]] * plan["deconv"]
+
+
+# ---- the theory that turbulence measurement inverts (d2turb.measure, docs/measure.md) -------------------------------
+TILT_VARIANCE_COEF = 0.1816  # Z-tilt variance per axis in (λ/D)² (D/r0)^(5/3) rad² (docs/physics.md §2)
+
+
+def tilt_variance_px2(dr0, aperture_m: float, wavelength_m: float, ifov_rad: float):
+    """Z-tilt variance per axis in px²: 0.1816 (λ/D)² (D/r0)^(5/3) / ifov² (docs/physics.md §2)."""
+    return TILT_VARIANCE_COEF * (wavelength_m / (aperture_m * ifov_rad)) ** 2 * np.asarray(dr0, np.float64) ** (5 / 3)
+
+
+def dr0_from_tilt_variance(var_px2, aperture_m: float, wavelength_m: float, ifov_rad: float):
+    """Inverse of :func:`tilt_variance_px2`: D/r0 = (σ²·ifov² / (0.1816 (λ/D)²))^(3/5)."""
+    unit = TILT_VARIANCE_COEF * (wavelength_m / (aperture_m * ifov_rad)) ** 2
+    return (np.clip(np.asarray(var_px2, np.float64), 0, None) / unit) ** (3 / 5)
+
+
+def _tilt_tensor(s_vec: np.ndarray) -> np.ndarray:
+    """Unit tilt covariance C_ij(s) = c⊥ δ_ij + (c∥ − c⊥) ŝ_i ŝ_j of one layer at separation vectors s (…, 2),
+    (x, y) order; returns (…, 2) = (C_xx, C_yy)."""
+    n = np.hypot(s_vec[..., 0], s_vec[..., 1])
+    perp, par = layer_tilt_correlation(n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cx2 = np.where(n > 0, (s_vec[..., 0] / np.where(n > 0, n, 1)) ** 2, 0.5)
+    return np.stack([perp + (par - perp) * cx2, perp + (par - perp) * (1 - cx2)], -1)
+
+
+def differential_tilt_covariance(
+    sep_px,
+    lags,
+    footprint_per_px: float,
+    wind_per_frame: float = 0.0,
+    wind_dir_deg: float = 0.0,
+    boil: float = 0.0,
+    geometry: str = "path",
+    layer_z_frac: float = 0.5,
+    n_layers: int = 16,
+) -> np.ndarray:
+    """Temporal covariance of the differential tilt u(t) = Δ(x, t) − Δ(x + r, t) of unit-variance tilt, per
+    component, under frozen flow with boiling (d2turb.sim.sequence):
+
+        E[u_i(t) u_i(t+τ)] = Σ_k w_k [2 C_ii(β_k ŵ τ) − C_ii(α_k r − β_k ŵ τ) − C_ii(α_k r + β_k ŵ τ)]
+                             · (1 − boil)^(|τ|/2)
+
+    with C the I0 ± I2 tensor correlation of one layer (docs/physics.md §2), layer k at t_k = z/L of the path nodes,
+    α_k = a·t_k/(1 − t_k) (a = ``footprint_per_px`` = ifov·L/D, s per pixel of image separation) and
+    β_k = b/(1 − t_k) (b = ``wind_per_frame`` = v/(fps·D), the wind's shift per frame in aperture diameters).
+
+    Args:
+        sep_px: separations r (N, 2) in pixels, (x, y).
+        lags: time lags τ (M,) in frames.
+    Returns:
+        (N, 2, M): covariance of the x and y components of u. At τ = 0 it is the differential-tilt structure
+        function 2(1 − c(r)) of the component (c∥ along r, c⊥ across).
+    """
+    sep = np.asarray(sep_px, dtype=np.float64).reshape(-1, 2)
+    lag = np.asarray(lags, dtype=np.float64).reshape(-1)
+    t, w = path_nodes(geometry, layer_z_frac, n_layers)
+    phi = math.radians(wind_dir_deg)
+    wind_hat = np.array([math.cos(phi), math.sin(phi)])  # (x, y), 0 = +x, as simulate-video --wind-dir
+    out = np.zeros((len(sep), 2, len(lag)))
+    for tk, wk in zip(t, w):
+        alpha = footprint_per_px * tk / (1 - tk)
+        move = (wind_per_frame / (1 - tk)) * lag[:, None] * wind_hat  # (M, 2)
+        ar = alpha * sep[:, None, :]  # (N, 1, 2)
+        c_same = _tilt_tensor(np.broadcast_to(move, (len(sep), len(lag), 2)))
+        c_minus = _tilt_tensor(ar - move[None])
+        c_plus = _tilt_tensor(ar + move[None])
+        out += wk * np.moveaxis(2 * c_same - c_minus - c_plus, -1, 1)
+    return out * (1.0 - boil) ** (np.abs(lag) / 2)

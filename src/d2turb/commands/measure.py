@@ -1,0 +1,127 @@
+"""`d2turb measure`: turbulence strength (D/r0, r0, Cn², θ0) from a clip of a static scene (docs/measure.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from d2turb.commands.common import add_max_pixels_arg
+from d2turb.errors import D2TurbError
+
+PARAM_KEYS = ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps")
+
+
+def register(sub):
+    p = sub.add_parser(
+        "measure",
+        help="measure the turbulence strength (D/r0, r0, Cn², θ0) from a clip of a static scene",
+        description="Writes DIR/measure.json (D/r0 with a 90 % interval, r0, and with path_length_m the "
+        "constant-path Cn² and the isoplanatic angle θ0) and prints one line. CLIP is a video file or a folder of "
+        "frames. The optics (--param aperture_m=… wavelength_m=… ifov_rad=… path_length_m=… fps=…) default to "
+        "D = 0.1 m, λ = 525 nm, ifov = λ/(2D); D/r0 depends on them only through λ/(D·ifov). Clips that cannot be "
+        "measured (too few frames, no texture, failed registration) are refused with the reason.",
+    )
+    p.add_argument("clip", metavar="CLIP", help="video file or folder of frames")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument(
+        "--param", action="append", default=[], metavar="KEY=VALUE", help=f"optics ({', '.join(PARAM_KEYS)})"
+    )
+    p.add_argument("--window", type=int, default=None, metavar="N", help="also estimate per window of N frames")
+    p.add_argument("--plot", action="store_true", help="write DIR/measure.png: D/r0 per window with its band")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N", help="use only the first N frames")
+    p.add_argument("--bootstrap", type=int, default=200, metavar="N", help="resamples for the interval (default 200)")
+    add_max_pixels_arg(p)
+    p.set_defaults(func=run)
+
+
+def parse_params(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise D2TurbError(f"--param expects KEY=VALUE, got {item!r}")
+        if key not in PARAM_KEYS:
+            raise D2TurbError(f"--param {key}: unknown key; choose from {', '.join(PARAM_KEYS)}")
+        try:
+            out[key] = float(value)
+        except ValueError as exc:
+            raise D2TurbError(f"--param {key} must be a number, got {value!r}") from exc
+    return out
+
+
+def read_clip(path: Path, max_frames: int | None = None) -> list:
+    """Frames of a folder of images or of a video file, as (3,H,W) tensors."""
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    from d2turb.io import list_images, read_image
+    from d2turb.video import is_video, iter_video
+
+    if path.is_dir():
+        files = list_images(path)
+        if not files:
+            raise D2TurbError(f"{path}: no images in the folder")
+        return [read_image(f) for f in files[:max_frames]]
+    if is_video(path):
+        frames = []
+        for _, frame in iter_video(path):
+            frames.append(frame)
+            if max_frames and len(frames) >= max_frames:
+                break
+        return frames
+    raise D2TurbError(f"{path}: not a folder of frames or a video file")
+
+
+def plot(result: dict, path: Path) -> None:
+    # lazy: matplotlib only for --plot
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    wins = result.get("windows") or [{"start_frame": 0, "frames": result["inputs"]["frames"], **result}]
+    mid = [w["start_frame"] + w["frames"] / 2 for w in wins]
+    fig, ax = plt.subplots(figsize=(6, 3.2), dpi=120)
+    ax.fill_between(mid, [w["dr0_ci"][0] for w in wins], [w["dr0_ci"][1] for w in wins], alpha=0.3, label="90 %")
+    ax.plot(mid, [w["dr0"] for w in wins], "o-", label="D/r0 per window")
+    ax.axhline(result["dr0"], color="k", lw=0.8, ls="--", label=f"clip: {result['dr0']:.2f}")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("D/r0")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def run(args):
+    # lazy: the pipeline (numpy, OpenCV, torch) loads when the command runs; d2turb --help starts without it
+    from d2turb.io import check_output_dir, write_json
+    from d2turb.measure import Optics, measure_clip
+
+    src = Path(args.clip)
+    if not src.exists():
+        raise D2TurbError(f"{src}: no such file or directory")
+    optics = Optics(**parse_params(args.param))
+    if args.bootstrap < 0:
+        raise D2TurbError(f"--bootstrap must be 0 or more, got {args.bootstrap}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise D2TurbError(f"--max-frames must be 1 or more, got {args.max_frames}")
+    out = check_output_dir(args.out)
+    frames = read_clip(src, args.max_frames)
+    result = measure_clip(frames, optics, window=args.window, bootstrap=args.bootstrap)
+    result["clip"] = str(src)
+    given = {k for k in PARAM_KEYS if any(p.startswith(k + "=") for p in args.param)}
+    result["inputs"]["params_given"] = sorted(given)
+    if optics.path_length_m is None:
+        result["note"] = "no path_length_m: D/r0 and r0 only (Cn² and θ0 need the path length)"
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "measure.json", result)
+    if args.plot:
+        plot(result, out / "measure.png")
+    lo, hi = result["dr0_ci"]
+    line = f"{src.name}: D/r0 = {result['dr0']:.2f} [{lo:.2f}, {hi:.2f}] (90 %), r0 = {100 * result['r0_m']:.2f} cm"
+    if result["cn2"] is not None:
+        line += f", Cn² = {result['cn2']:.2e} m^-2/3, θ0 = {result['theta0_urad']:.1f} µrad"
+    else:
+        line += " (no path_length_m: no Cn², θ0)"
+    if result.get("windows"):
+        line += f", {len(result['windows'])} windows"
+    print(line + f" -> {out / 'measure.json'}")
+    return 0

@@ -1,0 +1,379 @@
+"""Turbulence strength from a clip of a static scene: D/r0, r0, Cn² and the isoplanatic angle θ0, with a 90 %
+interval (docs/measure.md).
+
+Method. Each frame is registered to the temporal mean (``d2turb.registration``: phase correlation for the global
+shift, DIS for the dense flow). For pairs of image points r apart (several separations, along x and y) the
+*differential* displacement u(t) = d(x, t) − d(x + r, t) is formed, in which any global motion (camera shake,
+pointing drift) cancels exactly. Its temporal structure function D̂(τ) = ⟨(u(t+τ) − u(t))²⟩ is free of the
+unknown per-pixel mean (the clip-level mean tilt that a finite window cannot see cancels in a time difference);
+its expectation under Kolmogorov theory with frozen flow and boiling is
+
+    E D̂_j(τ) = 2 ε_j σ² [G_j(0) − G_j(τ)],   σ² = 0.1816 (λ/(D·ifov))² (D/r0)^(5/3) px²,
+
+with G the path-integrated differential-tilt covariance of ``d2turb.sim.tilt.differential_tilt_covariance``
+(I0 ± I2 layer correlations, (1 − z/L)^(5/3) weights) and ε_j the registration's loss of differential-tilt power
+at separation j, measured on simulated clips (``GAIN_TABLE``). The wind (speed per frame, direction) and
+the boiling are nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is then a ratio of sums.
+The 90 % interval is a bootstrap over spatial tiles (the fit redone per resample) widened by the scatter of the
+registration calibration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from d2turb.errors import D2TurbError
+from d2turb.registration import DenseFlow, global_shift_px, to_hwc
+from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
+
+MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
+MIN_VALID_FRACTION = 0.15  # of the analysed area; below it the clip is refused
+TEXTURE_MIN = 1.0  # smallest eigenvalue of the 9×9 structure tensor of the reference, grey levels²/px²
+# mean |frame(x + d) − ref| above RESIDUAL_REL times its median and above RESIDUAL_FLOOR grey levels excludes a pixel
+# (moving objects, failed registration); the floor keeps the mask from following the tilt itself on clean clips
+RESIDUAL_REL, RESIDUAL_FLOOR = 3.0, 8.0
+# the tilt field is statistically homogeneous: a pixel whose temporal rms displacement (global part removed) exceeds
+# HOMOGENEITY_MAX times the median is a registration failure (the true flow's 99th percentile is ~1.2× the median)
+HOMOGENEITY_MAX = 1.6
+RESIDUAL_REFUSE = 15.0  # median registration residual (grey levels) above which the frames are not one static scene
+MARGIN_PX = 8
+SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
+# registration gain ε(r, D/r0): DIS-measured / true differential-tilt power at separation r px, measured on four
+# simulated calibration clips (bsds500 crops, not the validation images; 256², 64 frames, default optics, wind
+# 1.4–3 m/s; docs/measure.md). Rows: D/r0 of the clip; columns: separations. Linear in D/r0 between rows, in log r
+# between columns, clamped outside. REGISTRATION_LOG_SD: the uncertainty of ln ε added to the interval (twice the
+# 0.021 rms residual of a log-linear fit of the table, given only four clips).
+GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
+GAIN_SEPARATIONS_PX = (8, 16, 32, 64)
+GAIN_TABLE = (
+    (0.571, 0.720, 0.833, 0.902),
+    (0.582, 0.711, 0.826, 0.894),
+    (0.694, 0.799, 0.872, 0.911),
+    (0.849, 0.860, 0.914, 0.933),
+)
+REGISTRATION_LOG_SD = 0.04
+WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
+DIR_GRID = (0.0, 45.0, 90.0, 135.0)
+BOIL_GRID = (0.0, 0.03, 0.1, 0.3)
+FOOTPRINT_GRID = np.geomspace(0.002, 0.5, 12)  # ifov·L/D when the path length is not given
+
+
+@dataclass
+class Optics:
+    """What the inversion needs: aperture D (m), wavelength λ (m), pixel angle ifov (rad; default Nyquist λ/(2D)),
+    path length L (m, optional: without it Cn² and θ0 are not given and the correlation scale is fitted), frame
+    rate (optional, only to express the fitted wind in m/s)."""
+
+    aperture_m: float = 0.1
+    wavelength_m: float = 525e-9
+    ifov_rad: float | None = None
+    path_length_m: float | None = None
+    fps: float | None = None
+
+    def __post_init__(self):
+        for name in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            try:
+                v = float(value)
+            except (TypeError, ValueError) as exc:
+                raise D2TurbError(f"{name} must be a number, got {value!r}") from exc
+            if not math.isfinite(v) or v <= 0:
+                raise D2TurbError(f"{name} must be positive and finite, got {value!r}")
+            setattr(self, name, v)
+        if self.wavelength_m >= self.aperture_m:
+            raise D2TurbError(f"wavelength {self.wavelength_m} m is not smaller than the aperture {self.aperture_m} m")
+        if self.ifov_rad is None:
+            self.ifov_rad = self.wavelength_m / (2 * self.aperture_m)
+
+
+def r0_cn2_theta0(dr0: float, optics: Optics) -> dict:
+    """r0 = D/(D/r0); with L: the constant-path Cn² from the spherical-wave r0 = (0.158625 k² Cn² L)^(−3/5)
+    (docs/physics.md §3) and θ0 = (2.914 k² Cn² L^(8/3) B(8/3, 8/3))^(−3/5) (spherical wave, constant Cn²)."""
+    out = {"r0_m": optics.aperture_m / dr0 if dr0 > 0 else math.inf, "cn2": None, "theta0_urad": None}
+    if optics.path_length_m is None or not dr0 > 0:
+        return out
+    k = 2 * math.pi / optics.wavelength_m
+    cn2 = out["r0_m"] ** (-5 / 3) / (0.158625 * k * k * optics.path_length_m)
+    beta = math.gamma(8 / 3) ** 2 / math.gamma(16 / 3)
+    theta0 = (2.914 * k * k * cn2 * optics.path_length_m ** (8 / 3) * beta) ** (-3 / 5)
+    out.update(cn2=cn2, theta0_urad=theta0 * 1e6)
+    return out
+
+
+# ---- frames → flows → statistics ------------------------------------------------------------------------------------
+def _gray_frames(frames) -> np.ndarray:
+    """(T, H, W) float32 grey in [0, 255] from a list of (3,H,W) tensors / (H,W[,C]) arrays in [0, 1]."""
+    out, shape = [], None
+    for i, f in enumerate(frames):
+        hwc = to_hwc(f)
+        g = hwc[..., 0] if hwc.shape[2] == 1 else hwc[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
+        if shape is None:
+            shape = g.shape
+        elif g.shape != shape:
+            raise D2TurbError(f"frame {i} is {g.shape[1]}x{g.shape[0]}, frame 0 is {shape[1]}x{shape[0]}")
+        out.append(g * 255.0)
+    if len(out) < MIN_FRAMES:
+        raise D2TurbError(f"a clip needs at least {MIN_FRAMES} frames to measure turbulence, got {len(out)}")
+    return np.stack(out).astype(np.float32)
+
+
+def _crop(gray: np.ndarray, max_size: int) -> tuple[np.ndarray, list[int]]:
+    _, h, w = gray.shape
+    ch, cw = min(h, max_size), min(w, max_size)
+    y0, x0 = (h - ch) // 2, (w - cw) // 2
+    return gray[:, y0 : y0 + ch, x0 : x0 + cw], [x0, y0, cw, ch]
+
+
+def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Flows (T, H, W, 2) of every frame onto the registered temporal mean, a validity mask (H, W) and diagnostics.
+
+    The reference is the mean of the frames aligned by their global shift (phase correlation to frame 0, then to
+    the first mean), so camera shake does not blur it; each frame's DIS flow starts from its global shift."""
+    if float(gray.std(axis=0).max()) < 0.5 and float(gray.std()) < 0.5:
+        raise D2TurbError("the frames are constant: nothing to register")
+    u8 = [np.clip(g + 0.5, 0, 255).astype(np.uint8) for g in gray]
+    h, w = gray.shape[1:]
+    if min(h, w) < 4 * MARGIN_PX + 16:
+        raise D2TurbError(f"frames of {w}x{h} are too small to measure turbulence (need {4 * MARGIN_PX + 16} px)")
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+
+    def aligned_mean(ref):
+        shifts = [global_shift_px(ref, f) for f in u8]
+        acc = np.zeros((h, w), np.float32)
+        for g, (dx, dy) in zip(gray, shifts):
+            acc += cv2.remap(g, gx + dx, gy + dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return acc / len(gray), shifts
+
+    ref, _ = aligned_mean(u8[0])
+    ref_u8 = np.clip(ref + 0.5, 0, 255).astype(np.uint8)
+    ref, shifts = aligned_mean(ref_u8)
+    ref_u8 = np.clip(ref + 0.5, 0, 255).astype(np.uint8)
+    dis = DenseFlow("medium" if preset is None else preset)
+    flows = np.empty((len(gray), h, w, 2), np.float32)
+    residual = np.zeros((h, w), np.float32)
+    for i, (f, (dx, dy)) in enumerate(zip(u8, shifts)):
+        init = np.empty((h, w, 2), np.float32)
+        init[..., 0], init[..., 1] = dx, dy
+        flows[i] = dis(ref_u8, f, init)
+        warped = cv2.remap(gray[i], gx + flows[i, ..., 0], gy + flows[i, ..., 1], cv2.INTER_LINEAR)
+        residual += np.abs(warped - ref)
+    residual /= len(gray)
+    # texture: smallest eigenvalue of the structure tensor of the reference over 9×9 (DIS patches are 8 px)
+    rx = cv2.Sobel(ref, cv2.CV_32F, 1, 0, ksize=3) / 8
+    ry = cv2.Sobel(ref, cv2.CV_32F, 0, 1, ksize=3) / 8
+    sxx, syy, sxy = (cv2.boxFilter(a, -1, (9, 9)) for a in (rx * rx, ry * ry, rx * ry))
+    lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
+    inner_res = residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX]
+    mask = (lam_min > TEXTURE_MIN) & (residual < max(RESIDUAL_REL * float(np.median(inner_res)), RESIDUAL_FLOOR))
+    mask[:MARGIN_PX], mask[-MARGIN_PX:], mask[:, :MARGIN_PX], mask[:, -MARGIN_PX:] = False, False, False, False
+    if mask.any():
+        local = flows - np.median(flows[:, mask], axis=1)[:, None, None, :]
+        rms = np.sqrt(local.var(axis=0).mean(-1))
+        mask &= rms < HOMOGENEITY_MAX * max(float(np.median(rms[mask])), 1e-3)
+    inner = (h - 2 * MARGIN_PX) * (w - 2 * MARGIN_PX)
+    diag = {
+        "valid_fraction": float(mask.sum() / inner),
+        "textured_fraction": float((lam_min > TEXTURE_MIN)[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX].mean()),
+        "median_residual_grey": float(np.median(residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX])),
+        "global_shift_rms_px": float(np.sqrt(np.mean(np.var(np.array(shifts), axis=0).sum()))),
+    }
+    return flows, mask, diag
+
+
+def separations_for(h: int, w: int) -> list[int]:
+    usable = min(h, w) - 2 * MARGIN_PX
+    return [r for r in SEPARATIONS_PX if r <= usable // 3]
+
+
+def lag_sums(flows: np.ndarray, mask: np.ndarray, seps, tiles: int = 4, stride: int = 2):
+    """Σ over time of (u(t+τ) − u(t))² for the differential displacement of every series j = (separation,
+    orientation x/y, component x/y), summed per spatial tile of the first point of each pair.
+
+    Returns (num (tiles², J, T), pairs (tiles², J), series [(r, orientation, component)]); num[..., 0] is unused."""
+    t_len, h, w, _ = flows.shape
+    ys, xs = np.arange(0, h, stride), np.arange(0, w, stride)
+    series, nums, counts = [], [], []
+    n_tiles = tiles * tiles
+    for r in seps:
+        for orient in (0, 1):  # separation along x, along y
+            dy, dx = (0, r) if orient == 0 else (r, 0)
+            yy, xx = np.meshgrid(ys[ys + dy < h], xs[xs + dx < w], indexing="ij")
+            ok = mask[yy, xx] & mask[yy + dy, xx + dx]
+            y1, x1 = yy[ok], xx[ok]
+            tile = np.minimum(y1 * tiles // h, tiles - 1) * tiles + np.minimum(x1 * tiles // w, tiles - 1)
+            for comp in (0, 1):
+                u = flows[:, y1, x1, comp] - flows[:, y1 + dy, x1 + dx, comp]  # (T, P): global motion cancels
+                u = u - u.mean(0)
+                sq = np.cumsum(u * u, axis=0)
+                spec = np.fft.rfft(u, n=2 * t_len, axis=0)
+                acf = np.fft.irfft(spec * np.conj(spec), n=2 * t_len, axis=0)[:t_len]  # Σ_t u_t u_{t+τ}
+                total = sq[-1]
+                lags = np.arange(t_len)
+                head = total[None] - np.concatenate([np.zeros((1, u.shape[1])), sq[:-1]])  # Σ_{t≥τ} u²
+                tail = sq[::-1]  # Σ_{t<T−τ} u² at index τ
+                per = head[lags] + tail[lags] - 2 * acf  # (T, P)
+                num = np.zeros((n_tiles, t_len))
+                for k in range(t_len):
+                    num[:, k] = np.bincount(tile, weights=per[k], minlength=n_tiles)
+                nums.append(num)
+                counts.append(np.bincount(tile, minlength=n_tiles).astype(np.float64))
+                series.append((r, orient, comp))
+    return np.stack(nums, 1), np.stack(counts, 1), series
+
+
+def registration_gain(sep_px, dr0: float) -> np.ndarray:
+    """ε for separations ``sep_px`` at strength ``dr0`` from ``GAIN_TABLE``."""
+    table = np.asarray(GAIN_TABLE)
+    at_dr0 = np.array([np.interp(dr0, GAIN_DR0, table[:, k]) for k in range(table.shape[1])])
+    return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
+
+
+# ---- the fit ----------------------------------------------------------------------------------------------------
+def _models(series, t_len: int, footprints, geometry="path"):
+    """Unit structure-function models 2[G(0) − G(τ)] (F, V, Dir, B, J, T) on the nuisance grid."""
+    seps = sorted({r for r, _, _ in series})
+    lags = np.arange(t_len)
+    out = np.zeros((len(footprints), len(WIND_GRID), len(DIR_GRID), len(BOIL_GRID), len(series), t_len))
+    boil_f = np.array([(1 - b) ** (lags / 2) for b in BOIL_GRID])  # (B, T)
+    for fi, a in enumerate(footprints):
+        for vi, v in enumerate(WIND_GRID):
+            for di, d in enumerate(DIR_GRID):
+                vec = [[r, 0] for r in seps] + [[0, r] for r in seps]
+                g = differential_tilt_covariance(vec, lags, a, v, d, 0.0, geometry)  # (2S, 2, T)
+                for j, (r, orient, comp) in enumerate(series):
+                    gj = g[seps.index(r) + orient * len(seps), comp]
+                    out[fi, vi, di, :, j] = 2 * (gj[0] - gj[None] * boil_f)
+    return out
+
+
+def _fit(num, pairs, t_len, models, gains):
+    """(σ², index of the best nuisance point) from summed num (J, T) and pairs (J,)."""
+    lags = np.arange(t_len)
+    w = pairs[:, None] * (t_len - lags)[None]  # pair-lags per (j, τ)
+    w[:, 0] = 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        data = np.where(w > 0, num / np.maximum(w, 1), 0.0)  # D̂_j(τ)
+    m = models * gains[:, None]
+    sig2 = (w * data).sum((-1, -2)) / np.maximum((w * m).sum((-1, -2)), 1e-300)  # ratio of sums per grid point
+    fit = sig2[..., None, None] * m
+    resid = (w * (data - fit) ** 2 / np.maximum(fit, 1e-12) ** 2).sum((-1, -2))
+    best = np.unravel_index(np.argmin(resid), resid.shape)
+    return float(sig2[best]), best
+
+
+def measure_clip(
+    frames,
+    optics: Optics | dict | None = None,
+    window: int | None = None,
+    bootstrap: int = 200,
+    max_size: int = 320,
+    seed: int = 0,
+    preset: str = "medium",
+) -> dict:
+    """Measure D/r0 (and r0, Cn², θ0 with a path length) from the frames of a static scene.
+
+    Args:
+        frames: a sequence of (3,H,W) tensors or (H,W[,C]) arrays in [0, 1], one per frame.
+        optics: :class:`Optics` or a dict of its fields (aperture_m, wavelength_m, ifov_rad, path_length_m, fps).
+        window: frames per window for a series of estimates over time (None: the whole clip only).
+        bootstrap: resamples for the 90 % interval. max_size: the centre crop analysed (px per side).
+    Raises ``D2TurbError`` (one line) for input that cannot be measured.
+    """
+    optics = optics if isinstance(optics, Optics) else Optics(**(optics or {}))
+    gray = _gray_frames(frames)
+    if window is not None and (int(window) < MIN_FRAMES or int(window) > len(gray)):
+        raise D2TurbError(f"window must be between {MIN_FRAMES} and the {len(gray)} frames of the clip, got {window}")
+    gray, crop = _crop(gray, max_size)
+    flows, mask, diag = register_clip(gray, preset)
+    if diag["median_residual_grey"] > RESIDUAL_REFUSE:
+        raise D2TurbError(
+            f"cannot measure this clip: the frames do not register onto one static scene (median residual "
+            f"{diag['median_residual_grey']:.1f} grey levels, limit {RESIDUAL_REFUSE:g}): a moving camera or scene, a "
+            "cut, or frames of different scenes"
+        )
+    if diag["valid_fraction"] < MIN_VALID_FRACTION:
+        raise D2TurbError(
+            f"cannot measure this clip: only {100 * diag['valid_fraction']:.1f} % of the analysed area has the texture "
+            f"and registration quality needed (need {100 * MIN_VALID_FRACTION:.0f} %; textured "
+            f"{100 * diag['textured_fraction']:.0f} %, median registration residual {diag['median_residual_grey']:.1f} "
+            "grey levels)"
+        )
+    h, w = mask.shape
+    seps = separations_for(h, w)
+    footprints = (
+        [optics.ifov_rad * optics.path_length_m / optics.aperture_m]
+        if optics.path_length_m is not None
+        else list(FOOTPRINT_GRID)
+    )
+    models: dict = {}  # unit models per window length, shared by the windows
+    result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed, models)
+    result.update(diag)
+    if window:
+        starts = list(range(0, len(gray) - int(window) + 1, int(window)))
+        series = []
+        for s in starts:
+            est = _estimate(flows[s : s + int(window)], mask, seps, optics, footprints, bootstrap, seed, models)
+            series.append({"start_frame": s, "frames": int(window), **{k: est[k] for k in ("dr0", "dr0_ci")}})
+        result["windows"] = series
+    result["inputs"] = {
+        "frames": len(gray),
+        "crop_xywh": crop,
+        "separations_px": seps,
+        "aperture_m": optics.aperture_m,
+        "wavelength_m": optics.wavelength_m,
+        "ifov_rad": optics.ifov_rad,
+        "path_length_m": optics.path_length_m,
+        "fps": optics.fps,
+        "window": window,
+        "registration": f"DIS {preset}",
+    }
+    return result
+
+
+def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, seed: int, cache: dict) -> dict:
+    t_len = flows.shape[0]
+    num, pairs, series = lag_sums(flows, mask, seps)
+    if t_len not in cache:
+        cache[t_len] = _models(series, t_len, footprints)
+    models = cache[t_len]
+    unit = (optics.aperture_m, optics.wavelength_m, optics.ifov_rad)
+    dr0 = 2.5
+    for _ in range(3):  # the gain depends on the strength: a fixed point (converges in 2–3 steps, ε varies slowly)
+        gains = registration_gain([r for r, _, _ in series], dr0)
+        sig2, best = _fit(num.sum(0), pairs.sum(0), t_len, models, gains)
+        dr0 = float(dr0_from_tilt_variance(sig2, *unit))
+    rng = np.random.default_rng(seed)
+    n_tiles = num.shape[0]
+    boot = []
+    for _ in range(bootstrap):
+        pick = rng.integers(0, n_tiles, n_tiles)
+        s2, _ = _fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)
+        boot.append(s2 * math.exp(rng.normal(0.0, REGISTRATION_LOG_SD)))
+    lo, hi = np.quantile(dr0_from_tilt_variance(np.array(boot), *unit), [0.05, 0.95]) if boot else (dr0, dr0)
+    fi, vi, di, bi = best
+    out = {
+        "dr0": dr0,
+        "dr0_ci": [float(min(lo, dr0)), float(max(hi, dr0))],
+        "tilt_var_px2": sig2,
+        "fit": {
+            "footprint_per_px": float(footprints[fi]),
+            "wind_per_frame_D": float(WIND_GRID[vi]),
+            "wind_dir_deg": float(DIR_GRID[di]),
+            "boil": float(BOIL_GRID[bi]),
+        },
+    }
+    if optics.fps is not None:
+        out["fit"]["wind_m_s"] = float(WIND_GRID[vi] * optics.fps * optics.aperture_m)
+    if optics.path_length_m is None:
+        out["fit"]["path_length_m_implied"] = float(footprints[fi] * optics.aperture_m / optics.ifov_rad)
+    out.update(r0_cn2_theta0(dr0, optics))
+    return out
+
+
+__all__ = ["Optics", "measure_clip", "r0_cn2_theta0", "register_clip", "lag_sums"]

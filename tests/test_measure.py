@@ -1,0 +1,207 @@
+"""Turbulence measurement (d2turb.measure, docs/measure.md): the formula inversion against hand-computed values, the
+differential-tilt theory against the tested tilt correlation, a clip shifted by a known random field, camera shake
+cancelling for a pure global translation, and bad input through the command line as one ``error:`` line."""
+
+import cv2
+import numpy as np
+import pytest
+
+from d2turb import measure as M
+from d2turb.cli import main
+from d2turb.errors import D2TurbError
+from d2turb.sim.tilt import (
+    differential_tilt_covariance,
+    dr0_from_tilt_variance,
+    tilt_correlation,
+    tilt_variance_px2,
+)
+
+
+def test_tilt_variance_inversion_against_hand_computed_values():
+    # Nyquist sampling: λ/(D·ifov) = 2, σ² = 0.1816·4·2.5^(5/3) = 0.7264·4.60503 = 3.34510 px²
+    assert tilt_variance_px2(2.5, 0.1, 525e-9, 525e-9 / 0.2) == pytest.approx(3.34510, rel=1e-5)
+    assert dr0_from_tilt_variance(3.34510, 0.1, 525e-9, 525e-9 / 0.2) == pytest.approx(2.5, rel=1e-5)
+    # ifov twice Nyquist: σ² four times smaller for the same D/r0
+    assert dr0_from_tilt_variance(3.34510 / 4, 0.1, 525e-9, 525e-9 / 0.1) == pytest.approx(2.5, rel=1e-5)
+
+
+def test_r0_cn2_theta0_against_the_worked_value():
+    # docs/physics.md §3: Cn² = 1e-14, L = 1 km, λ = 0.5 µm → r0 = 3.6368 cm (spherical wave)
+    optics = M.Optics(aperture_m=0.1, wavelength_m=0.5e-6, path_length_m=1000.0)
+    out = M.r0_cn2_theta0(0.1 / 0.036368, optics)
+    assert out["r0_m"] == pytest.approx(0.036368, rel=1e-5)
+    assert out["cn2"] == pytest.approx(1e-14, rel=1e-4)
+    # θ0 = (2.914 k² Cn² L^(8/3) B(8/3, 8/3))^(−3/5), k = 1.25664e7, B = 0.0564118 → 35.5986 µrad
+    assert out["theta0_urad"] == pytest.approx(35.5986, rel=1e-4)
+    no_path = M.r0_cn2_theta0(2.0, M.Optics())
+    assert no_path["cn2"] is None and no_path["theta0_urad"] is None and no_path["r0_m"] == pytest.approx(0.05)
+
+
+def test_differential_tilt_at_zero_lag_is_the_tested_tilt_correlation():
+    a = 525e-9 / 0.2 * 1000.0 / 0.1  # ifov·L/D of the default optics
+    seps = [8, 32, 128]
+    g = differential_tilt_covariance([[r, 0] for r in seps], [0], a, n_layers=48)[:, :, 0]
+    perp, par = tilt_correlation(np.array(seps) * 525e-9 / 0.2, 0.1, 1000.0)
+    np.testing.assert_allclose(g[:, 0], 2 * (1 - par), rtol=1e-6)  # x component along an x separation: parallel
+    np.testing.assert_allclose(g[:, 1], 2 * (1 - perp), rtol=1e-6)
+    # boiling: (1 − boil)^(τ/2) decay of every lag; a fast wind decorrelates the differential tilt within a frame
+    slow = differential_tilt_covariance([[32, 0]], [0, 4], a, 0.0, boil=0.19)[0, 0]
+    assert slow[1] == pytest.approx(slow[0] * 0.81**2, rel=1e-9)
+    fast = differential_tilt_covariance([[32, 0]], [0, 1], a, 3.0)[0, 0]
+    assert abs(fast[1]) < 0.1 * fast[0]
+
+
+def _texture(size: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0), 1.5)
+    return (img - img.min()) / (img.max() - img.min())
+
+
+def _warp(img: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    h, w = img.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return cv2.remap(img, gx + dx.astype(np.float32), gy + dy.astype(np.float32), cv2.INTER_CUBIC, cv2.BORDER_REFLECT)
+
+
+def test_known_random_field_gives_its_differential_variance():
+    """Frames shifted by d(x, t) = A_t sin(kx) + B_t cos(kx) (x component; A, B independent normals: a homogeneous
+    field, like the tilt): the differential displacement at separation r along x has the structure function
+    ⟨(u(t+τ) − u(t))²⟩ = mean over t and the pairs of (ΔA (sin kx − sin k(x+r)) + ΔB (cos kx − cos k(x+r)))²."""
+    size, period, frames = 96, 48.0, 16
+    k = 2 * np.pi / period
+    rng = np.random.default_rng(3)
+    amp_a, amp_b = rng.normal(0.0, 0.5, frames), rng.normal(0.0, 0.5, frames)
+    base = _texture(size + 32, 1)
+    x = np.arange(size + 32, dtype=np.float64)[None, :].repeat(size + 32, 0)
+    clip = [
+        _warp(base, a * np.sin(k * x) + b * np.cos(k * x), np.zeros_like(x))[16:-16, 16:-16]
+        for a, b in zip(amp_a, amp_b)
+    ]
+    flows, mask, diag = M.register_clip((np.stack(clip) * 255).astype(np.float32))
+    assert diag["valid_fraction"] > 0.8
+    num, pairs, series = M.lag_sums(flows, mask, [12, 24])
+    lags = np.arange(1, frames)
+    for j, (r, orient, comp) in enumerate(series):
+        pooled = num.sum(0)[j, 1:].sum() / (pairs.sum(0)[j] * np.sum(frames - lags))
+        ys, xs = np.nonzero(mask[::2, ::2])
+        ys, xs = 2 * ys, 2 * xs
+        keep = (xs + r < size) & mask[ys, np.minimum(xs + r, size - 1)]
+        x0 = xs[keep] + 16.0  # the pairs' first points in the coordinates of the warped field
+        ds, dc = np.sin(k * x0) - np.sin(k * (x0 + r)), np.cos(k * x0) - np.cos(k * (x0 + r))
+        sq = [((amp_a[t:] - amp_a[:-t])[:, None] * ds + (amp_b[t:] - amp_b[:-t])[:, None] * dc) ** 2 for t in lags]
+        expected = sum(q.sum() for q in sq) / (len(x0) * np.sum(frames - lags))
+        if (orient, comp) == (0, 0):
+            # DIS keeps 85–95 % of the differential power of this 0.5-px, 48-px-period field (its registration gain)
+            assert 0.8 * expected < pooled < 1.05 * expected, (r, pooled, expected)
+        else:  # no y displacement, and the x displacement does not vary along y: registration noise only
+            assert pooled < 0.01, (r, orient, comp, pooled)
+
+
+def test_lag_sums_is_the_direct_structure_function():
+    rng = np.random.default_rng(4)
+    flows = rng.normal(0, 1, (9, 30, 34, 2))
+    mask = rng.random((30, 34)) > 0.2
+    num, pairs, series = M.lag_sums(flows, mask, [3, 7], tiles=2)
+    for j, (r, orient, comp) in enumerate(series):
+        dy, dx = (0, r) if orient == 0 else (r, 0)
+        total, count = np.zeros(9), 0
+        for y in range(0, 30, 2):
+            for x in range(0, 34, 2):
+                if y + dy < 30 and x + dx < 34 and mask[y, x] and mask[y + dy, x + dx]:
+                    u = flows[:, y, x, comp] - flows[:, y + dy, x + dx, comp]
+                    total += [np.sum((u[t:] - u[: 9 - t]) ** 2) for t in range(9)]
+                    count += 1
+        np.testing.assert_allclose(num.sum(0)[j], total, rtol=1e-9, atol=1e-9)
+        assert pairs.sum(0)[j] == count
+
+
+def test_camera_shake_cancels_exactly_for_a_global_translation():
+    rng = np.random.default_rng(0)
+    flows = rng.normal(0, 1, (12, 40, 40, 2)).astype(np.float64)
+    shake = rng.uniform(-3, 3, (12, 1, 1, 2))
+    mask = np.ones((40, 40), bool)
+    a = M.lag_sums(flows, mask, [4, 8])
+    b = M.lag_sums(flows + shake, mask, [4, 8])
+    np.testing.assert_allclose(a[0], b[0], atol=1e-9)
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_pure_global_translation_measures_no_turbulence():
+    base = _texture(160, 2)
+    rng = np.random.default_rng(1)
+    shifts = rng.integers(-3, 4, (12, 2))
+    clip = [np.roll(base, tuple(s), axis=(0, 1))[16:-16, 16:-16] for s in shifts]
+    out = M.measure_clip(clip, {"path_length_m": 1000.0}, bootstrap=20)
+    # no differential motion: D/r0 of ~0 (a registration noise floor of a few hundredths of a pixel)
+    assert out["dr0"] < 0.15 and out["dr0_ci"][0] <= out["dr0"] <= out["dr0_ci"][1]
+
+
+def _write_frames(folder, frames):
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), np.clip(f * 255 + 0.5, 0, 255).astype(np.uint8))
+    return folder
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("one", "at least 8 frames"),
+        ("constant", "constant"),
+        ("sizes", "frame 3 is"),
+        ("flat", "cannot measure this clip"),
+        ("aperture", "aperture_m must be positive"),
+        ("wavelength", "not smaller than the aperture"),
+        ("key", "unknown key"),
+        ("missing", "no such file"),
+    ],
+)
+def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
+    tex = [_texture(64, i) for i in range(10)]
+    params = ["--param", "path_length_m=1000"]
+    if case == "one":
+        clip = _write_frames(tmp_path / "c", tex[:1])
+    elif case == "constant":
+        clip = _write_frames(tmp_path / "c", [np.full((64, 64), 0.5)] * 10)
+    elif case == "sizes":
+        clip = _write_frames(tmp_path / "c", tex[:3] + [np.zeros((60, 64))] + tex[4:])
+    elif case == "flat":  # a smooth ramp with a little noise: no texture to register
+        ramp = np.linspace(0.3, 0.35, 64)[None, :].repeat(64, 0)
+        noisy = [ramp + 0.002 * np.random.default_rng(i).random((64, 64)) for i in range(10)]
+        clip = _write_frames(tmp_path / "c", noisy)
+    else:
+        clip = _write_frames(tmp_path / "c", tex)
+        params += {
+            "aperture": ["--param", "aperture_m=-1"],
+            "wavelength": ["--param", "wavelength_m=0.2"],
+            "key": ["--param", "focal=3"],
+            "missing": [],
+        }[case]
+        if case == "missing":
+            clip = tmp_path / "nothing"
+    rc = main(["measure", str(clip), "--out", str(tmp_path / "out"), *params])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and message in err[0], err
+
+
+def test_measure_command_writes_json_and_plot(tmp_path, capsys):
+    base = _texture(112, 5)
+    rng = np.random.default_rng(2)
+    x = np.arange(112, dtype=np.float64)[None, :].repeat(112, 0)
+    y = x.T
+    frames = []
+    for _ in range(16):  # a smooth random displacement field per frame
+        a, b = rng.normal(0, 0.7, 2)
+        frames.append(_warp(base, a * np.sin(2 * np.pi * x / 40), b * np.cos(2 * np.pi * y / 40))[8:-8, 8:-8])
+    clip = _write_frames(tmp_path / "c", frames)
+    out = tmp_path / "out"
+    assert main(["measure", str(clip), "--out", str(out), "--window", "8", "--plot", "--bootstrap", "20"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()
+    assert len(line) == 1 and "D/r0 =" in line[0] and "no path_length_m" in line[0]
+    import json
+
+    res = json.loads((out / "measure.json").read_text())
+    assert res["cn2"] is None and res["dr0"] > 0 and res["dr0_ci"][0] <= res["dr0"] <= res["dr0_ci"][1]
+    assert len(res["windows"]) == 2 and (out / "measure.png").stat().st_size > 0
+    with pytest.raises(D2TurbError, match="window must be"):
+        M.measure_clip(frames, window=4)
