@@ -109,6 +109,8 @@ def _named(path: Path, exc: D2TurbError) -> D2TurbError:
 
 def run(args) -> int:
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    import contextlib
+
     from tqdm import tqdm
 
     from d2turb.device import resolve_device
@@ -140,24 +142,28 @@ def run(args) -> int:
         for video in videos:
             bar = tqdm(iter_video(video), desc=video.name, unit="frame")
             frames = iter(bar)
-            mp4 = Mp4Writer(out_dir / f"{video.stem}.mp4", video_fps(video)) if can_write_mp4() else None
-            while True:
-                try:
-                    i, frame = next(frames, (None, None))
-                    if frame is None:
+            with contextlib.ExitStack() as stack:
+                mp4 = None
+                if can_write_mp4():  # the restored clip as a video too, at the input's frame rate
+                    mp4 = stack.enter_context(Mp4Writer(out_dir / f"{video.stem}.mp4", video_fps(video)))
+                while True:
+                    try:
+                        i, frame = next(frames, (None, None))
+                        if frame is None:
+                            break
+                        writer.before_compute()
+                        details = restorer.restore_with_details(frame)
+                    except D2TurbError as exc:
+                        bar.close()
+                        errors.record(_named(video, exc))
                         break
-                    writer.before_compute()
-                    details = restorer.restore_with_details(frame)
-                except D2TurbError as exc:
-                    bar.close()
-                    errors.record(_named(video, exc))
-                    break
-                writer.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
-                if mp4 is not None:
-                    mp4.write(details["restored"])
-                count += 1
-            if mp4 is not None:
-                mp4.close() if mp4.frames else mp4.abort()
+                    writer.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
+                    if mp4 is not None:
+                        mp4.write(details["restored"])
+                    count += 1
+                if mp4 is not None and not mp4.frames:
+                    stack.pop_all()
+                    mp4.abort()
     print(f"restored {count} image(s) with {restorer.name} into {out_dir}")
     return errors.finish("restore")
 
