@@ -48,11 +48,14 @@ def register(sub):
         "--deblur",
         default="auto",
         metavar="none|physics|MODEL",
-        help="after fusion: none, physics (Wiener with the turbulence OTF at --dr0) or a weights name/path; "
-        "default auto: physics when --dr0 is given, else none",
+        help="after fusion: none, physics (Wiener with the turbulence OTF at --dr0, or at the D/r0 measured on the "
+        "clip's first 64 frames) or a weights name/path; default auto: physics, or none when D/r0 can be neither "
+        "given nor measured",
     )
-    clip.add_argument("--dr0", type=float, default=None, metavar="X", help="D/r0 of the path, for --deblur physics")
-    add_param_arg(clip, "optics for --deblur physics: aperture_m, wavelength_m, ifov_rad (default Nyquist)")
+    clip.add_argument(
+        "--dr0", type=float, default=None, metavar="X", help="D/r0 of the path for --deblur physics (default: measured)"
+    )
+    add_param_arg(clip, "optics: aperture_m, wavelength_m, ifov_rad (default Nyquist), path_length_m")
     clip.add_argument("--passes", type=int, default=2, metavar="K", help="registration rounds (default 2)")
     clip.add_argument("--fusion", default="mean", choices=["mean", "robust"], help="fusion of the registered frames")
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
@@ -206,27 +209,50 @@ def _clip_frames(src: Path, errors):
     return names, read()
 
 
-def _clip_deblur(args, device):
-    """The deblur step of --temporal: None, a PhysicsDeblur, or a model's restore."""
+MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when --dr0 is not given
+
+
+def _measured_dr0(src: Path, params: dict) -> float:
+    """D/r0 measured on the clip's first MEASURE_FRAMES frames (d2turb.measure); D2TurbError if it cannot be."""
+    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    import itertools
+
+    from d2turb.measure import measure_clip
+
+    _, frames = _clip_frames(src, FileErrors(2))  # its own pass over the frames; bad ones are reported later
+    head = list(itertools.islice(frames, MEASURE_FRAMES))
+    optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
+    return float(measure_clip(head, optics, bootstrap=50)["dr0"])
+
+
+def _clip_deblur(args, device, src: Path):
+    """The deblur step of --temporal: (None, a PhysicsDeblur or a model's restore, its description)."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     from d2turb.restore import Restorer
     from d2turb.restore.clip import PhysicsDeblur
     from d2turb.sim import TurbulenceParams
 
     choice = args.deblur
-    if choice == "auto":
-        choice = "physics" if args.dr0 is not None else "none"
     if choice == "none":
         return None, "none"
-    if choice == "physics":
-        if args.dr0 is None:
-            raise D2TurbError("--deblur physics needs the turbulence strength: give --dr0 X")
+    if choice in ("physics", "auto"):
+        params = parse_params(args.param)
+        dr0, source = args.dr0, "given"
+        if dr0 is None:
+            try:
+                dr0, source = _measured_dr0(src, params), "measured on the clip"
+            except D2TurbError as exc:
+                if choice == "physics":
+                    raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
+                print(f"note: no deblurring: {exc}", file=sys.stderr)
+                return None, "none (D/r0 could not be measured)"
         try:
-            p = TurbulenceParams(**{**parse_params(args.param), "dr0": args.dr0})
+            p = TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, dr0=min(dr0, 10.0))
         except TypeError as exc:
             raise D2TurbError(f"--param: {exc}") from exc
         lambda_over_d_px = p.reference_wavelength / (p.aperture_m * p.ifov_rad)
-        return PhysicsDeblur(args.dr0, lambda_over_d_px), f"physics (D/r0 {args.dr0:g}, λ/D {lambda_over_d_px:.3g} px)"
+        deblur = PhysicsDeblur(p.dr0, lambda_over_d_px)
+        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {lambda_over_d_px:.3g} px)"
     restorer = Restorer(choice, device=device, tile=args.tile, overlap=args.overlap)
     return restorer.restore, restorer.name
 
@@ -255,7 +281,7 @@ def run_clips(args) -> int:
         raise D2TurbError(f"--fps must be positive, got {args.fps}")
     restorer = ClipRestorer(temporal=args.temporal, passes=args.passes, fusion=args.fusion)
     device = resolve_device(args.device)
-    deblur, deblur_name = _clip_deblur(args, device)
+    deblur, deblur_name = _clip_deblur(args, device, src)
     restorer.deblur = deblur
     out_dir = check_output_dir(args.out, inputs=list_images(src) if src.is_dir() else [src])
     errors = FileErrors(2, args.fail_fast)  # per frame: a bad one is reported and skipped
