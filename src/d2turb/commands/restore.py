@@ -216,10 +216,12 @@ def _measured_dr0(src: Path, params: dict) -> float:
     """D/r0 measured on the clip's first MEASURE_FRAMES frames (d2turb.measure); D2TurbError if it cannot be."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import itertools
+    from types import SimpleNamespace
 
     from d2turb.measure import measure_clip
 
-    _, frames = _clip_frames(src, FileErrors(2))  # its own pass over the frames; bad ones are reported later
+    quiet = SimpleNamespace(record=lambda exc: None)  # bad frames are reported once, by the restoring pass
+    _, frames = _clip_frames(src, quiet)
     head = list(itertools.islice(frames, MEASURE_FRAMES))
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
     return float(measure_clip(head, optics, bootstrap=50)["dr0"])
