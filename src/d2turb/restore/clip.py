@@ -32,7 +32,6 @@ from d2turb.sim.otf import image_otf
 from d2turb.sim.params import MAX_DR0
 
 FUSIONS = ("mean", "robust")
-DEBLURS = ("none", "physics")  # or a model: weights name/path, or an nn.Module
 DEFAULT_TEMPORAL = 24
 # Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
 # fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
@@ -214,7 +213,7 @@ class ClipRestorer:
         if preset != "auto":
             DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
         self.preset = preset
-        self.flow = None  # created for the clip's frame size (preset "auto")
+        self.flow = None  # created at each clip's first frame, for its size (preset "auto")
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
@@ -227,6 +226,7 @@ class ClipRestorer:
         done = [0] * (passes + 1)  # done[k]: frames whose round k is computed (k = 0: read); next output = done[0]
         emitted = 0
         source = iter(frames)
+        self.flow = None
         self._sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
         self.buffered = 0  # frames held in memory (bounded by the window, not by the clip's length)
         while emitted < (length if length is not None else math.inf):
