@@ -219,7 +219,7 @@ class ClipRestorer:
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
         """Restored frames in order, one per input frame ((3,H,W) tensors or (H,W,3) arrays in [0,1]), computed
         with a bounded lookahead. Raises ``D2TurbError`` for frames of different sizes or a clip of < 2 frames."""
-        n, passes = self.temporal, self.passes
+        passes = self.passes
         buf: dict[int, _Frame] = {}
         length = None
         shape = None
@@ -228,7 +228,7 @@ class ClipRestorer:
         source = iter(frames)
         self.flow = None
         self._sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
-        self.buffered = 0  # frames held in memory (bounded by the window, not by the clip's length)
+        self.buffered = 0  # frame images held in memory (bounded by the window, not by the clip's length)
         while emitted < (length if length is not None else math.inf):
             progressed = False
             if length is None:
@@ -262,15 +262,35 @@ class ClipRestorer:
                 yield self._output(buf, emitted, length)
                 emitted += 1
                 progressed = True
-            starts = [window_start(i, n, length) for i in [emitted, *done[1:]]]
-            needed = min(starts + [c[0] for c in self._sums.values()])  # running sums subtract their old frames
-            if length is None:  # the end may still shift the last windows back by up to n frames
-                needed = min(needed, done[0] - n)
-            for i in [i for i in buf if i < needed]:
-                del buf[i]
-            self.buffered = len(buf)
+            self._release(buf, done, emitted, length)
             if not progressed and length is not None:
                 raise RuntimeError("clip restoration made no progress")  # pragma: no cover - a logic error
+
+    def _release(self, buf: dict, done: list, emitted: int, length: int | None) -> None:
+        """Free each frame's images once nothing left to compute reads them: level L's image (0: the raw frame, k:
+        round k's unwarped frame) of frame j is read by the references of round L + 1 (windows from
+        W(done[L+1]) on) and by the running sum of level L; the raw frame also by its own registration rounds and
+        by the output's fallback; the last round by the outputs' fusion. Frames with nothing left are dropped."""
+        n, passes = self.temporal, self.passes
+        guard = done[0] - n if length is None else math.inf  # the end may still shift the last windows back
+        readers = []
+        for level in range(passes + 1):
+            first = window_start(emitted if level == passes else done[level + 1], n, length)
+            if level in self._sums:
+                first = min(first, self._sums[level][0])
+            if level == 0:
+                first = min(first, emitted, done[passes])
+            readers.append(min(first, guard))
+        for j in [j for j in buf if j < max(readers)]:
+            frame = buf[j]
+            if j < readers[0]:
+                frame.raw = None
+            for level in range(1, passes + 1):
+                if j < readers[level] and len(frame.warped) >= level:
+                    frame.warped[level - 1] = None
+            if frame.raw is None and len(frame.warped) == passes and all(w is None for w in frame.warped):
+                del buf[j]
+        self.buffered = sum((f.raw is not None) + sum(w is not None for w in f.warped) for f in buf.values())
 
     def _window_ready(self, index: int, level: int, done: list, length: int | None) -> bool:
         lo = window_start(index, self.temporal, length)
@@ -314,7 +334,7 @@ class ClipRestorer:
         else:
             init = frame.flows[-1]
         flow = self.flow(ref_gray, frame.gray, init)
-        frame.flows.append(flow)
+        frame.flows = [flow]  # the last round's flow: the output's and the next round's start
         frame.warped.append(remap(frame.raw, flow))
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
