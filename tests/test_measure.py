@@ -34,6 +34,11 @@ def test_r0_cn2_theta0_against_the_worked_value():
     # θ0 = (2.914 k² Cn² L^(8/3) B(8/3, 8/3))^(−3/5), k = 1.25664e7, B = 0.0564118 → 35.5986 µrad
     assert out["theta0_urad"] == pytest.approx(35.5986, rel=1e-4)
     no_path = M.r0_cn2_theta0(2.0, M.Optics())
+    with pytest.raises(D2TurbError, match="unknown optics"):
+        M.as_optics({"focal_m": 1.0})
+    from d2turb.sim import TurbulenceParams
+
+    assert M.as_optics(TurbulenceParams(path_length_m=500.0)).path_length_m == 500.0
     assert no_path["cn2"] is None and no_path["theta0_urad"] is None and no_path["r0_m"] == pytest.approx(0.05)
 
 

@@ -16,7 +16,7 @@ pattern = sys.argv[2] if len(sys.argv) > 2 else "clips/val_*"
 done = set()
 if os.path.exists(out_path):
     done = {json.loads(line)["clip"] for line in open(out_path)}
-for d in sorted(glob.glob(pattern)):
+for d in sorted(glob.glob(pattern), key=lambda c: (c.rsplit("_", 1)[-1].zfill(4), c)):  # round-robin over D/r0
     if not os.path.exists(f"{d}/meta.json") or d in done or d.endswith(".err"):
         continue
     meta = json.load(open(f"{d}/meta.json"))

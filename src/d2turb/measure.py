@@ -92,6 +92,21 @@ class Optics:
             self.ifov_rad = self.wavelength_m / (2 * self.aperture_m)
 
 
+def as_optics(optics) -> Optics:
+    """An :class:`Optics` from itself, None (defaults), a dict of its fields, or a ``TurbulenceParams`` (its
+    reference wavelength, ifov and path length)."""
+    if isinstance(optics, Optics):
+        return optics
+    if optics is None or isinstance(optics, dict):
+        unknown = sorted(set(optics or {}) - set(Optics.__dataclass_fields__))
+        if unknown:
+            raise D2TurbError(f"unknown optics {unknown}; choose from {', '.join(Optics.__dataclass_fields__)}")
+        return Optics(**(optics or {}))
+    if hasattr(optics, "reference_wavelength") and hasattr(optics, "aperture_m"):
+        return Optics(optics.aperture_m, optics.reference_wavelength, optics.ifov_rad, optics.path_length_m)
+    raise D2TurbError(f"optics must be an Optics, a dict or TurbulenceParams, got {type(optics).__name__}")
+
+
 def r0_cn2_theta0(dr0: float, optics: Optics) -> dict:
     """r0 = D/(D/r0); with L: the constant-path Cn² from the spherical-wave r0 = (0.158625 k² Cn² L)^(−3/5)
     (docs/physics.md §3) and θ0 = (2.914 k² Cn² L^(8/3) B(8/3, 8/3))^(−3/5) (spherical wave, constant Cn²)."""
@@ -280,12 +295,13 @@ def measure_clip(
 
     Args:
         frames: a sequence of (3,H,W) tensors or (H,W[,C]) arrays in [0, 1], one per frame.
-        optics: :class:`Optics` or a dict of its fields (aperture_m, wavelength_m, ifov_rad, path_length_m, fps).
+        optics: :class:`Optics`, a dict of its fields (aperture_m, wavelength_m, ifov_rad, path_length_m, fps) or
+            a ``TurbulenceParams`` (its D/r0 is ignored).
         window: frames per window for a series of estimates over time (None: the whole clip only).
         bootstrap: resamples for the 90 % interval. max_size: the centre crop analysed (px per side).
     Raises ``D2TurbError`` (one line) for input that cannot be measured.
     """
-    optics = optics if isinstance(optics, Optics) else Optics(**(optics or {}))
+    optics = as_optics(optics)
     gray = _gray_frames(frames)
     if window is not None and (int(window) < MIN_FRAMES or int(window) > len(gray)):
         raise D2TurbError(f"window must be between {MIN_FRAMES} and the {len(gray)} frames of the clip, got {window}")
@@ -376,4 +392,4 @@ def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, see
     return out
 
 
-__all__ = ["Optics", "measure_clip", "r0_cn2_theta0", "register_clip", "lag_sums"]
+__all__ = ["Optics", "as_optics", "measure_clip", "r0_cn2_theta0", "register_clip", "lag_sums"]
