@@ -1,7 +1,7 @@
 """Clip restoration throughput per stage and peak memory over clip length (issue 23).
 
     python3 benchmarks/bench_clip.py [--sizes 256x256 1280x720 1920x1080] [--frames 24] [--temporal 24]
-                                     [--preset auto] [--passes 2] [--rss 100 1000] [--rss-size 64x64] [--json FILE]
+                                     [--preset fast] [--passes 2] [--rss 100 1000] [--rss-size 64x64] [--json FILE]
 
 1. ``ClipRestorer`` on a synthetic clip (a natural image under smooth random warps, so DIS has real work) at each
    size: frames/s of the whole stream with ``--deblur none`` and with the physics Wiener filter, and the time per
@@ -117,7 +117,7 @@ def main() -> None:
     ap.add_argument("--sizes", nargs="+", default=["256x256", "1280x720", "1920x1080"])
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--temporal", type=int, default=24)
-    ap.add_argument("--preset", default="auto")
+    ap.add_argument("--preset", default="fast")
     ap.add_argument("--passes", type=int, default=2)
     ap.add_argument("--rss", nargs="*", type=int, default=[100, 1000])
     ap.add_argument("--rss-size", default="64x64")

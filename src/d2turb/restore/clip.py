@@ -36,14 +36,13 @@ DEFAULT_TEMPORAL = 24
 # Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
 # fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
 # (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md).
-BALANCE_AT_2 = 0.03
+BALANCE_AT_2 = 0.002
 
 
 def default_balance(dr0: float) -> float:
     return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
 
 
-AUTO_FAST_PIXELS = 1_000_000  # preset "auto": from ~1 MP per frame (720p is 0.92 MP) the flow is computed at half size
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
@@ -183,8 +182,8 @@ class ClipRestorer:
         passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion.
         fusion: "mean" or "robust" (pixels weighted by their agreement with the reference).
         deblur: "none", a :class:`PhysicsDeblur`, or any callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
-        preset: registration accuracy, a key of ``d2turb.registration.DIS_PRESETS``, or "auto": "medium" below
-            ``AUTO_FAST_PIXELS`` pixels per frame, "fast" (flow at half resolution, ~8x faster) from there on.
+        preset: registration accuracy, a key of ``d2turb.registration.DIS_PRESETS`` (default "fast": the flow at
+            half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
         stabilise: remove a global shift per frame (camera shake) before the dense registration.
         fallback: use the single frame where its residual against the fusion stays high (moving objects).
     """
@@ -195,7 +194,7 @@ class ClipRestorer:
         passes: int = 2,
         fusion: str = "mean",
         deblur="none",
-        preset: str = "auto",
+        preset: str = "fast",
         stabilise: bool = True,
         fallback: bool = True,
     ):
@@ -210,10 +209,9 @@ class ClipRestorer:
         self.temporal, self.passes, self.fusion = temporal, passes, fusion
         self.deblur = None if deblur == "none" else deblur
         self.stabilise, self.fallback = stabilise, fallback
-        if preset != "auto":
-            DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
+        DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
         self.preset = preset
-        self.flow = None  # created at each clip's first frame, for its size (preset "auto")
+        self.flow = None  # a fresh solver per clip
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
@@ -247,8 +245,7 @@ class ClipRestorer:
                             f"{shape[1]}x{shape[0]}: all frames of a clip must have one size"
                         )
                     if self.flow is None:
-                        large = raw.shape[0] * raw.shape[1] >= AUTO_FAST_PIXELS
-                        self.flow = DenseFlow(("fast" if large else "medium") if self.preset == "auto" else self.preset)
+                        self.flow = DenseFlow(self.preset)
                     buf[done[0]] = _Frame(raw, to_gray_u8(raw))
                     done[0] += 1
                 progressed = True
