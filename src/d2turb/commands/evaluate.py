@@ -53,7 +53,7 @@ def register(sub):
         "(deblurred vs I_tilt); niqe,piqe with --real)",
     )
     p.add_argument("--out", required=True, help="output folder")
-    add_device_arg(p, "cpu")
+    add_device_arg(p)
     p.add_argument("--max-samples", type=int, default=None, help="evaluate at most this many images")
     p.add_argument(
         "--lpips-weights",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from d2turb.commands.common import add_max_pixels_arg, add_motion_args, add_seed_arg
+from d2turb.commands.common import add_depth_arg, add_max_pixels_arg, add_motion_args, add_seed_arg
 from d2turb.commands.simulate import add_physics_args, make_params
 from d2turb.errors import D2TurbError
 
@@ -24,7 +24,7 @@ def register(sub):
     strength = p.add_mutually_exclusive_group()
     strength.add_argument("--dr0", type=float, default=None, metavar="X", help="turbulence strength D/r0 (default 3)")
     strength.add_argument("--cn2", type=float, default=None, metavar="CN2", help="Cn² (m^-2/3), constant on the path")
-    p.add_argument("--depth", default="none", metavar="SPEC", help="none | prior | FILE | anything:PATH (default none)")
+    add_depth_arg(p, "none | prior | FILE | anything:PATH", " (of a video input: per frame)")
     p.add_argument("--depth-is-disparity", "--disparity", dest="disparity", action="store_true")
     add_seed_arg(p)
     p.add_argument("--save-tilt", action="store_true", help="also write tilt-only frames tilt/NNNNNN.png")
