@@ -18,6 +18,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.errors import D2TurbError
+from d2turb.eval.labels import weights_label
 from d2turb.eval.musiq import MUSIQ
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
@@ -56,8 +57,8 @@ def parse_metrics(text: str | list[str]) -> list[str]:
 
 
 def _model_names(weights: list[str]) -> list[str]:
-    stems = [IDENTITY if str(w) == IDENTITY else Path(str(w)).stem for w in weights]
-    return [str(w) if stems.count(s) > 1 else s for w, s in zip(weights, stems)]
+    labels = [weights_label(w) for w in weights]  # run folders' model.safetensors: config name (folder)
+    return [str(w) if labels.count(s) > 1 else s for w, s in zip(weights, labels)]
 
 
 def _videos(folder: Path, recursive: bool) -> list[Path]:
