@@ -336,3 +336,10 @@ def test_a_folder_named_gradio_is_not_the_extra(tmp_path, monkeypatch, capsys):
     assert importlib.util.find_spec("gradio") is not None  # the folder is importable as a namespace package
     assert main(["app"]) == 2
     assert capsys.readouterr().err.strip() == "error: d2turb app needs the app extra: pip install 'd2turb[app]'"
+
+
+def test_niqe_on_the_page_comes_with_its_caveat():
+    """The page's NIQE table says what the score is worth (docs/metrics.md), not only the numbers."""
+    text = core.niqe_markdown({"input": 5.25, "restored": "n/a (too small)"})
+    assert "| input | 5.250 |" in text and "| restored | n/a (too small) |" in text
+    assert "not proof of restoration" in text and "docs/metrics.md" in text

@@ -113,7 +113,9 @@ def _markdown(results: dict) -> str:
     lines = [
         f"# No-reference evaluation of `{results['data']}` ({len(results['images'])} images)",
         "",
-        "Lower is better for NIQE and PIQE, higher for MUSIQ.",
+        "Lower is better for NIQE and PIQE, higher for MUSIQ. These are no-reference scores: they compare image "
+        "statistics with clean photographs, not with the scene, so a better score is a hint to look at the grids, "
+        "not proof of restoration (a broken model can score better than its input; docs/metrics.md).",
         "",
         "| model | " + " | ".join(f"{m.upper()} {'↑' if m in HIGHER_IS_BETTER else '↓'}" for m in metrics) + " |",
         "|---|" + "---:|" * len(metrics),
@@ -147,6 +149,9 @@ def _markdown(results: dict) -> str:
     if results.get("skipped"):
         lines += ["", "## Skipped (not in the means)", ""]
         lines += [f"- `{s['file']}`: {s['error']}" for s in results["skipped"]]
+    if results.get("not_scored"):
+        lines += ["", "## Not scored (videos)", ""]
+        lines += [f"- `{s['file']}`: {s['reason']}" for s in results["not_scored"]]
     return "\n".join(lines) + "\n"
 
 
