@@ -38,6 +38,7 @@ from d2turb.data.layout import (
     write_depth_png,
 )
 from d2turb.data.sequence import sequence_settings, simulate_sequence_chunk
+from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE
 from d2turb.depth import depth_for_image
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
@@ -72,11 +73,11 @@ class DatasetConfig:
     patch: int = 256
     split: str = "train"
     bins: tuple[str, ...] = tuple(BINS)
-    depth: str = "prior"
+    depth: str = DEFAULT_DEPTH
     depth_is_disparity: bool = False
     seed: int = 0
     batch: int = 8
-    device: str = "auto"
+    device: str = DEFAULT_DEVICE
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
     geometry: str = "fixed"  # a d2turb.sim.geometry.GEOMETRIES name; one geometry per chunk of `batch` samples
     png_level: int = DEFAULT_PNG_LEVEL  # zlib level of the PNG files (not part of the dataset's identity)

@@ -42,6 +42,8 @@ BALANCE_AT_2 = 0.03
 
 def default_balance(dr0: float) -> float:
     return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
+
+
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
