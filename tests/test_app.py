@@ -372,3 +372,10 @@ def test_clip_tab_refuses_bad_uploads(workspace, tmp_path):
         core.run_clip(str(tmp_path / "notes.txt"), workspace)
     with pytest.raises(D2TurbError, match="window"):
         core.run_clip(str(tmp_path / "notes.txt"), workspace, temporal=1)
+
+
+def test_niqe_on_the_page_comes_with_its_caveat():
+    """The page's NIQE table says what the score is worth (docs/metrics.md), not only the numbers."""
+    text = core.niqe_markdown({"input": 5.25, "restored": "n/a (too small)"})
+    assert "| input | 5.250 |" in text and "| restored | n/a (too small) |" in text
+    assert "not proof of restoration" in text and "docs/metrics.md" in text

@@ -336,3 +336,25 @@ def test_real_clean_images(shared_data, tmp_path):
     )
     report = check_dataset(out)
     assert report.ok and report.counts == {"medium": 1, "strong": 1}
+
+
+def test_meta_has_one_dr0_the_sample_s(tmp_path, capsys):
+    """A sample's metadata holds its true D/r0 once (``dr0``, inside its bin); the simulator parameters beside it
+    carry no second, default D/r0 or the r0 derived from it (they were 3.0 beside a sample's 3.55)."""
+    from PIL import Image
+
+    from d2turb.cli import main
+
+    clean = tmp_path / "clean"
+    clean.mkdir()
+    Image.fromarray(np.random.default_rng(0).integers(0, 256, (40, 48, 3), dtype=np.uint8)).save(clean / "a.png")
+    argv = ["make-dataset", "--clean", str(clean), "--out", str(tmp_path / "ds"), "--pairs", "3", "--patch", "16"]
+    assert main([*argv, "--depth", "none", "--device", "cpu", "--no-progress"]) == 0
+    capsys.readouterr()
+    for line in (tmp_path / "ds" / "meta.jsonl").read_text().splitlines():
+        rec = json.loads(line)
+        lo, hi = BINS[rec["bin"]]
+        assert lo <= rec["dr0"] <= hi
+        assert "dr0" not in rec["params"] and "r0_m" not in rec["params"]
+    record = json.loads((tmp_path / "ds" / "dataset.json").read_text())
+    assert "dr0" not in record["params"]

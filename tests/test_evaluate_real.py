@@ -7,14 +7,14 @@ import types
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.cli import main
 from d2turb.commands.common import print_error
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
-from d2turb.eval.real import evaluate_real
+from d2turb.eval.real import GRID_LABEL_H, evaluate_real
 from d2turb.io import read_image, write_image
 
 NIQE_MATLAB = {"I03.png": 15.7536, "I04.png": 3.6549, "I06.png": 3.2355, "I08.png": 3.1840, "I19.png": 8.6352}
@@ -71,8 +71,16 @@ def test_models_rows_values_and_grids(real_dir, tmp_path):
     on_disk = json.loads((out / "results.json").read_text())
     assert on_disk["models"]["blur"]["niqe"]["per_image"] == results["models"]["blur"]["niqe"]["per_image"]
     grid = np.asarray(Image.open(out / "grids" / "a.png"))
-    assert grid.shape == (192, 2 * 160 + 4, 3)
-    np.testing.assert_array_equal(grid[:, :160], np.asarray(Image.open(real_dir / "a.png")))
+    assert grid.shape == (GRID_LABEL_H + 192, 2 * 160 + 4, 3)
+    np.testing.assert_array_equal(grid[GRID_LABEL_H:, :160], np.asarray(Image.open(real_dir / "a.png")))
+    # the label strip names the columns: dark text over each image's column, white elsewhere
+    strip = grid[:GRID_LABEL_H].min(axis=2)
+    assert strip[:, :160].min() < 128 and strip[:, 164:].min() < 128 and strip[:, 160:164].min() == 255
+    expected = Image.new("RGB", (grid.shape[1], GRID_LABEL_H), "white")
+    draw, font = ImageDraw.Draw(expected), ImageFont.load_default()
+    draw.text((2, 2), "input", fill="black", font=font)
+    draw.text((164 + 2, 2), "blur", fill="black", font=font)
+    np.testing.assert_array_equal(grid[:GRID_LABEL_H], np.asarray(expected))
     md = (out / "results.md").read_text()
     assert "| blur |" in md and "PIQE" in md
 
@@ -212,3 +220,48 @@ def test_cli_data_dispatches_to_synthetic_evaluator(tmp_path, monkeypatch):
         main(["evaluate", "--data", "ds", "--weights", "input", "--metrics", "PSNR, ssim", "--out", str(tmp_path)]) == 0
     )
     assert calls[-1][1]["metrics"] == ("psnr", "ssim") and calls[-1][1]["lpips_weights"] is None
+
+
+def test_videos_beside_the_images_are_named_not_skipped_silently(tmp_path, capsys):
+    """`evaluate --real --recursive` on a folder holding videos: each video gets one note line (and an entry in
+    results.json) saying why it is not scored and how to score its frames; the images are scored as before."""
+    real = tmp_path / "real"
+    rng = np.random.default_rng(0)
+    for rel in ("a.png", "clip/f0.png"):
+        (real / rel).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(rng.integers(0, 256, (40, 48, 3), dtype=np.uint8)).save(real / rel)
+    (real / "clip" / "take1.mp4").write_bytes(b"\x00" * 64)  # not decoded: named only
+    (real / "take2.MOV").write_bytes(b"\x00" * 64)
+    (real / ".hidden.mp4").write_bytes(b"\x00" * 64)
+    argv = ["evaluate", "--real", str(real), "--recursive", "--metrics", "piqe", "--out", str(tmp_path / "o")]
+    assert main(argv) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("note: ")]
+    assert len(notes) == 2
+    assert notes[0].startswith("note: clip/take1.mp4: not scored") and notes[1].startswith("note: take2.MOV:")
+    assert all("d2turb restore" in n for n in notes)
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert [e["file"] for e in results["not_scored"]] == ["clip/take1.mp4", "take2.MOV"]
+    assert results["images"] == ["a.png", "clip/f0.png"] and results["skipped"] == []
+    # a folder of videos only: the error line says so
+    only = tmp_path / "only"
+    only.mkdir()
+    (only / "v.mp4").write_bytes(b"\x00" * 64)
+    assert main(["evaluate", "--real", str(only), "--metrics", "piqe", "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "no images found" in err and "1 video file" in err
+
+
+def test_run_folders_weights_are_named_by_their_config_model_and_folder(tmp_path):
+    """Every run folder calls its weights model.safetensors: the tables name them by the model in the file's
+    config and the folder (two runs stay apart), a file with its own name keeps it."""
+    from d2turb.eval.labels import weights_label
+    from d2turb.models import create_model, save_pretrained
+
+    tiny = {"width": 8, "enc_blocks": [1], "dec_blocks": [1], "middle_blocks": 1}
+    a = save_pretrained(create_model("nafnet", **tiny), tmp_path / "run-a" / "model.safetensors")
+    b = save_pretrained(create_model("nafnet", **tiny), tmp_path / "run-b" / "best.safetensors")
+    own = save_pretrained(create_model("nafnet", **tiny), tmp_path / "run-a" / "sharp.safetensors")
+    assert weights_label(a) == "nafnet (run-a)" and weights_label(b) == "nafnet (run-b)"
+    assert weights_label(own) == "sharp" and weights_label("input") == "input"
+    assert weights_label("d2turb-nafnet") == "d2turb-nafnet"
+    assert weights_label(tmp_path / "gone" / "model.safetensors") == "gone/model"  # unreadable: folder/stem

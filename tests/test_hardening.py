@@ -3,6 +3,7 @@ status, folders with bad files are processed around them, outputs are readable b
 leave nothing behind."""
 
 import json
+import math
 import os
 import signal
 import stat
@@ -19,6 +20,7 @@ import torch
 from PIL import Image
 
 from d2turb.cli import main
+from d2turb.defaults import DEFAULT_MAX_PIXELS
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
@@ -36,13 +38,14 @@ ENV["PYTHONPATH"] = str(ROOT / "src") + os.pathsep + ENV.get("PYTHONPATH", "")
 
 
 # ----------------------------------------------------------------------------------------------- helpers
-def png_bomb(path: Path, width: int = 100_000, height: int = 100_000) -> Path:
-    """A 60-byte PNG whose header claims width x height RGB pixels (written from the PNG spec's chunk layout)."""
+def png_bomb(path: Path, width: int = 100_000, height: int = 100_000, color_type: int = 2) -> Path:
+    """A 60-byte PNG whose header claims width x height pixels, RGB (colour type 2) or 8-bit grey (0) (written
+    from the PNG spec's chunk layout)."""
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
-    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    header = struct.pack(">IIBBBBB", width, height, 8, color_type, 0, 0, 0)
     path.write_bytes(
         b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b"")
     )
@@ -159,8 +162,12 @@ def test_max_pixels_is_the_documented_switch(tmp_path, capsys):
     one_error_line(err, "a.png", "32x24", "--max-pixels 768")
     rc, _, _ = run_cli(capsys, ["simulate", str(image), "--out", str(tmp_path / "o"), "--max-pixels", "768"])
     assert rc == 0 and (tmp_path / "o" / "a_turb.png").is_file()
-    # lifting the limit lets Pillow try the bomb: it then fails as the broken file it is, in one line
-    bomb = png_bomb(tmp_path / "bomb.png")
+    # lifting the limit lets Pillow try the bomb: it then fails as the broken file it is, in one line. The bomb is
+    # just over the default limit (so --max-pixels 0 is what lets it through) and grey (1 byte per pixel): Pillow
+    # allocates the claimed image before finding the data missing, ≤ 180 MB here (the 10^10-pixel RGB one above
+    # took up to 10 GB of resident memory, depending on the allocator's state)
+    side = math.isqrt(DEFAULT_MAX_PIXELS) + 1
+    bomb = png_bomb(tmp_path / "bomb.png", side, side, color_type=0)
     rc, _, err = run_cli(
         capsys, ["restore", str(bomb), "--weights", "input", "--out", str(tmp_path / "r"), "--max-pixels", "0"]
     )

@@ -139,8 +139,9 @@ def test_bad_arguments_raise_one_line_errors(tmp_path, monkeypatch):
     with pytest.raises(D2TurbError, match="weights file not found"):
         resolve_weights(str(tmp_path / "missing.safetensors"))
     (tmp_path / "old.pth").write_bytes(b"x")
-    with pytest.raises(D2TurbError, match="only .safetensors"):
+    with pytest.raises(D2TurbError, match="only .safetensors") as info:
         resolve_weights(str(tmp_path / "old.pth"))
+    assert f"d2turb convert {tmp_path / 'old.pth'} {tmp_path / 'old.safetensors'}" in str(info.value)
     (tmp_path / "mine.safetensors").write_bytes(b"x")
     assert resolve_weights("mine") == tmp_path / "mine.safetensors"
     assert weights_search_path("mine")[0] == tmp_path / "mine.safetensors"

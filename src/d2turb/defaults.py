@@ -1,6 +1,12 @@
-"""Defaults shared by the library and the command line's options. No heavy imports here: the CLI builds its
-``--help`` from these values without importing torch."""
+"""Defaults shared by the library and the command line's options: each CLI default is defined here once, used by
+every command that has the option and shown in its ``--help`` (tests/test_cli_defaults.py). No heavy imports
+here: the CLI builds its ``--help`` from these values without importing torch."""
 
 DEFAULT_MAX_PIXELS = 178_956_970  # Pillow's own decompression-bomb error limit (2 × Image.MAX_IMAGE_PIXELS)
 DEFAULT_PNG_LEVEL = 1  # of PNG outputs: ~9× faster than 6 at 256², files ~13 % larger (io.encode_png)
+# `--device`: a GPU when there is one, else the CPU (the same result as `cpu` on a machine without CUDA)
+DEFAULT_DEVICE = "auto"
 DEVICE_HELP = "auto (a GPU when there is one), cpu, cuda or cuda:N"
+# `--depth`: the weight-free prior (far = top; d2turb.depth.estimate_depth_prior), so that the simulated turbulence
+# is depth-aware out of the box; `none` (uniform depth) or a map / model are asked for explicitly
+DEFAULT_DEPTH = "prior"

@@ -603,7 +603,7 @@ def niqe_markdown(values: dict) -> str:
 
     return (
         "| NIQE (lower is better) | value |\n|---|---|\n"
-        f"| input | {cell(values['input'])} |\n| restored | {cell(values['restored'])} |"
+        f"| input | {cell(values['input'])} |\n| restored | {cell(values['restored'])} |\n\n{NIQE_CAVEAT}"
     )
 
 
@@ -705,3 +705,10 @@ def run_clip(
     zipped = bundle(run, f"d2turb_clip_{Path(name).stem}")
     result.files = [zipped, restored_png, run / "command.sh"] + ([out / mp4] if (out / mp4).is_file() else [])
     return result
+
+
+# what a no-reference score is worth (docs/metrics.md, "What NIQE and PIQE show, and what they do not")
+NIQE_CAVEAT = (
+    "NIQE compares image statistics with clean photos, not with the scene: a hint, not proof of restoration "
+    "(a broken model's output can score better than its input; judge by the pictures, see docs/metrics.md)."
+)

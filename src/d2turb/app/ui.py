@@ -18,6 +18,7 @@ import gradio as gr
 
 from d2turb.app import core
 from d2turb.errors import D2TurbError
+from d2turb.eval.labels import GENERIC_STEMS, weights_label
 from d2turb.io import read_image, write_image
 from d2turb.sim import MODULATIONS
 from d2turb.sim.params import BINS_RULE
@@ -73,6 +74,8 @@ def _short(message: str, workspace: core.Workspace) -> str:
 def _weights_label(name: str, path: Path | None) -> str:
     if path is None:
         return f"{name}  (identity: output = input)"
+    if path.stem.lower() in GENERIC_STEMS:  # a run folder's model.safetensors: its config's model and folder
+        name = weights_label(path)
     return f"{name}  ({'shipped' if path.parent == core.shipped_weights_dir() else path.parent})"
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from d2turb.defaults import DEFAULT_DEVICE
 from d2turb.errors import D2TurbError
 
 
@@ -23,8 +24,8 @@ def register(sub):
     m.add_argument("--size", type=int, default=256, help="square input size (default 256)")
     m.add_argument(
         "--device",
-        default="auto",
-        help="latency device: cpu, cuda, or auto (default: cpu, plus cuda when a GPU is present)",
+        default=DEFAULT_DEVICE,
+        help=f"latency device: cpu, cuda, or auto (cpu, plus cuda when a GPU is present; default {DEFAULT_DEVICE})",
     )
     m.add_argument("--warmup", type=int, default=1, help="untimed forwards first (default 1)")
     m.add_argument("--repeats", type=int, default=3, help="timed forwards, the median is reported (default 3)")

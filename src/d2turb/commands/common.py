@@ -9,7 +9,7 @@ import json
 import logging
 import sys
 
-from d2turb.defaults import DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL, DEVICE_HELP
+from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE, DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL, DEVICE_HELP
 from d2turb.errors import D2TurbError
 
 SEED_MAX = 2**63 - 1  # torch generators and numpy SeedSequence both take [0, 2**63 - 1]
@@ -44,8 +44,20 @@ def add_seed_arg(p, help_text: str = "random seed (default 0)") -> None:
     p.add_argument("--seed", type=seed_type, default=0, metavar="N", help=help_text)
 
 
-def add_device_arg(p, default: str = "cpu") -> None:
-    p.add_argument("--device", default=default, metavar="DEVICE", help=f"{DEVICE_HELP} (default {default})")
+def add_device_arg(p) -> None:
+    p.add_argument(
+        "--device", default=DEFAULT_DEVICE, metavar="DEVICE", help=f"{DEVICE_HELP} (default {DEFAULT_DEVICE})"
+    )
+
+
+def add_depth_arg(p, forms: str, what: str = "") -> None:
+    """``--depth SPEC`` with the default of d2turb.defaults; ``forms``: the SPECs the command takes."""
+    p.add_argument(
+        "--depth",
+        default=DEFAULT_DEPTH,
+        metavar="SPEC",
+        help=f"relative depth (far = 1): {forms}{what} (default {DEFAULT_DEPTH}: the weight-free prior, far = top)",
+    )
 
 
 def add_motion_args(p) -> None:

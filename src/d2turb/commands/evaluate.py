@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 
 from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg, print_error, summary
 from d2turb.errors import D2TurbError
@@ -53,7 +54,7 @@ def register(sub):
         "(deblurred vs I_tilt); niqe,piqe with --real)",
     )
     p.add_argument("--out", required=True, help="output folder")
-    add_device_arg(p, "cpu")
+    add_device_arg(p)
     p.add_argument("--max-samples", type=int, default=None, help="evaluate at most this many images")
     p.add_argument(
         "--lpips-weights",
@@ -120,6 +121,7 @@ def run(args):
             fail_fast=args.fail_fast,
             on_skip=print_error,
             recursive=args.recursive,
+            on_note=lambda message: print(f"note: {message}", file=sys.stderr),
         )
         for model, scores in results["models"].items():
             print(model + ": " + ", ".join(f"{m} {v['mean']:.4f}" for m, v in scores.items()))

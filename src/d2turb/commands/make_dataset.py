@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from d2turb.commands.common import (
+    add_depth_arg,
     add_device_arg,
     add_max_pixels_arg,
     add_motion_args,
@@ -33,9 +34,7 @@ def register(sub):
         help="train: D/r0 uniform over the bins' union; test: balanced, bin = bins[i %% n_bins]",
     )
     p.add_argument("--bins", default="weak,medium,strong", help="comma-separated D/r0 bins (default all three)")
-    p.add_argument(
-        "--depth", default="prior", metavar="SPEC", help="none | prior | DIR | anything:PATH (default prior)"
-    )
+    add_depth_arg(p, "none | prior | DIR | anything:PATH")
     p.add_argument(
         "--depth-is-disparity",
         dest="disparity",
@@ -44,7 +43,7 @@ def register(sub):
     )
     add_seed_arg(p, "dataset seed (default 0)")
     p.add_argument("--batch", type=int, default=8, help="samples per simulator call (part of the seed; default 8)")
-    add_device_arg(p, "auto")
+    add_device_arg(p)
     add_param_arg(p)
     p.add_argument(
         "--geometry",

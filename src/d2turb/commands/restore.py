@@ -62,7 +62,7 @@ def register(sub):
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--tile", type=int, default=512, help="tile size in pixels (default 512)")
     p.add_argument("--overlap", type=int, default=64, help="pixels shared by neighbouring tiles (default 64)")
-    add_device_arg(p, "cpu")
+    add_device_arg(p)
     p.add_argument(
         "--save-flow",
         action="store_true",

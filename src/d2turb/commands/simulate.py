@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from d2turb.commands.common import (
     FileErrors,
+    add_depth_arg,
     add_device_arg,
     add_fail_fast_arg,
     add_max_pixels_arg,
@@ -45,7 +46,7 @@ def add_physics_args(p, path_length_m: float = 1000.0):
         help="depth modulation M (default power_offset)",
     )
     p.add_argument("--offset", type=float, default=0.5, metavar="S", help="baseline offset s of Eq. 1 (default 0.5)")
-    add_device_arg(p, "cpu")
+    add_device_arg(p)
 
 
 def register(sub):
@@ -71,12 +72,11 @@ def register(sub):
         metavar="CN2",
         help="refractive-index structure constant (m^-2/3), constant along the path",
     )
-    p.add_argument(
-        "--depth",
-        default="none",
-        metavar="none|prior|FILE|DIR|anything:PATH",
-        help="relative depth (far = 1): none, the weight-free prior, a map, a folder of maps by image stem, "
-        "or Depth Anything V2 from a local model folder",
+    add_depth_arg(
+        p,
+        "none | prior | FILE | DIR | anything:PATH",
+        " (uniform depth, the weight-free prior, a map, a folder of maps by image stem, or Depth Anything V2 from a "
+        "local model folder)",
     )
     p.add_argument(
         "--depth-is-disparity",

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from d2turb.commands.common import add_max_pixels_arg, add_motion_args, add_seed_arg
+from d2turb.commands.common import add_depth_arg, add_max_pixels_arg, add_motion_args, add_seed_arg
 from d2turb.commands.simulate import add_physics_args, make_params
 from d2turb.errors import D2TurbError
 
@@ -24,7 +25,7 @@ def register(sub):
     strength = p.add_mutually_exclusive_group()
     strength.add_argument("--dr0", type=float, default=None, metavar="X", help="turbulence strength D/r0 (default 3)")
     strength.add_argument("--cn2", type=float, default=None, metavar="CN2", help="Cn² (m^-2/3), constant on the path")
-    p.add_argument("--depth", default="none", metavar="SPEC", help="none | prior | FILE | anything:PATH (default none)")
+    add_depth_arg(p, "none | prior | FILE | anything:PATH", " (of a video input: per frame)")
     p.add_argument("--depth-is-disparity", "--disparity", dest="disparity", action="store_true")
     add_seed_arg(p)
     p.add_argument("--save-tilt", action="store_true", help="also write tilt-only frames tilt/NNNNNN.png")
@@ -122,6 +123,16 @@ def run(args):
         d = depth_for_image(args.depth, src if kind == "image" else None, frame, args.disparity, device)
         return None if d is None else d[None]
 
+    h, w = source.shape[-2:] if kind == "image" else (None, None)
+    depth_text = "none" if args.depth == "none" else f"{args.depth}, " + ("once" if kind == "image" else "per frame")
+    print(
+        f"{src.name}: simulating {n_frames} frames"
+        + (f" of {w}x{h}" if h else "")
+        + f" at D/r0 = {params.dr0:.3g} (depth: {depth_text}); each frame is written to {out / 'turb'} as it is done, "
+        "the bar's time estimate follows the first one",
+        file=sys.stderr,
+        flush=True,
+    )
     if kind == "image":
         image, depth = source[None], depth_of(source)
     else:  # a moving input: depth (if any) per frame
@@ -187,9 +198,13 @@ def run(args):
         mp4=mp4.name if mp4 is not None else None,
     )
     write_json(out / "meta.json", meta)
-    speed = max(m["px_per_frame"] for m in meta["layers"])
+    # the wind's shift per frame of each layer's phase screen over the width of the beam there (meta.json: layers,
+    # s_per_frame): consecutive frames decorrelate as it nears 1 (px_per_frame is the same shift at the object's
+    # scale, huge for layers near the camera: not an image motion, so not printed)
+    near = min(meta["layers"], key=lambda m: m["z_frac"])["s_per_frame"]  # the layers that weigh most in the tilt
     print(
-        f"{src.name}: {written} frames of {size[1]}x{size[0]}, D/r0 = {p.dr0:.3g}, fastest layer "
-        f"{speed:.3g} px/frame -> {out}" + (f" ({mp4.name})" if mp4 else "")
+        f"{src.name}: {written} frames of {size[1]}x{size[0]}, D/r0 = {p.dr0:.3g}; the wind moves the turbulence near "
+        f"the camera {near:.2g} beam widths per frame (frame-to-frame tilt decorrelates as this nears 1; per layer: "
+        f"meta.json) -> {out}" + (f" ({mp4.name})" if mp4 else "")
     )
     return 0

@@ -38,6 +38,7 @@ from d2turb.data.layout import (
     write_depth_png,
 )
 from d2turb.data.sequence import sequence_settings, simulate_sequence_chunk
+from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE
 from d2turb.depth import depth_for_image
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
@@ -72,11 +73,11 @@ class DatasetConfig:
     patch: int = 256
     split: str = "train"
     bins: tuple[str, ...] = tuple(BINS)
-    depth: str = "prior"
+    depth: str = DEFAULT_DEPTH
     depth_is_disparity: bool = False
     seed: int = 0
     batch: int = 8
-    device: str = "auto"
+    device: str = DEFAULT_DEVICE
     params: dict = field(default_factory=dict)  # TurbulenceParams overrides
     geometry: str = "fixed"  # a d2turb.sim.geometry.GEOMETRIES name; one geometry per chunk of `batch` samples
     png_level: int = DEFAULT_PNG_LEVEL  # zlib level of the PNG files (not part of the dataset's identity)
@@ -196,9 +197,15 @@ def make_depth_fn(spec: str, device=None, is_disparity: bool = False):
     return depth_fn
 
 
+PER_SAMPLE_KEYS = ("dr0", "r0_m")  # drawn per sample (its bin): the record's "dr0", not the simulator's default
+
+
 def params_record(params) -> dict:
-    """TurbulenceParams as a JSON-ready dict (with the derived r0 and tilt footprint) for the metadata."""
+    """TurbulenceParams as a JSON-ready dict (with the tilt footprint) for the metadata, without D/r0 and r0: each
+    sample draws its own D/r0 from its bin (the sample's ``dr0`` field), so the simulator's default would only
+    stand beside the true value as a second, wrong one."""
     full = {**params.to_dict(), "footprint_px": footprint_px(params)}
+    full = {k: v for k, v in full.items() if k not in PER_SAMPLE_KEYS}
     return json.loads(json.dumps(full, default=str))
 
 
@@ -495,6 +502,11 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
         from tqdm import tqdm
 
         bar = tqdm(total=todo, unit="pair", desc=f"make-dataset (rank 0 of {info.world})", dynamic_ncols=True)
+
+    def phase(text: str) -> None:  # what the bar is waiting for (the first pairs take a while: sources, depth, PSFs)
+        if bar is not None:
+            bar.set_postfix_str(text, refresh=True)
+
     start, written = time.perf_counter(), 0
     shard_lock = threading.Lock()
     with torch.inference_mode(), BackgroundWriter(max_pending=2 * cfg.batch, compute_device=device) as writer:
@@ -503,10 +515,13 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources)) for i in indices]
             g = chunk_geometry(cfg.seed, c, len(bank))
             if g not in sims:
+                phase("setting up the simulator")
                 sims[g] = Simulator(bank[g], device=str(device))
             sim, params_full = sims[g], params_record(bank[g])
             clean, depth, metas = [], [], []
             for plan in plans:
+                if plan.source not in cache.cache:
+                    phase("reading source images" + ("" if cfg.depth == "none" else f" + depth ({cfg.depth})"))
                 k, image, dmap = cache.get(plan.source)
                 x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
                 clean.append(image[:, y0:y1, x0:x1])
@@ -533,6 +548,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             depth_t = None if depth[0] is None else torch.stack(depth).to(device)
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
             generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
+            phase(f"simulating {len(plans)} pairs (PSFs and tilt for the whole batch at once)")
             writer.before_compute()
             if cfg.frames > 1:  # sequences: frames stacked vertically, flow (B, N, 2, H, W)
                 turb, tilt, flow = simulate_sequence_chunk(

@@ -13,14 +13,18 @@ import os
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
+import numpy as np
 import torch
+from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.errors import D2TurbError
+from d2turb.eval.labels import weights_label
 from d2turb.eval.musiq import MUSIQ
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
 from d2turb.io import check_unique_stems, list_images, read_image, write_image, write_json, write_text
 from d2turb.restore import Restorer
+from d2turb.video import VIDEO_SUFFIXES
 
 IDENTITY = "input"
 NO_REFERENCE = ("niqe", "piqe", "musiq")
@@ -53,22 +57,51 @@ def parse_metrics(text: str | list[str]) -> list[str]:
 
 
 def _model_names(weights: list[str]) -> list[str]:
-    stems = [IDENTITY if str(w) == IDENTITY else Path(str(w)).stem for w in weights]
-    return [str(w) if stems.count(s) > 1 else s for w, s in zip(weights, stems)]
+    labels = [weights_label(w) for w in weights]  # run folders' model.safetensors: config name (folder)
+    return [str(w) if labels.count(s) > 1 else s for w, s in zip(weights, labels)]
+
+
+def _videos(folder: Path, recursive: bool) -> list[Path]:
+    """Video files in ``folder`` (with ``recursive``, in its sub-folders too), hidden ones left out, sorted."""
+    try:
+        entries = list(folder.rglob("*") if recursive else folder.iterdir())
+    except OSError:
+        return []  # list_images has reported the folder
+    found = [
+        p
+        for p in entries
+        if p.suffix.lower() in VIDEO_SUFFIXES
+        and not any(part.startswith(".") for part in p.relative_to(folder).parts)
+        and p.is_file()
+    ]
+    return sorted(found, key=lambda p: p.relative_to(folder).parts)
 
 
 def _default_restorer(weights: str, device: str):
     return Restorer(weights, device=device).restore
 
 
-def _grid(images: list[torch.Tensor], gap: int = 4) -> torch.Tensor:
+GRID_LABEL_H = 16  # rows of the label strip above the images of a grid
+
+
+def _grid(images: list[torch.Tensor], labels: list[str] | None = None, gap: int = 4) -> torch.Tensor:
     """Input | each model's output side by side at full resolution (real frames are inspected pixel by pixel;
-    :func:`d2turb.eval.report.comparison_grid` fits synthetic samples into labelled cells instead)."""
+    :func:`d2turb.eval.report.comparison_grid` fits synthetic samples into labelled cells instead), under a
+    white strip of :data:`GRID_LABEL_H` rows naming each column (``labels``)."""
     h = max(im.shape[1] for im in images)
     padded = [torch.nn.functional.pad(im, (0, 0, 0, h - im.shape[1]), value=1.0) for im in images]
     sep = torch.ones(3, h, gap)
     parts = [p for im in padded for p in (im, sep)][:-1]
-    return torch.cat(parts, dim=2)
+    grid = torch.cat(parts, dim=2)
+    if not labels:
+        return grid
+    strip = Image.new("RGB", (grid.shape[2], GRID_LABEL_H), (255, 255, 255))
+    draw, font, left = ImageDraw.Draw(strip), ImageFont.load_default(), 0
+    for im, text in zip(images, labels):
+        draw.text((left + 2, 2), text, fill=(0, 0, 0), font=font)
+        left += im.shape[2] + gap
+    strip = torch.from_numpy(np.asarray(strip).copy()).permute(2, 0, 1).float() / 255
+    return torch.cat([strip, grid], dim=1)
 
 
 def _fmt(v: float) -> str:
@@ -80,7 +113,9 @@ def _markdown(results: dict) -> str:
     lines = [
         f"# No-reference evaluation of `{results['data']}` ({len(results['images'])} images)",
         "",
-        "Lower is better for NIQE and PIQE, higher for MUSIQ.",
+        "Lower is better for NIQE and PIQE, higher for MUSIQ. These are no-reference scores: they compare image "
+        "statistics with clean photographs, not with the scene, so a better score is a hint to look at the grids, "
+        "not proof of restoration (a broken model can score better than its input; docs/metrics.md).",
         "",
         "| model | " + " | ".join(f"{m.upper()} {'↑' if m in HIGHER_IS_BETTER else '↓'}" for m in metrics) + " |",
         "|---|" + "---:|" * len(metrics),
@@ -114,6 +149,9 @@ def _markdown(results: dict) -> str:
     if results.get("skipped"):
         lines += ["", "## Skipped (not in the means)", ""]
         lines += [f"- `{s['file']}`: {s['error']}" for s in results["skipped"]]
+    if results.get("not_scored"):
+        lines += ["", "## Not scored (videos)", ""]
+        lines += [f"- `{s['file']}`: {s['reason']}" for s in results["not_scored"]]
     return "\n".join(lines) + "\n"
 
 
@@ -129,6 +167,7 @@ def evaluate_real(
     fail_fast: bool = False,
     on_skip: Callable[[str], None] | None = None,
     recursive: bool = False,
+    on_note: Callable[[str], None] | None = None,
 ) -> dict:
     """Score the images of ``real_dir``; returns the dict written to ``out_dir/results.json``.
 
@@ -145,6 +184,9 @@ def evaluate_real(
     ``real_dir`` (``clip/frame.png``), their grids go to ``grids/clip/frame.png``, and
     ``results["folders"][folder] = {"images": [...], "models": {model: {metric: mean}}}`` gives the means per
     folder ("." for ``real_dir`` itself).
+
+    Video files found beside the images are not scored: each is named once, ``on_note(message)`` and
+    ``results["not_scored"]`` ({"file", "reason"}), with the command that turns it into frames.
     """
     metric_names = parse_metrics(metrics)
     scorers = {m: no_reference_metric(m, device, musiq_weights) for m in metric_names}
@@ -152,11 +194,25 @@ def evaluate_real(
     paths = list_images(real_dir, recursive=recursive)
     if max_samples is not None:
         paths = paths[:max_samples]
+    videos = _videos(real_dir, recursive)
+    not_scored = [
+        {
+            "file": v.relative_to(real_dir).as_posix(),
+            "reason": "a video: --real scores image files; `d2turb restore VIDEO --weights input --out DIR` writes "
+            "its frames as PNGs (and DIR/VIDEO.mp4), then `d2turb evaluate --real DIR` scores them",
+        }
+        for v in videos
+    ]
     if not paths:
         nested = not recursive and list_images(real_dir, recursive=True)
         raise D2TurbError(
-            f"{real_dir}: no images found" + (" (its sub-folders hold some: --recursive)" if nested else "")
+            f"{real_dir}: no images found"
+            + (" (its sub-folders hold some: --recursive)" if nested else "")
+            + (f" ({len(videos)} video file(s), not scored: {not_scored[0]['reason']})" if videos else "")
         )
+    for entry in not_scored:
+        if on_note is not None:
+            on_note(f"{entry['file']}: not scored, {entry['reason']}")
     relative = [p.relative_to(real_dir) for p in paths]
     names = [r.as_posix() for r in relative]
     weights = list(weights) if weights else [IDENTITY]
@@ -195,7 +251,10 @@ def evaluate_real(
         if any(r is not None for r in restorers.values()):
             write_image(
                 out_dir / "grids" / rel.with_suffix(".png"),
-                _grid([image, *[outputs[n] for n in model_names if restorers[n] is not None]]),
+                _grid(
+                    [image, *[outputs[n] for n in model_names if restorers[n] is not None]],
+                    ["input", *[n for n in model_names if restorers[n] is not None]],
+                ),
             )
     if len(skipped) == len(paths):
         raise D2TurbError(f"{real_dir}: none of the {len(paths)} images could be evaluated")
@@ -207,6 +266,7 @@ def evaluate_real(
         "metrics": metric_names,
         "images": names,
         "skipped": skipped,
+        "not_scored": not_scored,
         "models": {
             n: {m: {"per_image": values[n][m], "mean": sum(values[n][m].values()) / len(names)} for m in metric_names}
             for n in model_names

@@ -19,6 +19,7 @@ import torch
 from d2turb.data import PairDataset
 from d2turb.data.layout import BIN_NAMES
 from d2turb.errors import D2TurbError
+from d2turb.eval.labels import GENERIC_STEMS, weights_label
 from d2turb.eval.lpips import LPIPS
 from d2turb.eval.metrics import psnr, ssim
 from d2turb.eval.report import comparison_grid, latex_table, markdown_table
@@ -112,7 +113,10 @@ def evaluate_synthetic(
     if count == 0:
         raise D2TurbError(f"{data_dir}: the dataset has no samples")
     restorers = [Restorer(w, device=device, tile=tile, overlap=overlap) for w in weights]
-    names = _unique_names([r.name for r in restorers])
+    # a run folder's model.safetensors: its config's model name and folder, not "model"
+    names = _unique_names(
+        [weights_label(w) if Path(str(w)).stem.lower() in GENERIC_STEMS else r.name for w, r in zip(weights, restorers)]
+    )
     notes = []
     lpips_model = None
     if "lpips" in metrics:

@@ -419,7 +419,10 @@ def resolve_weights(weights: str | os.PathLike) -> Path | str:
     looks_like_path = path.suffix.lower() in weight_suffixes or "/" in text or os.sep in text or path.exists()
     if looks_like_path:
         if path.suffix.lower() in weight_suffixes[1:]:
-            raise D2TurbError(f"{path}: only {WEIGHTS_SUFFIX} weights written by save_pretrained are supported")
+            raise D2TurbError(
+                f"{path}: only {WEIGHTS_SUFFIX} weights written by save_pretrained are supported; convert a "
+                f"checkpoint with: d2turb convert {path} {path.with_suffix(WEIGHTS_SUFFIX)} [--model NAME]"
+            )
         if not path.is_file():
             raise D2TurbError(f"{path}: weights file not found")
         return path
