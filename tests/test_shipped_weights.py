@@ -179,3 +179,15 @@ def test_demo_without_a_shipped_model_still_simulates(shipped, tmp_path, capsys)
     assert main(["demo", "--out", str(out)]) == 0
     assert "restoration skipped" in capsys.readouterr().out
     assert (out / "demo.png").is_file() and not (out / "restore.png").exists()
+
+
+def test_the_page_preselects_the_recommended_shipped_weights(shipped, tmp_path):
+    from d2turb.app import core
+
+    for name in ("aaa-other", hub.RECOMMENDED_WEIGHTS):
+        save_pretrained(tiny_nafnet(), shipped / f"{name}.safetensors")
+    choices = core.weights_choices()
+    assert [n for n, _ in choices] == ["input", "aaa-other", hub.RECOMMENDED_WEIGHTS]  # resolve_weights' order
+    assert core.default_weights(choices) == hub.RECOMMENDED_WEIGHTS
+    (shipped / f"{hub.RECOMMENDED_WEIGHTS}.safetensors").unlink()
+    assert core.default_weights(core.weights_choices()) == "aaa-other"  # another shipped one
