@@ -65,7 +65,7 @@ def global_shift_px(ref_gray: np.ndarray, frame_gray: np.ndarray, max_side: int 
         size = (max(2, round(a.shape[1] * scale)), max(2, round(a.shape[0] * scale)))
         a, b = (cv2.resize(x, size, interpolation=cv2.INTER_AREA) for x in (a, b))
     (dx, dy), _ = cv2.phaseCorrelate(a, b, _hann(a.shape))
-    return float(dx) / scale if scale < 1.0 else float(dx), float(dy) / scale if scale < 1.0 else float(dy)
+    return float(dx) / scale, float(dy) / scale
 
 
 @dataclass
@@ -101,10 +101,8 @@ class DenseFlow:
         """
         if ref_gray.shape != frame_gray.shape or ref_gray.dtype != np.uint8 or frame_gray.dtype != np.uint8:
             raise D2TurbError(f"registration needs two (H,W) uint8 images of one size, got {ref_gray.shape}")
-        if init is not None:
-            self._dis.setUseSpatialPropagation(True)
-            return self._dis.calc(ref_gray, frame_gray, np.ascontiguousarray(init, dtype=np.float32))
-        return self._dis.calc(ref_gray, frame_gray, None)
+        start = None if init is None else np.ascontiguousarray(init, dtype=np.float32)
+        return self._dis.calc(ref_gray, frame_gray, start)
 
 
 def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray) -> np.ndarray:
