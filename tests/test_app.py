@@ -379,3 +379,17 @@ def test_niqe_on_the_page_comes_with_its_caveat():
     text = core.niqe_markdown({"input": 5.25, "restored": "n/a (too small)"})
     assert "| input | 5.250 |" in text and "| restored | n/a (too small) |" in text
     assert "not proof of restoration" in text and "docs/metrics.md" in text
+
+
+def test_clip_tab_counts_the_frames_of_containers_that_do_not_store_them(workspace, tmp_path):
+    """An mkv (no frame count in the container) is counted by decoding: the frame limit applies and the middle
+    frame is shown; without a D/r0 the command says --deblur none, as the page says."""
+    pytest.importorskip("av")
+    iio = pytest.importorskip("imageio.v3")
+    frames = np.stack([_rgb(32, 40, seed=i) for i in range(6)])
+    iio.imwrite(tmp_path / "clip.mkv", frames, plugin="pyav", codec="libx264", fps=10)
+    with pytest.raises(D2TurbError, match="more than the app takes"):
+        core.run_clip(str(tmp_path / "clip.mkv"), workspace, temporal=3, limits=core.Limits(video_frames=5))
+    r = core.run_clip(str(tmp_path / "clip.mkv"), workspace, temporal=3)
+    assert r.frames == 6 and r.command.endswith("--deblur none")
+    assert np.asarray(Image.open(r.after)).shape == (32, 40, 3)

@@ -256,3 +256,24 @@ def test_clip_video_in_video_out(tmp_path):
         frames = sum(1 for _ in c.decode(stream))
         assert frames == 5 and float(stream.average_rate) == pytest.approx(12, rel=1e-3)
     assert len(list((tmp_path / "out").glob("clip_*_restored.png"))) == 5
+
+
+def test_small_frames_restore_without_deblurring_when_they_cannot_be_measured(tmp_path, capsys):
+    """Frames of 56 px are too small to measure D/r0 (d2turb.measure needs 64): the default deblur says so in a
+    note and the clip is still registered and fused (no traceback)."""
+    from d2turb.cli import main
+    from d2turb.io import write_image
+
+    rng = np.random.default_rng(3)
+    img = _scene(56)
+    for i in range(10):
+        frame = np.clip(img + 0.01 * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
+        write_image(tmp_path / "clip" / f"f{i:02d}.png", torch.from_numpy(frame).permute(2, 0, 1))
+    assert main(["restore", str(tmp_path / "clip"), "--temporal", "4", "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "note: no deblurring" in err and "too small" in err
+    assert len(list((tmp_path / "out").glob("*_restored.png"))) == 10
+    with pytest.raises(Exception, match="too small"):
+        from d2turb.measure import measure_clip
+
+        measure_clip([torch.from_numpy(img).permute(2, 0, 1)] * 10)

@@ -154,8 +154,9 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
         raise D2TurbError("the frames are constant: nothing to register")
     u8 = [np.clip(g + 0.5, 0, 255).astype(np.uint8) for g in gray]
     h, w = gray.shape[1:]
-    if min(h, w) < 4 * MARGIN_PX + 16:
-        raise D2TurbError(f"frames of {w}x{h} are too small to measure turbulence (need {4 * MARGIN_PX + 16} px)")
+    smallest = 2 * MARGIN_PX + 3 * SEPARATIONS_PX[0]  # the shortest separation fits three times inside the margins
+    if min(h, w) < smallest:
+        raise D2TurbError(f"frames of {w}x{h} are too small to measure turbulence (need {smallest} px)")
     gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
 
     def aligned_mean(ref):

@@ -114,8 +114,12 @@ class Mp4Writer:
         self.path = Path(path)
         self._stack = contextlib.ExitStack()
         tmp = self._stack.enter_context(atomic_path(self.path))
-        self._file = iio.imopen(tmp, "w", plugin="pyav", extension=".mp4")
-        self._file.init_video_stream("libx264", fps=fps)
+        try:
+            self._file = iio.imopen(tmp, "w", plugin="pyav", extension=".mp4")
+            self._file.init_video_stream("libx264", fps=fps)
+        except Exception as exc:  # noqa: BLE001 - e.g. a PyAV without libx264: one line, no temp file left
+            self._stack.__exit__(type(exc), exc, exc.__traceback__)
+            raise D2TurbError(f"cannot write {self.path}: {_first_line(exc)} ({VIDEO_HINT})") from exc
         self.frames = 0
 
     def write(self, frame) -> None:
@@ -126,7 +130,11 @@ class Mp4Writer:
 
     def close(self) -> None:
         """Finish the stream and rename the file into place."""
-        self._file.close()
+        try:
+            self._file.close()
+        except Exception as exc:  # noqa: BLE001 - an encoder that fails to flush: one line, no temp file left
+            self._stack.__exit__(type(exc), exc, exc.__traceback__)
+            raise D2TurbError(f"cannot write {self.path}: {_first_line(exc)}") from exc
         self._stack.close()
 
     def abort(self) -> None:

@@ -623,7 +623,7 @@ CLIP_SIM_FRAMES = 32  # frames simulated from an uploaded image
 
 def clip_argv(clip: str, temporal: int, dr0: float | None, out: str = "out") -> list[str]:
     argv = ["restore", clip, "--temporal", str(temporal), "--out", out, "--save-intermediate"]
-    return argv + (["--dr0", f"{dr0:g}"] if dr0 else [])
+    return argv + (["--dr0", f"{dr0:g}"] if dr0 else ["--deblur", "none"])
 
 
 def run_clip(
@@ -653,14 +653,15 @@ def run_clip(
     commands, notes = [], []
     if src.suffix.lower() in VIDEO_SUFFIXES:
         frames, w, h = _video_size(run / name)
+        if frames == 0:  # containers that do not store it (mkv, webm): count by decoding
+            frames = sum(1 for _ in iter_video(run / name))
         if frames > limits.video_frames:
             raise D2TurbError(
                 f"{src.name}: {frames} frames is more than the app takes ({limits.video_frames}); "
                 "trim the video or use the command line"
             )
         check_pixels(src.name, w, h, limits.restore_pixels)
-        clip, stem, mp4 = name, Path(name).stem, f"{Path(name).stem}.mp4"
-        names = [f"{stem}_{i:06d}" for i in range(frames)]
+        clip, mp4 = name, f"{Path(name).stem}.mp4"
     elif src.suffix.lower() in IMAGE_SUFFIXES:
         w, h = image_size(src)
         check_pixels(src.name, w, h, limits.sim_pixels)
@@ -669,8 +670,7 @@ def run_clip(
         sim += ["--wind", "2", "--boil", "0.1", "--no-mp4"]
         run_cli([str(run / a) if a in (name, "clip") else a for a in sim])
         commands.append(sim)
-        clip, frames, mp4, dr0 = "clip/turb", CLIP_SIM_FRAMES, "turb.mp4", sim_dr0
-        names = [f"{i:06d}" for i in range(frames)]
+        clip, frames, mp4, dr0 = "clip/turb", CLIP_SIM_FRAMES, "turb_restored.mp4", sim_dr0
         notes.append(f"a {frames}-frame clip was simulated from the image at D/r0 = {sim_dr0:g} and restored with it")
     else:
         raise D2TurbError(f"{src.name}: not a video or image file type ({_known(IMAGE_SUFFIXES | VIDEO_SUFFIXES)})")
@@ -683,14 +683,15 @@ def run_clip(
     write_text(run / "command.sh", f"#!/bin/sh\n# written by d2turb {__version__} app; run it in this folder\n{text}\n")
     (run / "command.sh").chmod(0o755)
     out, views = run / "out", run / "views"
-    middle = names[min(len(names) - 1, len(names) // 2)]
-    restored_png = out / f"{middle}_restored.png"
-    if not restored_png.is_file():
-        raise D2TurbError(f"{src.name}: the clip gave no restored frame {middle}")
+    restored_all = sorted(out.glob("*_restored.png"))  # frame names are zero-padded: sorted = in order
+    if not restored_all:
+        raise D2TurbError(f"{src.name}: the clip gave no restored frame")
+    middle = len(restored_all) // 2
+    restored_png = restored_all[middle]
     if src.suffix.lower() in VIDEO_SUFFIXES:
-        before_img = next(f for i, f in iter_video(run / name) if i == names.index(middle))
+        before_img = next(f for i, f in iter_video(run / name) if i == middle)
     else:
-        before_img = read_image(run / clip / f"{middle}.png")
+        before_img = read_image(run / clip / restored_png.name.replace("_restored.png", ".png"))
     if not dr0:
         notes.append("no D/r0 given: the frames are registered and fused, not deblurred")
     result = ClipOutput(

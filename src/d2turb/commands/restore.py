@@ -289,7 +289,9 @@ def run_clips(args) -> int:
     errors = FileErrors(2, args.fail_fast)  # per frame: a bad one is reported and skipped
     names, frames = _clip_frames(src, errors)
     fps = video_fps(src) if is_video(src) else (args.fps or 30.0)
-    mp4 = out_dir / f"{src.stem if is_video(src) else src.name}.mp4"
+    # a video keeps its name (its folder cannot be --out); a folder's mp4 is marked, so a user's CLIP.mp4 beside the
+    # frames is never replaced
+    mp4 = out_dir / (f"{src.stem}.mp4" if is_video(src) else f"{src.resolve().name}_restored.mp4")
     if not can_write_mp4():
         print(f"note: no mp4 written; {VIDEO_HINT}")
         mp4 = None

@@ -51,7 +51,7 @@ def evaluate_clips(
     out: str | os.PathLike,
     deblur: list[str] = ("physics",),
     temporal: int = 32,
-    preset: str = "medium",
+    preset: str = "fast",
     passes: int = 2,
     stride: int = 4,
     max_samples: int | None = None,
