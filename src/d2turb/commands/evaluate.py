@@ -28,6 +28,9 @@ def register(sub):
     )
     p.add_argument("--temporal", type=int, default=32, metavar="N", help="with --clips: window (default 32)")
     p.add_argument(
+        "--preset", default="fast", choices=["fast", "medium", "fine"], help="with --clips: registration (default fast)"
+    )
+    p.add_argument(
         "--deblur",
         nargs="+",
         default=["physics"],

@@ -57,6 +57,12 @@ def register(sub):
     )
     add_param_arg(clip, "optics: aperture_m, wavelength_m, ifov_rad (default Nyquist), path_length_m")
     clip.add_argument("--passes", type=int, default=2, metavar="K", help="registration rounds (default 2)")
+    clip.add_argument(
+        "--preset",
+        default="fast",
+        choices=["fast", "medium", "fine"],
+        help="registration (DIS): fast = flow at half resolution (default), medium/fine = full resolution, slower",
+    )
     clip.add_argument("--fusion", default="mean", choices=["mean", "robust"], help="fusion of the registered frames")
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
     p.add_argument("--out", required=True, help="output folder")
@@ -281,7 +287,7 @@ def run_clips(args) -> int:
         raise D2TurbError(f"{src}: no such file or directory")
     if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
         raise D2TurbError(f"--fps must be positive, got {args.fps}")
-    restorer = ClipRestorer(temporal=args.temporal, passes=args.passes, fusion=args.fusion)
+    restorer = ClipRestorer(temporal=args.temporal, passes=args.passes, fusion=args.fusion, preset=args.preset)
     device = resolve_device(args.device)
     deblur, deblur_name = _clip_deblur(args, device, src)
     restorer.deblur = deblur
