@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from test_hardening import error_lines, one_error_line, run_cli
+from test_train import TINY_MODEL
 
 from d2turb.cli import main
 
@@ -27,25 +29,6 @@ def rgb(path: Path, h: int = 24, w: int = 32, seed: int = 0) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)).save(path)
     return path
-
-
-def run_cli(capsys, argv):
-    rc = main(argv)
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def one_error_line(err: str, *words: str) -> str:
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("error: ") and "Traceback" not in err, err
-    for word in words:
-        assert word in lines[0], (word, lines[0])
-    return lines[0]
-
-
-def error_lines(err: str) -> list[str]:
-    return [line for line in err.splitlines() if line.startswith("error: ")]
 
 
 def make_dataset_args(clean, out, *extra):
@@ -96,14 +79,6 @@ def test_every_fft_of_the_simulator_gets_a_contiguous_tensor(tmp_path, monkeypat
 
 
 # ------------------------------------------------------------------------------------------ 2. training
-TINY_MODEL = {
-    "name": "d2turb",
-    "backbone": "nafnet",
-    "injection": "aspi_cosine",
-    "rectifier": "unet",
-    "backbone_cfg": {"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1], "middle_blocks": 1},
-    "rectifier_cfg": {"width": 8, "mults": [1, 2, 2, 2], "depth": 3},
-}
 
 
 def tiny_pairs(root: Path, n: int = 4, size: int = 32, split: str = "train") -> Path:

@@ -359,13 +359,7 @@ def _owner_is_gone(token: str, mtime: float) -> bool:
         return False
     if os.name != "posix":  # no cheap liveness probe: an hour without change means abandoned
         return time.time() - mtime > 3600
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except OSError:  # EPERM: alive, another user's
-        return False
-    return False
+    return not _pid_alive(pid)
 
 
 def remove_stale_temp_files(folder: str | os.PathLike, recursive: bool = False) -> int:

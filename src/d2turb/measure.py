@@ -28,6 +28,7 @@ import numpy as np
 
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, global_shift_px, to_hwc
+from d2turb.sim.params import positive_finite
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
@@ -77,15 +78,8 @@ class Optics:
     def __post_init__(self):
         for name in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps"):
             value = getattr(self, name)
-            if value is None:
-                continue
-            try:
-                v = float(value)
-            except (TypeError, ValueError) as exc:
-                raise D2TurbError(f"{name} must be a number, got {value!r}") from exc
-            if not math.isfinite(v) or v <= 0:
-                raise D2TurbError(f"{name} must be positive and finite, got {value!r}")
-            setattr(self, name, v)
+            if value is not None:
+                setattr(self, name, positive_finite(name, value))
         if self.wavelength_m >= self.aperture_m:
             raise D2TurbError(f"wavelength {self.wavelength_m} m is not smaller than the aperture {self.aperture_m} m")
         if self.ifov_rad is None:

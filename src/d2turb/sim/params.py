@@ -18,7 +18,8 @@ MAX_DR0 = 10.0
 SAMPLING = (0.25, 16.0)  # pixel size ifov over the Nyquist pixel λ/(2D): the range the simulator supports
 
 
-def _positive(name: str, value) -> float:
+def positive_finite(name: str, value) -> float:
+    """``value`` as a float, or one-line ``D2TurbError`` naming ``name`` unless it is finite and > 0."""
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:
@@ -58,34 +59,36 @@ class TurbulenceParams:
     psf_grid_px: int = 16  # spacing of the exact-PSF grid in pixels
 
     def __post_init__(self):
-        self.aperture_m = _positive("aperture_m", self.aperture_m)
-        self.path_length_m = _positive("path_length_m", self.path_length_m)
+        self.aperture_m = positive_finite("aperture_m", self.aperture_m)
+        self.path_length_m = positive_finite("path_length_m", self.path_length_m)
         wl = self.wavelength_m
         wl = tuple(wl) if isinstance(wl, (list, tuple)) else (wl,)
         if len(wl) not in (1, 3):
             raise D2TurbError(f"wavelength_m must be one value or three (R, G, B), got {len(wl)}")
         self.wavelength_m = (
-            tuple(_positive("wavelength_m", w) for w in wl) if len(wl) == 3 else _positive("wavelength_m", wl[0])
+            tuple(positive_finite("wavelength_m", w) for w in wl)
+            if len(wl) == 3
+            else positive_finite("wavelength_m", wl[0])
         )
         if max(self.wavelengths) >= self.aperture_m:
             raise D2TurbError(
                 f"wavelength {max(self.wavelengths)} m is not smaller than the aperture {self.aperture_m} m"
             )
         if self.cn2 is not None:
-            cn2 = _positive("cn2", self.cn2)
+            cn2 = positive_finite("cn2", self.cn2)
             dr0_from_cn2 = self.aperture_m / fried_r0_spherical(cn2, self.path_length_m, self.reference_wavelength)
             if self.dr0 is not None and abs(float(self.dr0) - dr0_from_cn2) > 1e-3 * dr0_from_cn2:
                 raise D2TurbError(
                     f"give either dr0 or cn2: dr0={self.dr0} disagrees with cn2={self.cn2} (D/r0={dr0_from_cn2:.4g})"
                 )
             self.cn2, self.dr0 = cn2, dr0_from_cn2
-        self.dr0 = 3.0 if self.dr0 is None else _positive("dr0", self.dr0)
+        self.dr0 = 3.0 if self.dr0 is None else positive_finite("dr0", self.dr0)
         if self.dr0 > MAX_DR0:
             raise D2TurbError(f"D/r0 = {self.dr0:.3g} is beyond the supported range (0, {MAX_DR0:g}]")
         self.ifov_rad = (
             self.reference_wavelength / (2 * self.aperture_m)
             if self.ifov_rad is None
-            else _positive("ifov_rad", self.ifov_rad)
+            else positive_finite("ifov_rad", self.ifov_rad)
         )
         self._check_sampling()
         if not isinstance(self.n_zernike, int) or not 4 <= self.n_zernike <= 120:
@@ -177,7 +180,7 @@ def sample_dr0(
     if bins is not None:
         spans = bin_spans(bins)
     else:
-        low, high = _positive("dr0 low", low), _positive("dr0 high", high)
+        low, high = positive_finite("dr0 low", low), positive_finite("dr0 high", high)
         if high < low:
             raise D2TurbError(f"dr0 range is empty: low={low} > high={high}")
         if high > MAX_DR0:
