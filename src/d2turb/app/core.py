@@ -174,9 +174,9 @@ def run_cli(argv: list[str]) -> None:
         raise D2TurbError(f"d2turb {argv[0]} failed (exit status {rc})")
 
 
-def write_command(path: Path, argv: list[str]) -> str:
-    """The command line as text (``d2turb ...``) and as an executable script ``path``."""
-    cmd = shlex.join(["d2turb", *argv])
+def write_command(path: Path, *argvs: list[str]) -> str:
+    """The command lines as text (``d2turb ...``, one per argv, run in order) and as an executable script ``path``."""
+    cmd = "\n".join(shlex.join(["d2turb", *argv]) for argv in argvs)
     write_text(path, f"#!/bin/sh\n# written by d2turb {__version__} app; run it in this folder\n{cmd}\n")
     path.chmod(0o755)
     return cmd
@@ -679,9 +679,7 @@ def run_clip(
     run_argv[run_argv.index("--out") + 1] = str(run / "out")
     run_cli(run_argv)
     commands.append(argv)
-    text = "\n".join(shlex.join(["d2turb", *a]) for a in commands)
-    write_text(run / "command.sh", f"#!/bin/sh\n# written by d2turb {__version__} app; run it in this folder\n{text}\n")
-    (run / "command.sh").chmod(0o755)
+    text = write_command(run / "command.sh", *commands)
     out, views = run / "out", run / "views"
     restored_all = sorted(out.glob("*_restored.png"))  # frame names are zero-padded: sorted = in order
     if not restored_all:

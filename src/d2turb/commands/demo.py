@@ -139,7 +139,7 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
     import numpy as np
 
-    from d2turb.eval.metrics import psnr, ssim
+    from d2turb.eval.metrics import end_point_error, psnr, ssim
     from d2turb.eval.report import comparison_grid, flow_to_rgb
     from d2turb.io import write_image, write_text
     from d2turb.ops.splat import backward_flow
@@ -160,8 +160,8 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
             write_image(out / f"{name}_{level}_restored.png", restored)
             for label, image in (("input", res.turb[j].float().cpu()), ("restored", restored)):
                 scores[label].append((float(psnr(image, gt[j])), float(ssim(image, gt[j]))))
-            epe_zero = float(true_flow[j].norm(dim=0).mean())
-            epe = float((details["flow"][j] - true_flow[j]).norm(dim=0).mean())
+            epe_zero = float(end_point_error(true_flow[j]))
+            epe = float(end_point_error(details["flow"][j], true_flow[j]))
             scores["epe"].append((epe_zero, epe))
             row = [res.turb[j].float().cpu(), restored, gt[j]]
             if has_flow:

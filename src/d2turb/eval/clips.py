@@ -14,7 +14,7 @@ import torch
 
 from d2turb.data.sequence import SequenceDataset
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import psnr, ssim
+from d2turb.eval.metrics import end_point_error, psnr, ssim
 from d2turb.io import write_json, write_text
 from d2turb.models.hub import resolve_weights
 from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
@@ -89,9 +89,8 @@ def evaluate_clips(
         epe, epe_zero = [], []
         temporal_mean = frames.mean(0)
         for o in ClipRestorer(temporal=temporal, preset=preset, passes=passes).restore(frames):
-            err = o.bwd_flow_px - observable[o.index]
-            epe.append(float(err.norm(dim=0).mean()))
-            epe_zero.append(float(observable[o.index].norm(dim=0).mean()))
+            epe.append(float(end_point_error(o.bwd_flow_px, observable[o.index])))
+            epe_zero.append(float(end_point_error(observable[o.index])))
             if o.index % stride:
                 continue
             images = {"input": frames[o.index], "temporal mean": temporal_mean, "fused": o.fused}

@@ -40,6 +40,16 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> t
     return 10 * torch.log10(data_range**2 / mse.clamp_min(floor))
 
 
+def end_point_error(flow_px: torch.Tensor, target_px: torch.Tensor | None = None) -> torch.Tensor:
+    """Flow end-point error: the mean over pixels of ‖flow − target‖₂ in pixels (``target`` None: zero flow).
+
+    Shape:
+        flow_px, target_px: (..., 2, H, W) → (...): a scalar for one flow, (B,) for a batch.
+    """
+    diff = flow_px if target_px is None else flow_px - target_px
+    return diff.pow(2).sum(-3).sqrt().flatten(-2).mean(-1)
+
+
 def _gaussian_kernel1d(sigma: float, truncate: float = 3.5) -> torch.Tensor:
     """The 1-D kernel of ``scipy.ndimage.gaussian_filter`` (radius = int(truncate * sigma + 0.5))."""
     radius = int(truncate * sigma + 0.5)

@@ -21,7 +21,7 @@ from d2turb.data.layout import BIN_NAMES
 from d2turb.errors import D2TurbError
 from d2turb.eval.labels import GENERIC_STEMS, weights_label
 from d2turb.eval.lpips import LPIPS
-from d2turb.eval.metrics import psnr, ssim
+from d2turb.eval.metrics import end_point_error, psnr, ssim
 from d2turb.eval.report import comparison_grid, latex_table, markdown_table
 from d2turb.io import write_image, write_json, write_text
 from d2turb.restore import IdentityRestorer, Restorer
@@ -157,7 +157,7 @@ def evaluate_synthetic(
                     with torch.no_grad():
                         values["lpips"] = float(lpips_model(pred[None].to(device), gt[None].to(device))[0])
                 if "epe" in metrics:  # both flows are backward flows: warp(tilt, flow) ≈ gt
-                    values["epe"] = float((details["flow"] - item["flow"]).norm(dim=0).mean())
+                    values["epe"] = float(end_point_error(details["flow"], item["flow"]))
                 if "psnr_tilt" in metrics:
                     values["psnr_tilt"] = float(psnr(_quantise(details["deblurred"]), item["tilt"]))
                 record["values"][name] = values

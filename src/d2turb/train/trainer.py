@@ -38,7 +38,7 @@ from d2turb.data.pack import PackCrops
 from d2turb.data.split import split_of
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import psnr, ssim
+from d2turb.eval.metrics import end_point_error, psnr, ssim
 from d2turb.io import atomic_path, remove_stale_temp_files, write_json, write_text
 from d2turb.models import create_model, load_pretrained, save_pretrained
 from d2turb.models.hub import IDENTITY_NAME, resolve_weights
@@ -606,8 +606,8 @@ class Trainer:
             flow = batch.get("flow")
             if out.get("flow") is not None and flow is not None:
                 flow = flow.to(self.device).float()
-                values["epe"] = (out["flow"].float() - flow).pow(2).sum(1).sqrt().flatten(1).mean(1)
-                values["epe_zero"] = flow.pow(2).sum(1).sqrt().flatten(1).mean(1)
+                values["epe"] = end_point_error(out["flow"].float(), flow)
+                values["epe_zero"] = end_point_error(flow)
             bins = batch.get("bin")
             for key, v in values.items():
                 sums.add(key, v)
