@@ -197,6 +197,9 @@ def test_clip_errors_are_one_line(tmp_path, capsys):
     for i in range(4):
         write_image(good / f"f{i}.png", img)
     (good / "f9.png").write_bytes(b"not a png")
+    tiny = tmp_path / "tiny"  # OpenCV's DIS raises under 12 px and crashed by SIGSEGV at 11x40: refused before it
+    for i in range(3):
+        write_image(tiny / f"f{i}.png", img[:, :11, :40])
 
     def run(*args):  # in this process (`main` is what `python -m d2turb` runs): no torch import per case
         from d2turb.cli import main
@@ -211,6 +214,7 @@ def test_clip_errors_are_one_line(tmp_path, capsys):
         ((good, "--temporal", 4, "--deblur", "physics", "--out", tmp_path / "o4"), "give --dr0"),
         ((good, "--temporal", 4, "--dr0", -1, "--out", tmp_path / "o5"), "dr0"),
         ((good, "--temporal", 4, "--out", good), "folder of the input files"),
+        ((tiny, "--temporal", 3, "--out", tmp_path / "o7"), "too small to register"),
     ]:
         r = run(*args)
         assert r.returncode == 2, (args, r.stderr)

@@ -26,7 +26,15 @@ DIS_PRESETS = {
     "medium": dict(finest_scale=0, patch_size=8, patch_stride=3, grad_descent_iter=16, var_iter=3),
     "fine": dict(finest_scale=0, patch_size=8, patch_stride=2, grad_descent_iter=25, var_iter=5),
 }
+# OpenCV's DIS refuses images under 12 px (cv2.error) and crashed by SIGSEGV on 11x40 in OpenCV 5.0.0: checked first
+MIN_SIDE_PX = 12
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as OpenCV's cvtColor
+
+
+def check_registrable(height: int, width: int) -> None:
+    """One-line ``D2TurbError`` for frames too small to register (both sides must be >= ``MIN_SIDE_PX``)."""
+    if min(height, width) < MIN_SIDE_PX:
+        raise D2TurbError(f"frames of {width}x{height} are too small to register (need {MIN_SIDE_PX} px per side)")
 
 
 def to_hwc(frame) -> np.ndarray:
@@ -101,6 +109,7 @@ class DenseFlow:
         """
         if ref_gray.shape != frame_gray.shape or ref_gray.dtype != np.uint8 or frame_gray.dtype != np.uint8:
             raise D2TurbError(f"registration needs two (H,W) uint8 images of one size, got {ref_gray.shape}")
+        check_registrable(*ref_gray.shape)
         start = None if init is None else np.ascontiguousarray(init, dtype=np.float32)
         return self._dis.calc(ref_gray, frame_gray, start)
 

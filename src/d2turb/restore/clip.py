@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
-from d2turb.registration import DenseFlow, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
+from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
 from d2turb.sim.otf import image_otf
 from d2turb.sim.params import MAX_DR0
 
@@ -238,6 +238,7 @@ class ClipRestorer:
                 else:
                     raw = to_hwc(item)
                     if shape is None:
+                        check_registrable(*raw.shape[:2])
                         shape = raw.shape
                     elif raw.shape != shape:
                         raise D2TurbError(
