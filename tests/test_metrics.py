@@ -7,7 +7,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from test_metrics_ddp import _pairs
 
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import PSNR, SSIM, psnr, ssim
+from d2turb.eval.metrics import PSNR, SSIM, KeyedMean, psnr, ssim
 
 
 @pytest.fixture(autouse=True)
@@ -94,3 +94,31 @@ def test_accumulator_mean_of_per_image_values_and_reset():
     s.update(pred[:1], target[:1])
     s.update(pred[1:], target[1:])
     assert s.compute() == pytest.approx(ssim(pred, target).mean().item(), abs=1e-9)
+
+
+def test_keyed_mean_equals_numpy_means_per_key_and_group():
+    rng = np.random.default_rng(3)
+    n = 23
+    values = {"psnr": rng.normal(30, 5, n), "epe": rng.gamma(2.0, 0.5, n)}
+    bins = rng.integers(0, 3, n)
+    mean = KeyedMean()
+    for start, stop in ((0, 5), (5, 6), (6, 17), (17, n)):  # uneven batches; tensors, a list and floats
+        batch = {"psnr": torch.from_numpy(values["psnr"][start:stop]), "epe": list(values["epe"][start:stop])}
+        mean.update(batch, groups=torch.from_numpy(bins[start:stop]))
+    assert mean.compute() == pytest.approx({k: np.mean(v) for k, v in values.items()}, rel=1e-12)
+    assert mean.groups() == list(dict.fromkeys(bins.tolist()))
+    for b in range(3):
+        chosen = bins == b
+        assert mean.compute(b) == pytest.approx({k: np.mean(v[chosen]) for k, v in values.items()}, rel=1e-12)
+        assert mean.count("psnr", b) == chosen.sum()
+    assert mean.count("psnr") == n and mean.count("psnr", 7) == 0 and mean.compute(7) == {}
+    single = KeyedMean()  # one label for a whole batch; a float is one sample
+    single.update({"a": 1.0}, groups="weak")
+    single.update({"a": torch.tensor([2.0, 6.0])}, groups="strong")
+    single.update({"b": torch.zeros(0)}, groups="weak")  # no samples: no mean
+    assert single.compute() == {"a": 3.0} and single.compute("weak") == {"a": 1.0}
+    assert single.compute("strong") == {"a": 4.0} and single.groups() == ["weak", "strong"]
+    with pytest.raises(D2TurbError, match="2 group labels for 3 values"):
+        single.update({"a": torch.ones(3)}, groups=[0, 1])
+    single.reset()
+    assert single.compute() == {} and single.groups() == []

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 import torch
+import torch.distributed as dist
 
 from d2turb.defaults import DEVICE_HELP
 from d2turb.errors import D2TurbError
@@ -49,3 +50,10 @@ def resolve_device(name: str | torch.device | None = "auto", local_rank: int = 0
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one, else all)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def collective_device() -> torch.device:
+    """Where the tensors of a ``torch.distributed`` collective must live: the current GPU for nccl, else the CPU."""
+    if dist.get_backend() == "nccl":
+        return torch.device("cuda", torch.cuda.current_device())
+    return torch.device("cpu")

@@ -1,17 +1,21 @@
 """Full-reference image metrics: functional ``psnr``/``ssim`` and torchmetrics-style accumulators.
 
-Images are float tensors (B, C, H, W) (or one image (C, H, W)) in [0, 1]. The accumulators
-(``PSNR``, ``SSIM``, ``LPIPSMetric``) average per-image values; under ``torch.distributed`` their
+Images are float tensors (B, C, H, W) (or one image (C, H, W)) in [0, 1]. :class:`KeyedMean` is the one running
+mean of per-sample values (per key, overall and per group such as a turbulence bin) behind every average d2turb
+reports; the accumulators ``PSNR``, ``SSIM`` and ``LPIPSMetric`` use it for one key. Under ``torch.distributed``
 sums and counts are all-reduced in ``compute()``, so every rank gets the global mean.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Hashable, Mapping, Sequence
 
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 
+from d2turb.device import collective_device
 from d2turb.errors import D2TurbError
 from d2turb.eval.lpips import LPIPS
 from d2turb.io import check_image_tensor
@@ -100,15 +104,122 @@ def ssim(
     return s.flatten(1).double().mean(1)
 
 
-class MeanMetric:
-    """Running mean of per-image values; DDP-safe (sums and counts are all-reduced in ``compute``)."""
+class KeyedMean:
+    """Running means of per-sample values by key, over all samples and per group (e.g. per turbulence bin).
 
-    def __init__(self) -> None:
-        self.reset()
+    Like torchmetrics' ``MeanMetric`` for several keys at once, split by group like its ``ClasswiseWrapper``:
+    :meth:`update` adds a batch of per-sample values for each key, with the group of each sample; :meth:`compute`
+    gives the means; :meth:`reset` starts again. Sums and counts are float64, summed in the order they come.
+
+    Args:
+        sync_on_compute: when ``torch.distributed`` is initialised with more than one process, all-reduce sums and
+            counts in the first :meth:`compute` after an update (a collective: every rank calls it), so that every
+            rank gets the means over all ranks' samples, whichever keys and groups each rank saw. False for a
+            process that evaluates everything alone.
+
+    Example:
+        >>> mean = KeyedMean()
+        >>> mean.update({"psnr": torch.tensor([30.0, 20.0, 40.0])}, groups=["weak", "strong", "weak"])
+        >>> mean.compute(), mean.compute("weak"), mean.count("psnr", "strong")
+        ({'psnr': 30.0}, {'psnr': 35.0}, 1)
+    """
+
+    def __init__(self, sync_on_compute: bool = True) -> None:
+        self.sync_on_compute = sync_on_compute
+        self._sums: dict[tuple[Hashable, Hashable], list[float]] = {}  # (key, group or None) → [sum, count]
+        self._reduced: dict[tuple[Hashable, Hashable], list[float]] | None = None
 
     def reset(self) -> None:
-        self.total = torch.zeros((), dtype=torch.float64)
-        self.count = torch.zeros((), dtype=torch.float64)
+        """Forget every value seen."""
+        self._sums, self._reduced = {}, None
+
+    @torch.no_grad()
+    def update(
+        self,
+        values: Mapping[Hashable, torch.Tensor | float | Sequence[float]],
+        groups: torch.Tensor | Sequence[Hashable] | Hashable | None = None,
+    ) -> None:
+        """Add per-sample values.
+
+        Args:
+            values: key → the batch's per-sample values (a float is one sample).
+            groups: None; one group label (a str or an int, not None) for the whole batch; or one label per sample
+                (a tensor, list or tuple). Each value also counts towards the mean of its group.
+
+        Shape:
+            values[key]: (N,) (any shape is flattened); groups per sample: (N,).
+        """
+        for key, batch in values.items():
+            batch = torch.as_tensor(batch).detach().reshape(-1).double().cpu()
+            self._add(key, None, batch)
+            if groups is None:
+                continue
+            if not isinstance(groups, (torch.Tensor, list, tuple)) or (
+                isinstance(groups, torch.Tensor) and groups.ndim == 0
+            ):
+                self._add(key, groups.item() if isinstance(groups, torch.Tensor) else groups, batch)
+                continue
+            labels = groups.reshape(-1).tolist() if isinstance(groups, torch.Tensor) else list(groups)
+            if len(labels) != batch.numel():
+                raise D2TurbError(f"KeyedMean: {len(labels)} group labels for {batch.numel()} values of {key!r}")
+            for label in dict.fromkeys(labels):
+                self._add(key, label, batch[torch.tensor([x == label for x in labels])])
+        self._reduced = None
+
+    def _add(self, key: Hashable, group: Hashable, batch: torch.Tensor) -> None:
+        entry = self._sums.setdefault((key, group), [0.0, 0])
+        entry[0] += float(batch.sum())
+        entry[1] += batch.numel()
+
+    def sync(self) -> None:
+        """All-reduce sums and counts over the ``torch.distributed`` processes (a collective: every rank calls it);
+        the means of :meth:`compute` are then global until the next :meth:`update` or :meth:`reset`. One process,
+        or torch.distributed not initialised: the local sums."""
+        entries = list(self._sums)
+        table = [self._sums[e] for e in entries]
+        if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            seen: list = [None] * dist.get_world_size()
+            dist.all_gather_object(seen, entries)
+            entries = list(dict.fromkeys(e for rank_entries in seen for e in rank_entries))  # the same on every rank
+            sums = torch.tensor([self._sums.get(e, [0.0, 0]) for e in entries], dtype=torch.float64).reshape(-1, 2)
+            sums = sums.to(collective_device())
+            dist.all_reduce(sums, op=dist.ReduceOp.SUM)
+            table = sums.cpu().tolist()
+        self._reduced = {e: [float(s), float(n)] for e, (s, n) in zip(entries, table)}
+
+    def _table(self) -> dict[tuple[Hashable, Hashable], list[float]]:
+        if not self.sync_on_compute:
+            return self._sums
+        if self._reduced is None:
+            self.sync()
+        return self._reduced
+
+    def compute(self, group: Hashable = None) -> dict[Hashable, float]:
+        """Mean per key over all samples (``group`` None) or over the samples of ``group``.
+
+        Returns:
+            key → mean, in the order keys were first seen; keys without samples (in ``group``) are left out.
+        """
+        return {key: s / n for (key, g), (s, n) in self._table().items() if g == group and n > 0}
+
+    def count(self, key: Hashable, group: Hashable = None) -> int:
+        """How many samples the mean of ``key`` (in ``group``) is over."""
+        return int(self._table().get((key, group), (0.0, 0))[1])
+
+    def groups(self) -> list[Hashable]:
+        """The group labels seen, in the order they were first seen."""
+        return list(dict.fromkeys(g for _, g in self._table() if g is not None))
+
+
+class MeanMetric:
+    """Running mean of per-image values (a :class:`KeyedMean` of one key); DDP-safe (sums and counts are
+    all-reduced in ``compute``)."""
+
+    def __init__(self) -> None:
+        self._mean = KeyedMean()
+
+    def reset(self) -> None:
+        self._mean.reset()
 
     def per_image(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -117,21 +228,12 @@ class MeanMetric:
     def update(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Add a batch; returns its per-image values."""
         values = self.per_image(pred, target).detach().double().cpu()
-        self.total += values.sum()
-        self.count += values.numel()
+        self._mean.update({"mean": values})
         return values
 
     def compute(self) -> float:
         """Mean over every image seen (on all ranks when torch.distributed is initialised)."""
-        sums = torch.stack([self.total, self.count])
-        dist = torch.distributed
-        if dist.is_available() and dist.is_initialized():
-            backend_device = "cuda" if dist.get_backend() == "nccl" else "cpu"
-            sums = sums.to(backend_device)
-            dist.all_reduce(sums, op=dist.ReduceOp.SUM)
-            sums = sums.cpu()
-        total, count = sums.tolist()
-        return total / count if count else math.nan
+        return self._mean.compute().get("mean", math.nan)
 
 
 class PSNR(MeanMetric):
