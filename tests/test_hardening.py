@@ -21,7 +21,7 @@ from PIL import Image
 
 from d2turb.cli import main
 from d2turb.defaults import DEFAULT_MAX_PIXELS
-from d2turb.device import resolve_device
+from d2turb.device import DistributedEnv, distributed_env, resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
     BackgroundWriter,
@@ -299,6 +299,24 @@ def test_resolve_device_rules(monkeypatch):
     assert resolve_device("auto") == torch.device("cpu")
     with pytest.raises(D2TurbError, match="CUDA is not available"):
         resolve_device("cuda:0")
+
+
+def test_distributed_environment_is_read_in_one_place(monkeypatch):
+    for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    assert distributed_env() == DistributedEnv(rank=0, world=1, local_rank=0)  # one process
+    monkeypatch.setenv("WORLD_SIZE", "4")
+    monkeypatch.setenv("RANK", "3")
+    assert distributed_env() == DistributedEnv(3, 4, 3)  # LOCAL_RANK defaults to RANK (one machine)
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert distributed_env() == DistributedEnv(3, 4, 1)
+    monkeypatch.setenv("LOCAL_RANK", "one")
+    with pytest.raises(D2TurbError, match="LOCAL_RANK must be an integer, got 'one'"):
+        distributed_env()
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    monkeypatch.setenv("RANK", "4")
+    with pytest.raises(D2TurbError, match="bad distributed environment: RANK=4 WORLD_SIZE=4"):
+        distributed_env()
 
 
 # ---------------------------------------------------------------------------------------------- 4. seeds

@@ -1,8 +1,10 @@
-"""The one device resolver: every command, the restorer, the trainer and the dataset generator use it."""
+"""The one device resolver and the one reader of torchrun's environment: every command, the restorer, the trainer
+and the dataset generator use them."""
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
@@ -50,6 +52,41 @@ def resolve_device(name: str | torch.device | None = "auto", local_rank: int = 0
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one, else all)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class DistributedEnv:
+    """This process's place in a ``torchrun`` launch; the defaults are a single process."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+
+def _env_int(name: str, default: int) -> int:
+    text = os.environ.get(name)
+    if text is None:
+        return default
+    try:
+        return int(text)
+    except ValueError as exc:
+        raise D2TurbError(f"environment variable {name} must be an integer, got {text!r}") from exc
+
+
+def distributed_env() -> DistributedEnv:
+    """torchrun's ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK`` (absent: one process).
+
+    Returns:
+        The environment; ``local_rank`` defaults to ``rank`` (processes started by hand on one machine).
+
+    Raises:
+        D2TurbError: a value that is not an integer, ``WORLD_SIZE`` < 1 or ``RANK`` outside [0, WORLD_SIZE).
+    """
+    world, rank = _env_int("WORLD_SIZE", 1), _env_int("RANK", 0)
+    local_rank = _env_int("LOCAL_RANK", rank)
+    if world < 1 or not 0 <= rank < world:
+        raise D2TurbError(f"bad distributed environment: RANK={rank} WORLD_SIZE={world}")
+    return DistributedEnv(rank, world, local_rank)
 
 
 def collective_device() -> torch.device:

@@ -13,7 +13,6 @@ import contextlib
 import datetime
 import json
 import logging
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -40,7 +39,7 @@ from d2turb.data.layout import (
 from d2turb.data.sequence import sequence_settings, simulate_sequence_chunk
 from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE
 from d2turb.depth import depth_for_image
-from d2turb.device import resolve_device
+from d2turb.device import DistributedEnv, distributed_env, resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
     DEFAULT_PNG_LEVEL,
@@ -366,26 +365,7 @@ def _discard_if_empty(root: Path, created_root: bool) -> None:
 
 
 # ------------------------------------------------------------------------------------------ distributed
-@dataclass
-class DistInfo:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-
-def dist_info() -> DistInfo:
-    try:
-        world = int(os.environ.get("WORLD_SIZE", "1"))
-        rank = int(os.environ.get("RANK", "0"))
-        local = int(os.environ.get("LOCAL_RANK", str(rank)))
-    except ValueError as exc:
-        raise D2TurbError("RANK, WORLD_SIZE and LOCAL_RANK must be integers") from exc
-    if world < 1 or not 0 <= rank < world:
-        raise D2TurbError(f"bad distributed environment: RANK={rank} WORLD_SIZE={world}")
-    return DistInfo(rank, world, local)
-
-
-def _barrier(info: DistInfo) -> None:
+def _barrier(info: DistributedEnv) -> None:
     if info.world > 1:
         torch.distributed.barrier()
 
@@ -394,7 +374,7 @@ def _barrier(info: DistInfo) -> None:
 def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or finish) the dataset in ``cfg.out``; returns counts and timing of this process."""
     validate(cfg)
-    info = dist_info()
+    info = distributed_env()
     resolve_device(cfg.device, info.local_rank)  # a bad --device fails before anything is written
     root = check_output_dir(cfg.out)
     sources = expand_inputs(list(cfg.clean))
@@ -446,7 +426,7 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     return stats
 
 
-def _lock_folder(root: Path, info: DistInfo) -> FolderLock | None:
+def _lock_folder(root: Path, info: DistributedEnv) -> FolderLock | None:
     """Rank 0 locks ``root`` (:class:`d2turb.io.FolderLock`: a second make-dataset into it is refused in one line
     naming the first, a killed run's lock is taken over); every rank learns whether it succeeded."""
     lock, error = None, None

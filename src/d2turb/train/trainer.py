@@ -36,7 +36,7 @@ from d2turb.data import CleanCropDataset, OnTheFlySynthesis, PairDataset, crop_s
 from d2turb.data.layout import BIN_NAMES
 from d2turb.data.pack import PackCrops
 from d2turb.data.split import split_of
-from d2turb.device import resolve_device
+from d2turb.device import distributed_env, resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import end_point_error, psnr, ssim
 from d2turb.io import atomic_path, remove_stale_temp_files, write_json, write_text
@@ -74,17 +74,11 @@ class ResumableSampler(Sampler):
         return len(self.inner) - self.skip
 
 
-def _env_int(name: str, default: int) -> int:
-    try:
-        return int(os.environ.get(name, default))
-    except ValueError as exc:
-        raise D2TurbError(f"environment variable {name} must be an integer, got {os.environ[name]!r}") from exc
-
-
 def init_distributed(device_name: str) -> tuple[int, int, torch.device]:
     """(rank, world_size, device) from torchrun's RANK / WORLD_SIZE / LOCAL_RANK; nccl on CUDA, gloo on CPU."""
-    world, rank, local = _env_int("WORLD_SIZE", 1), _env_int("RANK", 0), _env_int("LOCAL_RANK", 0)
-    device = resolve_device(device_name, local)
+    env = distributed_env()
+    rank, world = env.rank, env.world
+    device = resolve_device(device_name, env.local_rank)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if world > 1 and not dist.is_initialized():
@@ -174,7 +168,7 @@ class Trainer:
     # ---------------------------------------------------------------- construction steps
     def _check_resume(self, resume: bool) -> None:
         self.checkpoint_path = self.run_dir / CHECKPOINT
-        if _env_int("RANK", 0) == 0:  # temp checkpoints (hundreds of MB) of a killed run, before anything is written
+        if distributed_env().rank == 0:  # temp checkpoints (hundreds of MB) of a killed run, before anything is written
             remove_stale_temp_files(self.run_dir)
         self.resuming = self.checkpoint_path.is_file()
         if resume and not self.resuming:
