@@ -38,7 +38,7 @@ from d2turb.data.pack import PackCrops
 from d2turb.data.split import split_of
 from d2turb.device import distributed_env, resolve_device
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import end_point_error, psnr, ssim
+from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.io import atomic_path, remove_stale_temp_files, write_json, write_text
 from d2turb.models import create_model, load_pretrained, save_pretrained
 from d2turb.models.hub import IDENTITY_NAME, resolve_weights
@@ -114,27 +114,6 @@ def read_status(run_dir: str | os.PathLike) -> dict:
         except (PermissionError, KeyError, ValueError, TypeError):
             pass
     return status
-
-
-class _Sums:
-    """Per-key sums and counts of per-image values, all-reduced across ranks in one collective."""
-
-    def __init__(self) -> None:
-        self.sums: dict[str, list[float]] = {}
-
-    def add(self, key: str, values: torch.Tensor) -> None:
-        s = self.sums.setdefault(key, [0.0, 0.0])
-        values = values.detach().double().cpu()
-        s[0] += float(values.sum())
-        s[1] += values.numel()
-
-    def means(self, keys: list[str], world: int, device: torch.device) -> dict[str, float]:
-        table = torch.tensor([self.sums.get(k, [0.0, 0.0]) for k in keys], dtype=torch.float64)
-        if world > 1:
-            table = table.to(device)
-            dist.all_reduce(table, op=dist.ReduceOp.SUM)
-            table = table.cpu()
-        return {k: (s / n if n else math.nan) for k, (s, n) in zip(keys, table.tolist())}
 
 
 class Trainer:
@@ -582,7 +561,7 @@ class Trainer:
         model = self.eval_model
         was_training = model.training
         model.eval()
-        sums = _Sums()
+        mean = KeyedMean(sync_on_compute=self.world > 1)
         for batch in self.val_loader:
             if crop:
                 h, w = batch["gt"].shape[-2:]
@@ -602,18 +581,12 @@ class Trainer:
                 flow = flow.to(self.device).float()
                 values["epe"] = end_point_error(out["flow"].float(), flow)
                 values["epe_zero"] = end_point_error(flow)
-            bins = batch.get("bin")
-            for key, v in values.items():
-                sums.add(key, v)
-                if bins is not None:
-                    for i, name in enumerate(BIN_NAMES):
-                        chosen = (bins.to(v.device) == i).reshape(-1)
-                        if chosen.any():
-                            sums.add(f"{key}_{name}", v[chosen])
+            mean.update(values, groups=batch.get("bin"))
         model.train(was_training)
         metrics = ("psnr", "ssim", "psnr_input", "ssim_input", "epe", "epe_zero")
-        keys = list(metrics) + [f"{m}_{b}" for m in metrics for b in BIN_NAMES]
-        means = sums.means(keys, self.world, self.device)
+        overall, per_bin = mean.compute(), {b: mean.compute(i) for i, b in enumerate(BIN_NAMES)}
+        means = {k: overall[k] for k in metrics if k in overall}
+        means |= {f"{m}_{b}": per_bin[b][m] for m in metrics for b in BIN_NAMES if m in per_bin[b]}
         return {k: v for k, v in means.items() if not math.isnan(v)}
 
     def _validate_and_save(self, it: int) -> None:
