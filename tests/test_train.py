@@ -408,7 +408,7 @@ def test_on_the_fly_synthesis_training(tmp_path, astronaut):
         "log": {"progress": False},
     }
     trainer = Trainer(load_config(base=base), tmp_path / "run")
-    batch = trainer._to_device(next(iter(trainer.loader)))
+    batch = trainer.data.to_device(next(iter(trainer.data.loader)))
     assert batch["turb"].shape == (2, 3, 32, 32) and batch["flow"].shape == (2, 2, 32, 32)
     assert float(batch["dr0"].min()) >= 3.75 and not torch.equal(batch["turb"], batch["gt"])
     summary = trainer.fit()

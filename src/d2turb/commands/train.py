@@ -64,7 +64,7 @@ def _config_and_out(args):
 
 def _refuse_if_running(out: str) -> None:
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    from d2turb.train.trainer import STATUS, read_status
+    from d2turb.train.status import STATUS, read_status
 
     if os.path.isfile(os.path.join(out, STATUS)):
         status = read_status(out)
@@ -114,7 +114,7 @@ def _hms(seconds) -> str:
 
 def print_status(run_dir: str) -> int:
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    from d2turb.train.trainer import read_status
+    from d2turb.train.status import read_status
 
     s = read_status(run_dir)
     state = s["state"]

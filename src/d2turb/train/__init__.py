@@ -1,6 +1,7 @@
 """d2turb.train: the multi-stage objective (Sec. 3.3), YAML configs and the (DDP) training loop."""
 
 from d2turb.train.config import DEFAULTS, Config, load_config
+from d2turb.train.distributed import init_distributed
 from d2turb.train.ema import EMA
 from d2turb.train.losses import (
     NATIVE_LOSS,
@@ -11,7 +12,8 @@ from d2turb.train.losses import (
     l1_loss,
     psnr_loss,
 )
-from d2turb.train.trainer import Trainer, init_distributed, read_status
+from d2turb.train.status import read_status
+from d2turb.train.trainer import Trainer
 
 __all__ = [
     "DEFAULTS",
