@@ -423,11 +423,12 @@ def _free_port() -> int:
 
 
 def test_ddp_two_processes_equal_one_process(pairs, tmp_path):
-    """Two gloo processes with 2 samples each = one process with the batch of 4 (EMA included)."""
+    """Two gloo processes with 2 samples each = one process with the batch of 4 (EMA included); so is validation on
+    3 images shared unevenly (2 + 1) between the ranks."""
     import yaml
     from safetensors.torch import load_file
 
-    cfg = tiny_cfg(pairs, iterations=2, batch=4, ema=0.5)
+    cfg = tiny_cfg(pairs, iterations=2, batch=4, ema=0.5, val={"pairs": str(pairs), "every": 2, "max_images": 3})
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
     cmd = [sys.executable, "-m", "d2turb", "train", "--config", str(tmp_path / "cfg.yaml"), "--out", str(tmp_path)]
     env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
@@ -451,6 +452,13 @@ def test_ddp_two_processes_equal_one_process(pairs, tmp_path):
     assert any(not torch.equal(init[k], a[k]) for k in a)  # training moved the weights
     for k in a:
         torch.testing.assert_close(b[k], a[k], rtol=1e-4, atol=1e-5, msg=k)
+    vals = [
+        next(json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if "val_psnr" in line)
+        for run in (tmp_path / "single", tmp_path / "ddp")
+    ]
+    assert vals[0].keys() == vals[1].keys() and "val_epe_weak" in vals[0]
+    for k, v in vals[0].items():  # the input's metrics exactly; the model's to the weights' float tolerance
+        assert vals[1][k] == pytest.approx(v, rel=1e-9 if "input" in k or "zero" in k else 1e-4), k
 
 
 # ------------------------------------------------------------------ CLI
