@@ -31,6 +31,7 @@ def pytest_xdist_auto_num_workers(config):
 HEAVY_TESTS = {
     "test_bench_all_writes_markdown_table",
     "test_ddp_two_processes_equal_one_process",
+    "test_ddp_stop_right_after_a_checkpoint_does_not_hang",
     "test_two_ranks_match_single_process",
     "test_make_dataset_frames_restarts_byte_identically",
     "test_ddp_all_reduce_equals_single_process",

@@ -461,6 +461,44 @@ def test_ddp_two_processes_equal_one_process(pairs, tmp_path):
         assert vals[1][k] == pytest.approx(v, rel=1e-9 if "input" in k or "zero" in k else 1e-4), k
 
 
+def test_ddp_stop_right_after_a_checkpoint_does_not_hang(pairs, tmp_path):
+    """A time budget spent at a checkpoint step: no rank saves again (rank 1 used to wait in the final save's
+    collective while rank 0 had left: a hang)."""
+    import yaml
+
+    cfg = tiny_cfg(pairs, iterations=2, batch=4, max_minutes=1e-9).to_dict()
+    cfg["checkpoint"]["every"] = 1
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    cmd = [
+        sys.executable,
+        "-m",
+        "d2turb",
+        "train",
+        "--config",
+        str(tmp_path / "cfg.yaml"),
+        "--out",
+        str(tmp_path / "o"),
+    ]
+    env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
+    env.update(OMP_NUM_THREADS="1", MASTER_ADDR="127.0.0.1", MASTER_PORT=str(_free_port()))
+    procs = [
+        subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env={**env, "RANK": str(r), "LOCAL_RANK": str(r), "WORLD_SIZE": "2"},
+        )
+        for r in range(2)
+    ]
+    try:
+        outs = [p.communicate(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    assert all(p.returncode == 0 for p in procs), [o[1].decode()[-2000:] for o in outs]
+    assert b"trained 1/2" in outs[0][0] and b"stopped: max_minutes" in outs[0][0]
+
+
 # ------------------------------------------------------------------ CLI
 def test_cli_one_line_errors(capsys, tmp_path, pairs):
     from d2turb.cli import main

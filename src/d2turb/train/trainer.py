@@ -143,6 +143,7 @@ class Trainer:
     def save_checkpoint(self) -> Path | None:
         """Atomically write ``last.pt`` (rank 0; every rank contributes its RNG state)."""
         rngs = gather_objects(self.rng.state_dict(), self.world)
+        self._checkpoint_iteration = self.iteration  # on every rank: fit's final save is a collective
         if not self.is_main:
             return None
         save_checkpoint(
@@ -157,7 +158,6 @@ class Trainer:
             rng=rngs,
             config=self.cfg.to_dict(),
         )
-        self._checkpoint_iteration = self.iteration
         return self.checkpoint_path
 
     def load_checkpoint(self, path: Path) -> None:
