@@ -103,7 +103,8 @@ def test_keyed_mean_equals_numpy_means_per_key_and_group():
     bins = rng.integers(0, 3, n)
     mean = KeyedMean()
     for start, stop in ((0, 5), (5, 6), (6, 17), (17, n)):  # uneven batches; tensors, a list and floats
-        batch = {"psnr": torch.from_numpy(values["psnr"][start:stop]), "epe": list(values["epe"][start:stop])}
+        epe = [float(v) for v in values["epe"][start:stop]]  # Python floats are float64, not torch's default float32
+        batch = {"psnr": torch.from_numpy(values["psnr"][start:stop]), "epe": epe if len(epe) > 1 else epe[0]}
         mean.update(batch, groups=torch.from_numpy(bins[start:stop]))
     assert mean.compute() == pytest.approx({k: np.mean(v) for k, v in values.items()}, rel=1e-12)
     assert mean.groups() == list(dict.fromkeys(bins.tolist()))

@@ -150,7 +150,8 @@ class KeyedMean:
             values[key]: (N,) (any shape is flattened); groups per sample: (N,).
         """
         for key, batch in values.items():
-            batch = torch.as_tensor(batch).detach().reshape(-1).double().cpu()
+            batch = batch.detach() if isinstance(batch, torch.Tensor) else torch.as_tensor(batch, dtype=torch.float64)
+            batch = batch.reshape(-1).double().cpu()
             self._add(key, None, batch)
             if groups is None:
                 continue
