@@ -281,3 +281,62 @@ def test_small_frames_restore_without_deblurring_when_they_cannot_be_measured(tm
         from d2turb.measure import measure_clip
 
         measure_clip([torch.from_numpy(img).permute(2, 0, 1)] * 10)
+
+
+def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch):
+    """evaluate --clips with the dataset and the clip restorer replaced by known frames: each clip's numbers are
+    numpy means over its frames (image metrics on every stride-th frame), each bin's over its clips."""
+    import d2turb.eval.clips as clips
+    from d2turb.eval.metrics import ssim
+
+    g = torch.Generator().manual_seed(0)
+    frames_n, size, stride = 5, 24, 2
+    bins = ["weak", "strong", "weak"]
+    items = []
+    for k in range(len(bins)):
+        gt = torch.rand(3, size, size, generator=g)
+        turb = (gt + 0.1 * (k + 1) * torch.randn(frames_n, 3, size, size, generator=g)).clamp(0, 1)
+        items.append(
+            {"id": f"{k:07d}", "turb": turb, "gt": gt, "flow": torch.randn(frames_n, 2, size, size, generator=g)}
+        )
+    records = [{"bin": b, "dr0": 1.0 + k} for k, b in enumerate(bins)]
+    data = type("Data", (), {"records": records, "__len__": lambda s: len(items), "__getitem__": lambda s, i: items[i]})
+
+    class Restorer:  # frame i: fused = (frame + gt) / 2, displacement = observable flow + (0.1 i, 0) px
+        def __init__(self, **kwargs):
+            pass
+
+        def restore(self, frames):
+            item = next(it for it in items if it["turb"] is frames)
+            observable = item["flow"] - item["flow"].mean(0, keepdim=True)
+            for i in range(len(frames)):
+                flow = observable[i] + torch.tensor([0.1 * i, 0.0]).view(2, 1, 1)
+                yield type("Out", (), {"index": i, "fused": (frames[i] + item["gt"]) / 2, "bwd_flow_px": flow})
+
+    monkeypatch.setattr(clips, "SequenceDataset", lambda root: data())
+    monkeypatch.setattr(clips, "ClipRestorer", Restorer)
+    res = clips.evaluate_clips(tmp_path, tmp_path / "out", deblur=["none"], stride=stride, progress=False)
+
+    def psnr_np(a, b):
+        return 10 * np.log10(1.0 / ((a.double().numpy() - b.double().numpy()) ** 2).mean())
+
+    expected = []
+    for item in items:
+        obs = (item["flow"] - item["flow"].mean(0, keepdim=True)).double().numpy()
+        turb, gt = item["turb"], item["gt"]
+        rows = {"input": list(turb[::stride]), "temporal mean": [turb.mean(0)] * len(turb[::stride])}
+        rows["fused"] = [(f + gt) / 2 for f in turb[::stride]]
+        sample = {"epe": np.mean([0.1 * i for i in range(frames_n)])}
+        sample["epe_zero"] = np.mean([np.sqrt((o**2).sum(0)).mean() for o in obs])
+        for row, images in rows.items():
+            sample[f"{row} psnr"] = np.mean([psnr_np(im.clamp(0, 1), gt) for im in images])
+            sample[f"{row} ssim"] = np.mean([float(ssim(im.clamp(0, 1)[None], gt[None])) for im in images])
+        expected.append(sample)
+    for got, want in zip(res["samples"], expected):
+        assert {k: got[k] for k in want} == pytest.approx(want, rel=1e-6)
+    for b in ("weak", "strong"):
+        members = [s for s, r in zip(expected, records) if r["bin"] == b]
+        want = {k: np.mean([m[k] for m in members]) for k in expected[0]}
+        want["dr0"] = np.mean([r["dr0"] for r in records if r["bin"] == b])
+        assert res["bins"][b] == pytest.approx(want | {"clips": len(members)}, rel=1e-6)
+    assert list(res["bins"]) == ["weak", "strong"]  # bins in their order, only those with clips

@@ -9,12 +9,11 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from d2turb.data.sequence import SequenceDataset
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import end_point_error, psnr, ssim
+from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.io import write_json, write_text
 from d2turb.models.hub import resolve_weights
 from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
@@ -46,6 +45,27 @@ def _physics_for(record: dict, depth: torch.Tensor) -> PhysicsDeblur:
 _PARAM_KEYS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "modulation", "offset_s")
 
 
+def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestorer, stride: int) -> dict[str, float]:
+    """Means over one clip's frames: ``epe``, ``epe_zero`` (every frame) and ``"<row> psnr"``, ``"<row> ssim"`` of
+    each row (every ``stride``-th frame)."""
+    frames, gt = item["turb"], item["gt"]
+    observable = item["flow"] - item["flow"].mean(0, keepdim=True)
+    temporal_mean = frames.mean(0)
+    mean = KeyedMean(sync_on_compute=False)
+    for o in restorer.restore(frames):
+        flow = observable[o.index]
+        mean.update({"epe": float(end_point_error(o.bwd_flow_px, flow)), "epe_zero": float(end_point_error(flow))})
+        if o.index % stride:
+            continue
+        images = {"input": frames[o.index], "temporal mean": temporal_mean, "fused": o.fused}
+        for name, fn in deblurs.items():
+            images[f"fused + {name}"] = fn(o.fused)
+        for row, img in images.items():
+            img = img.clamp(0, 1)[None]
+            mean.update({f"{row} psnr": float(psnr(img, gt[None])), f"{row} ssim": float(ssim(img, gt[None]))})
+    return mean.compute()
+
+
 def evaluate_clips(
     root: str | os.PathLike,
     out: str | os.PathLike,
@@ -70,7 +90,7 @@ def evaluate_clips(
         raise D2TurbError(f"stride must be a positive integer, got {stride!r}")
     options = _deblurs([d for d in deblur if d != "none"], device)
     rows = list(ROWS) + [f"fused + {name}" for name in options]
-    per_bin: dict[str, dict[str, list]] = {b: {} for b in BINS}
+    per_bin = KeyedMean(sync_on_compute=False)  # clip means, per bin
     samples = []
     n = len(data) if max_samples is None else min(len(data), max_samples)
     bar = None
@@ -80,42 +100,18 @@ def evaluate_clips(
         bar = tqdm(total=n, desc="clips", unit="clip")
     for idx in range(n):
         item, record = data[idx], data.records[idx]
-        frames, gt = item["turb"], item["gt"]
-        observable = item["flow"] - item["flow"].mean(0, keepdim=True)
         deblurs = {
             name: (_physics_for(record, item["depth"]) if fn == "physics" else fn) for name, fn in options.items()
         }
-        scores: dict[str, list] = {f"{r} {m}": [] for r in rows for m in ("psnr", "ssim")}
-        epe, epe_zero = [], []
-        temporal_mean = frames.mean(0)
-        for o in ClipRestorer(temporal=temporal, preset=preset, passes=passes).restore(frames):
-            epe.append(float(end_point_error(o.bwd_flow_px, observable[o.index])))
-            epe_zero.append(float(end_point_error(observable[o.index])))
-            if o.index % stride:
-                continue
-            images = {"input": frames[o.index], "temporal mean": temporal_mean, "fused": o.fused}
-            for name, fn in deblurs.items():
-                images[f"fused + {name}"] = fn(o.fused)
-            for row, img in images.items():
-                img = img.clamp(0, 1)[None]
-                scores[f"{row} psnr"].append(float(psnr(img, gt[None])))
-                scores[f"{row} ssim"].append(float(ssim(img, gt[None])))
-        sample = {"id": item["id"], "bin": record["bin"], "dr0": float(record["dr0"]), "epe": float(np.mean(epe))}
-        sample["epe_zero"] = float(np.mean(epe_zero))
-        sample.update({k: float(np.mean(v)) for k, v in scores.items()})
+        frame_means = _clip_scores(item, deblurs, ClipRestorer(temporal=temporal, preset=preset, passes=passes), stride)
+        sample = {"id": item["id"], "bin": record["bin"], "dr0": float(record["dr0"])} | frame_means
         samples.append(sample)
-        for key, value in sample.items():
-            if isinstance(value, float):
-                per_bin[record["bin"]].setdefault(key, []).append(value)
+        per_bin.update({k: v for k, v in sample.items() if isinstance(v, float)}, groups=record["bin"])
         if bar is not None:
             bar.update()
     if bar is not None:
         bar.close()
-    table = {
-        b: {k: float(np.mean(v)) for k, v in cols.items()} | {"clips": len(cols.get("epe", []))}
-        for b, cols in per_bin.items()
-        if cols
-    }
+    table = {b: per_bin.compute(b) | {"clips": per_bin.count("epe", b)} for b in BINS if per_bin.count("epe", b)}
     results = {
         "dataset": str(root),
         "settings": {
