@@ -19,6 +19,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.errors import D2TurbError
 from d2turb.eval.labels import weights_label
+from d2turb.eval.metrics import KeyedMean
 from d2turb.eval.musiq import MUSIQ
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
@@ -223,7 +224,8 @@ def evaluate_real(
     factory = restorer_factory or _default_restorer
     restorers = {n: (None if str(w) == IDENTITY else factory(str(w), device)) for n, w in zip(model_names, weights)}
 
-    values = {n: {m: {} for m in metric_names} for n in model_names}
+    values = {n: {m: {} for m in metric_names} for n in model_names}  # per image
+    mean = KeyedMean(sync_on_compute=False)  # per (model, metric), over all images and per folder
     skipped: list[dict] = []
     out_dir = Path(out_dir)
     for path, rel, name in zip(paths, relative, names):
@@ -248,6 +250,7 @@ def evaluate_real(
             continue
         for (n, m), value in scores.items():
             values[n][m][name] = value
+        mean.update(scores, groups=PurePosixPath(name).parent.as_posix())
         if any(r is not None for r in restorers.values()):
             write_image(
                 out_dir / "grids" / rel.with_suffix(".png"),
@@ -259,7 +262,7 @@ def evaluate_real(
     if len(skipped) == len(paths):
         raise D2TurbError(f"{real_dir}: none of the {len(paths)} images could be evaluated")
     names = [n for n in names if n not in {s["file"] for s in skipped}]
-
+    means = mean.compute()
     results = {
         "mode": "real",
         "data": str(real_dir),
@@ -267,23 +270,18 @@ def evaluate_real(
         "images": names,
         "skipped": skipped,
         "not_scored": not_scored,
-        "models": {
-            n: {m: {"per_image": values[n][m], "mean": sum(values[n][m].values()) / len(names)} for m in metric_names}
-            for n in model_names
-        },
+        "models": {n: {m: {"per_image": values[n][m], "mean": means[n, m]} for m in metric_names} for n in model_names},
     }
     results.update({m: results["models"][model_names[0]][m] for m in metric_names})
     if recursive:
         folders: dict[str, list[str]] = {}
         for name in names:
             folders.setdefault(PurePosixPath(name).parent.as_posix(), []).append(name)
+        folder_means = {folder: mean.compute(folder) for folder in folders}
         results["folders"] = {
             folder: {
                 "images": members,
-                "models": {
-                    n: {m: sum(values[n][m][k] for k in members) / len(members) for m in metric_names}
-                    for n in model_names
-                },
+                "models": {n: {m: folder_means[folder][n, m] for m in metric_names} for n in model_names},
             }
             for folder, members in folders.items()
         }
