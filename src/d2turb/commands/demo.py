@@ -137,9 +137,7 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
     """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table.
     A model with a rectifier also gets predicted | true flow columns and the flow end-point errors."""
     # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    import numpy as np
-
-    from d2turb.eval.metrics import end_point_error, psnr, ssim
+    from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
     from d2turb.eval.report import comparison_grid, flow_to_rgb
     from d2turb.io import write_image, write_text
     from d2turb.ops.splat import backward_flow
@@ -152,33 +150,28 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
     gt = res.clean.float().cpu()
     b = len(names)
     rows, labels, table = [], [], {}
+    mean = KeyedMean(sync_on_compute=False)  # per bin, over the images
     for k, (level, value) in enumerate(LEVELS):
-        scores = {"input": [], "restored": [], "epe": []}
         for i, name in enumerate(names):
             j = k * b + i
             restored = (details["restored"][j].clamp(0, 1) * 255).round() / 255  # what the saved PNG holds
             write_image(out / f"{name}_{level}_restored.png", restored)
+            scores = {}
             for label, image in (("input", res.turb[j].float().cpu()), ("restored", restored)):
-                scores[label].append((float(psnr(image, gt[j])), float(ssim(image, gt[j]))))
-            epe_zero = float(end_point_error(true_flow[j]))
-            epe = float(end_point_error(details["flow"][j], true_flow[j]))
-            scores["epe"].append((epe_zero, epe))
+                scores[f"psnr_{label}"], scores[f"ssim_{label}"] = float(psnr(image, gt[j])), float(ssim(image, gt[j]))
+            scores["epe_zero_flow_px"] = float(end_point_error(true_flow[j]))
+            scores["epe_px"] = float(end_point_error(details["flow"][j], true_flow[j]))
+            mean.update(scores, groups=level)
             row = [res.turb[j].float().cpu(), restored, gt[j]]
             if has_flow:
                 peak = float(true_flow[j].norm(dim=0).max())
                 row += [flow_to_rgb(details["flow"][j], peak), flow_to_rgb(true_flow[j], peak)]
             rows.append(row)
             labels.append(f"{name} {level}")
-        table[level] = {
-            "dr0": value,
-            "psnr_input": float(np.mean([p for p, _ in scores["input"]])),
-            "psnr_restored": float(np.mean([p for p, _ in scores["restored"]])),
-            "ssim_input": float(np.mean([s for _, s in scores["input"]])),
-            "ssim_restored": float(np.mean([s for _, s in scores["restored"]])),
-        }
-        if has_flow:
-            table[level]["epe_zero_flow_px"] = float(np.mean([e for e, _ in scores["epe"]]))
-            table[level]["epe_px"] = float(np.mean([e for _, e in scores["epe"]]))
+        means = mean.compute(level)
+        keys = ["psnr_input", "psnr_restored", "ssim_input", "ssim_restored"]
+        keys += ["epe_zero_flow_px", "epe_px"] if has_flow else []
+        table[level] = {"dr0": value} | {key: means[key] for key in keys}
     columns = ["input", restorer.name, "clean"] + (["predicted flow", "true flow"] if has_flow else [])
     write_image(out / "restore.png", comparison_grid(rows, columns, labels, cell=SIZE[1]))
     header = "| bin | D/r0 | PSNR input | PSNR restored | SSIM input | SSIM restored |"
