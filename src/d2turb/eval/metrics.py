@@ -148,23 +148,28 @@ class KeyedMean:
 
         Shape:
             values[key]: (N,) (any shape is flattened); groups per sample: (N,).
+
+        Raises:
+            D2TurbError: per-sample groups whose number is not N.
         """
+        per_sample = isinstance(groups, (list, tuple)) or (isinstance(groups, torch.Tensor) and groups.ndim > 0)
+        masks = {}  # label → which samples carry it
+        if per_sample:
+            labels = groups.reshape(-1).tolist() if isinstance(groups, torch.Tensor) else list(groups)
+            masks = {label: torch.tensor([x == label for x in labels]) for label in dict.fromkeys(labels)}
+        elif isinstance(groups, torch.Tensor):
+            groups = groups.item()
         for key, batch in values.items():
             batch = batch.detach() if isinstance(batch, torch.Tensor) else torch.as_tensor(batch, dtype=torch.float64)
             batch = batch.reshape(-1).double().cpu()
-            self._add(key, None, batch)
-            if groups is None:
-                continue
-            if not isinstance(groups, (torch.Tensor, list, tuple)) or (
-                isinstance(groups, torch.Tensor) and groups.ndim == 0
-            ):
-                self._add(key, groups.item() if isinstance(groups, torch.Tensor) else groups, batch)
-                continue
-            labels = groups.reshape(-1).tolist() if isinstance(groups, torch.Tensor) else list(groups)
-            if len(labels) != batch.numel():
+            if per_sample and len(labels) != batch.numel():
                 raise D2TurbError(f"KeyedMean: {len(labels)} group labels for {batch.numel()} values of {key!r}")
-            for label in dict.fromkeys(labels):
-                self._add(key, label, batch[torch.tensor([x == label for x in labels])])
+            self._add(key, None, batch)
+            if per_sample:
+                for label, mask in masks.items():
+                    self._add(key, label, batch[mask])
+            elif groups is not None:
+                self._add(key, groups, batch)
         self._reduced = None
 
     def _add(self, key: Hashable, group: Hashable, batch: torch.Tensor) -> None:
