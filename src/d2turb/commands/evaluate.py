@@ -5,8 +5,8 @@ from __future__ import annotations
 import os
 import sys
 
-from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg, print_error, summary
-from d2turb.errors import D2TurbError
+from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
+from d2turb.errors import D2TurbError, print_error, summary
 
 
 def register(sub):
