@@ -12,6 +12,7 @@ from d2turb.data.generate import make_depth_fn, resize_up
 from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
+from d2turb.ops.checks import check_shape
 from d2turb.ops.splat import backward_flow
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
@@ -212,8 +213,7 @@ class OnTheFlySynthesis:
 
     def __call__(self, batch: dict) -> dict:
         gt = batch["gt"].to(self.device, non_blocking=True)
-        if gt.ndim != 4 or gt.shape[1] != 3:
-            raise D2TurbError(f"expected a batch of clean images (B,3,H,W), got {tuple(gt.shape)}")
+        check_shape(gt, "B 3 H W", "batch of clean images")
         depth = batch.get("depth")
         depth = depth.to(self.device, non_blocking=True) if (depth is not None and self.use_depth) else None
         dr0 = self.sample_dr0(gt.shape[0])

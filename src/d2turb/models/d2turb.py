@@ -10,13 +10,12 @@ from d2turb.errors import D2TurbError
 from d2turb.models.common import pad_to_multiple
 from d2turb.models.rectifier import create_rectifier
 from d2turb.models.registry import create_backbone, register_model, register_standalone
+from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
 
 
 def _check_input(image: torch.Tensor) -> None:
-    if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 3 or not image.is_floating_point():
-        shape = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
-        raise D2TurbError(f"model input must be a float tensor (B, 3, H, W), got {shape}")
+    check_shape(image, "B 3 H W", "model input", floating=True)
     if min(image.shape[-2:]) < 2:
         raise D2TurbError(f"model input is too small: {tuple(image.shape[-2:])}")
 

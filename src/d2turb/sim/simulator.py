@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
 from d2turb.sim.params import MAX_DR0, TurbulenceParams, depth_modulation
 from d2turb.sim.psf import PupilOptics, blur_with_basis, pca_basis
@@ -149,13 +150,9 @@ class Simulator:
     ) -> SimResult:
         """One realisation; ``fields`` (a :class:`~d2turb.sim.sequence.FrozenFlow`) supplies the unit random
         fields of the current frame of a sequence instead of fresh independent ones."""
-        if isinstance(image, torch.Tensor) and image.ndim == 3:
+        check_shape(image, "[B] C H W", "image", floating=True)
+        if image.ndim == 3:
             image = image[None]
-        if not isinstance(image, torch.Tensor) or image.ndim != 4 or not image.is_floating_point():
-            raise D2TurbError(
-                "image must be a floating tensor (B, C, H, W) or (C, H, W), "
-                f"got {getattr(image, 'shape', type(image).__name__)}"
-            )
         if not torch.isfinite(image).all():
             raise D2TurbError("image contains NaN or infinite values")
         b, c, h, w = image.shape
@@ -254,8 +251,7 @@ class Simulator:
             depth = depth[None, None]
         elif depth.ndim == 3:
             depth = depth[None] if depth.shape[0] == 1 else depth[:, None]
-        if depth.ndim != 4 or depth.shape[1] != 1 or depth.shape[-2:] != (h, w) or depth.shape[0] not in (1, b):
-            raise D2TurbError(f"depth must have shape ({b}, 1, {h}, {w}), got {tuple(depth.shape)}")
+        check_shape(depth, f"{1 if depth.shape[:1] == (1,) else b} 1 {h} {w}", "depth")  # one map for all, or one each
         return depth.to(self.device, torch.float32).expand(b, 1, h, w)
 
 
