@@ -42,7 +42,7 @@ def _label(tile, text):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     import numpy as np
     import torch
     from PIL import Image
@@ -106,7 +106,7 @@ def run(args):
 def restore_demo(weights, res, names: list[str], out, device) -> dict:
     """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table.
     A model with a rectifier also gets predicted | true flow columns and the flow end-point errors."""
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     import numpy as np
 
     from d2turb.data.samples import SAMPLE_SIZE

@@ -82,7 +82,7 @@ def register(sub):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.device import resolve_device
     from d2turb.io import check_output_dir, remove_stale_temp_files
 

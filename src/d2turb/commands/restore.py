@@ -80,7 +80,7 @@ def register(sub):
 def run(args) -> int:
     if args.temporal is not None:
         return run_clips(args)
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.restore.files import restore_files
 
     return restore_files(
@@ -99,7 +99,7 @@ def run(args) -> int:
 
 def run_clips(args) -> int:
     """``restore CLIP --temporal N``: register, fuse and deblur across frames (d2turb.restore.files)."""
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.restore.files import restore_clip_files
 
     if len(args.inputs) != 1:

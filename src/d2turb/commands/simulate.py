@@ -106,7 +106,7 @@ def register(sub):
 
 def physics_params(args, dr0=None):
     """The ``TurbulenceParams`` of the options of :func:`add_physics_args` (and ``--cn2`` where the command has it)."""
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.sim import make_params
 
     return make_params(
@@ -122,7 +122,7 @@ def physics_params(args, dr0=None):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.data.simulate import simulate_files
 
     return simulate_files(

@@ -28,7 +28,7 @@ _PNG_ORIENTATION_KEYS = (b"eXIf", b"Raw profile type exif", b"XML:com.adobe.xmp"
 
 def decode_plain_png(path: Path, max_pixels: int | None) -> np.ndarray | None:
     """HxWx3 uint8 pixels of an 8-bit RGB PNG (at least 2x2, at most ``max_pixels``; None: no limit) decoded by
-    libpng, a third faster than Pillow; None for any other file, or one that may hold an EXIF orientation (any chunk
+    libpng, faster than Pillow; None for any other file, or one that may hold an EXIF orientation (any chunk
     that Pillow reads one from: such files take Pillow's path, which applies it), or one libpng refuses."""
     if imagecodecs is None or path.suffix.lower() != ".png":
         return None
@@ -79,7 +79,7 @@ def _png_chunk(kind: bytes, data) -> bytes:
 
 def _encode_png_up(array: np.ndarray, level: int) -> bytes:
     """PNG (spec: w3.org/TR/png-3) with every row filtered by "Up" (bytes minus those of the row above, mod
-    256) and deflated by libdeflate: at level 1, half the time of libpng's fastest settings, files ~10 % larger."""
+    256) and deflated by libdeflate."""
     h, w = array.shape[:2]
     colour = {1: 0, 2: 4, 3: 2, 4: 6}[1 if array.ndim == 2 else array.shape[2]]  # grey, +alpha, RGB, RGBA
     depth = 16 if array.dtype == np.uint16 else 8
@@ -97,10 +97,9 @@ def _encode_png_up(array: np.ndarray, level: int) -> bytes:
 def encode_png(array: np.ndarray, level: int = DEFAULT_PNG_LEVEL) -> bytes:
     """(H, W) or (H, W, 1|2|3|4) uint8 or uint16 array → PNG bytes (GIL released while compressing).
 
-    Level 1 (the default, for speed) filters every row with "Up" and compresses with libdeflate: 1.2 ms per
-    simulated 256² RGB output instead of 2.2 ms with libpng's fastest settings (Paeth, run-length zlib), files
-    ~10 % larger (~13 % above level 6). Other levels: libpng's adaptive filters and zlib at that level, both
-    through imagecodecs; without imagecodecs, Pillow's encoder (run-length zlib at level 1).
+    Level 1 (the default, for speed) filters every row with "Up" and compresses with libdeflate (faster than libpng's
+    fastest settings, files a little larger: benchmarks/RESULTS.md). Other levels: libpng's adaptive filters and zlib
+    at that level, both through imagecodecs; without imagecodecs, Pillow's encoder (run-length zlib at level 1).
     """
     if not 0 <= level <= 9:
         raise D2TurbError(f"PNG level must be 0-9, got {level}")
