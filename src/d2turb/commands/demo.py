@@ -118,8 +118,8 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
 
     restorer = Restorer(weights, device=device)
     details = restorer.restore_with_details(res.turb.float().cpu())
-    has_flow = bool(details["flow"].any())  # a plain restorer (no rectifier) predicts no flow
-    true_flow = backward_flow(res.flow).float().cpu()
+    has_flow = bool(details["bwd_flow_px"].any())  # a plain restorer (no rectifier) predicts no flow
+    true_flow = backward_flow(res.fwd_flow_px).float().cpu()
     gt = res.clean.float().cpu()
     b = len(names)
     rows, labels, table = [], [], {}
@@ -132,12 +132,12 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
             for label, image in (("input", res.turb[j].float().cpu()), ("restored", restored)):
                 scores[label].append((float(psnr(image, gt[j])), float(ssim(image, gt[j]))))
             epe_zero = float(end_point_error(true_flow[j]))
-            epe = float(end_point_error(details["flow"][j], true_flow[j]))
+            epe = float(end_point_error(details["bwd_flow_px"][j], true_flow[j]))
             scores["epe"].append((epe_zero, epe))
             row = [res.turb[j].float().cpu(), restored, gt[j]]
             if has_flow:
                 peak = float(true_flow[j].norm(dim=0).max())
-                row += [flow_to_rgb(details["flow"][j], peak), flow_to_rgb(true_flow[j], peak)]
+                row += [flow_to_rgb(details["bwd_flow_px"][j], peak), flow_to_rgb(true_flow[j], peak)]
             rows.append(row)
             labels.append(f"{name} {level}")
         table[level] = {

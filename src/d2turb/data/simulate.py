@@ -3,7 +3,7 @@ NAME_flow.npy, NAME_meta.json) and ``d2turb simulate-video`` (a clip: turb/NNNNN
 turb.mp4) write. The commands and the page both run these.
 
 Flows on disk (``NAME_flow.npy``, ``flow/NNNNNN.npy``): float32 (2, H, W), the forward displacement Δ in px,
-x then y (``SimResult.flow``)."""
+x then y (``SimResult.fwd_flow_px``)."""
 
 from __future__ import annotations
 
@@ -133,7 +133,7 @@ def simulate_files(
             res = sim(images, depth=depths, dr0=dr0, generator=gen)
             turb = res.turb.float().cpu()
             tilt = res.tilt.float().cpu() if save_tilt else None
-            flow = res.flow.float().cpu() if save_flow else None
+            flow = res.fwd_flow_px.float().cpu() if save_flow else None
             modulation = res.modulation.flatten(1).mean(1).tolist()
             for b, (path, value, image, _) in enumerate(group):
                 meta = dict(
@@ -291,7 +291,7 @@ def simulate_video(
             if save_tilt:
                 write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
             if save_flow:
-                write_npy(out / "flow" / f"{i:06d}.npy", res.flow[0].detach().cpu().numpy().astype(np.float32))
+                write_npy(out / "flow" / f"{i:06d}.npy", res.fwd_flow_px[0].detach().cpu().numpy().astype(np.float32))
             if writer is not None:
                 writer.write(to_uint8(res.turb[0]))
             size = tuple(res.turb.shape[-2:])

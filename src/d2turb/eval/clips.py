@@ -81,7 +81,7 @@ def evaluate_clips(
     for idx in range(n):
         item, record = data[idx], data.records[idx]
         frames, gt = item["turb"], item["gt"]
-        observable = item["flow"] - item["flow"].mean(0, keepdim=True)
+        observable = item["bwd_flow_px"] - item["bwd_flow_px"].mean(0, keepdim=True)
         deblurs = {
             name: (_physics_for(record, item["depth"]) if fn == "physics" else fn) for name, fn in options.items()
         }

@@ -50,7 +50,7 @@ def split_inputs(inputs: list) -> tuple[list[Path], list[Path]]:
 def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
     write_image(out_dir / f"{stem}_restored.png", details["restored"], png_level)
     if save_flow:
-        write_npy(out_dir / f"{stem}_flow.npy", details["flow"].numpy().astype(np.float32))
+        write_npy(out_dir / f"{stem}_flow.npy", details["bwd_flow_px"].numpy().astype(np.float32))
     if save_intermediate:
         write_image(out_dir / f"{stem}_deblurred.png", details["deblurred"], png_level)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -22,16 +23,31 @@ from d2turb.sim.zernike import noll_covariance, noll_to_nm
 
 @dataclass
 class SimResult:
-    """All tensors batched: turb/tilt/clean/blur (B,C,H,W), flow (B,2,H,W) forward displacement Δ in
-    pixels (x then y; tilt = warp(clean, flow)), modulation M (B,1,H,W), dr0 (B,)."""
+    """One realisation, all tensors batched.
+
+    Shape:
+        turb, tilt, clean, blur: (B, C, H, W); fwd_flow_px: (B, 2, H, W), the forward displacement Δ in pixels, x then
+        y (tilt = warp(clean, fwd_flow_px); :func:`d2turb.ops.backward_flow` gives the backward flow that undoes it);
+        modulation M: (B, 1, H, W); dr0: (B,).
+    """
 
     turb: torch.Tensor
     tilt: torch.Tensor
     clean: torch.Tensor
-    flow: torch.Tensor
+    fwd_flow_px: torch.Tensor
     modulation: torch.Tensor
     dr0: torch.Tensor
     blur: torch.Tensor
+
+    @property
+    def flow(self) -> torch.Tensor:
+        """Deprecated name of :attr:`fwd_flow_px`."""
+        warnings.warn(
+            "SimResult.flow is deprecated; use SimResult.fwd_flow_px (the forward displacement in px)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return self.fwd_flow_px
 
 
 class Simulator:
@@ -208,7 +224,7 @@ class Simulator:
             turb=turb,
             tilt=tilt,
             clean=image,
-            flow=flow,
+            fwd_flow_px=flow,
             modulation=modulation,
             dr0=dr0.float().to(self.device),
             blur=blurred,

@@ -314,7 +314,7 @@ class Trainer:
                 synth = self._make_synthesis([b], seed=val.seed + 1009 * k + j)
                 batch = {"gt": crop["gt"][None], "depth": crop["depth"][None], "id": [crop["id"]]}
                 out = synth(batch)
-                pairs.append({key: out[key] for key in ("turb", "gt", "flow", "bin")})
+                pairs.append({key: out[key] for key in ("turb", "gt", "bwd_flow_px", "bin")})
         return [
             {key: torch.cat([p[key] for p in pairs[i : i + val.batch]]) for key in pairs[0]}
             for i in range(0, len(pairs), val.batch)
@@ -603,10 +603,10 @@ class Trainer:
                 "psnr_input": psnr(turb, gt),
                 "ssim_input": ssim(turb, gt),
             }
-            flow = batch.get("flow")
-            if out.get("flow") is not None and flow is not None:
+            flow = batch.get("bwd_flow_px")
+            if out.get("bwd_flow_px") is not None and flow is not None:
                 flow = flow.to(self.device).float()
-                values["epe"] = end_point_error(out["flow"].float(), flow)
+                values["epe"] = end_point_error(out["bwd_flow_px"].float(), flow)
                 values["epe_zero"] = end_point_error(flow)
             bins = batch.get("bin")
             for key, v in values.items():
