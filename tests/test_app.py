@@ -20,7 +20,7 @@ from PIL import Image
 from d2turb.app import core
 from d2turb.cli import main
 from d2turb.errors import D2TurbError
-from d2turb.sim import TurbulenceParams
+from d2turb.sim import TurbulenceParams, derived_quantities
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -73,7 +73,7 @@ def _same_files(a: Path, b: Path):
 # ---- physics of the derived quantities ---------------------------------------------------------------------------
 def test_derived_quantities_match_the_formulas_of_physics_md():
     p = TurbulenceParams(aperture_m=0.1, wavelength_m=525e-9, path_length_m=1000.0, dr0=3.0)
-    d = core.derived_quantities(p, mean_modulation=0.5)
+    d = derived_quantities(p, mean_modulation=0.5)
     lam, aperture, ifov = 525e-9, 0.1, 525e-9 / 0.2
     # σ_px = sqrt(0.1816)(λ/D)/ifov·(D/r0)^(5/6) (docs/physics.md §2; 0.1816 given to 4 digits)
     assert d["tilt_sigma_px"] == pytest.approx(math.sqrt(0.1816) * (lam / aperture) / ifov * 3 ** (5 / 6), rel=1e-3)
@@ -86,11 +86,11 @@ def test_derived_quantities_match_the_formulas_of_physics_md():
     assert d["footprint_px"] == pytest.approx(aperture / (ifov * 1000.0))  # D/(ifov·L) = 38.1 px
     assert d["samples_per_lambda_d"] == pytest.approx(2.0) and d["bin"] == "medium"
     # the worked value: Cn² = 1e-14, L = 1 km, λ = 0.5 µm → spherical-wave r0 = 3.64 cm; Cn² comes back
-    q = core.derived_quantities(TurbulenceParams(wavelength_m=500e-9, cn2=1e-14))
+    q = derived_quantities(TurbulenceParams(wavelength_m=500e-9, cn2=1e-14))
     assert q["r0_m"] == pytest.approx(0.0364, abs=5e-5)
     assert q["cn2"] == pytest.approx(1e-14, rel=1e-9)
     # θ0 ∝ L^(-8/5) at fixed Cn² (r0 ∝ L^(-3/5), θ0 ∝ r0/L)
-    far = core.derived_quantities(TurbulenceParams(wavelength_m=500e-9, cn2=1e-14, path_length_m=2000.0))
+    far = derived_quantities(TurbulenceParams(wavelength_m=500e-9, cn2=1e-14, path_length_m=2000.0))
     assert far["theta0_urad"] / q["theta0_urad"] == pytest.approx(2 ** (-8 / 5), rel=1e-9)
 
 

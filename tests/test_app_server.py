@@ -170,7 +170,7 @@ def test_http_api_simulate_restore_and_errors(server, tmp_path, monkeypatch):
         assert np.abs(_pixels(again / name) - _pixels(by_name[name])).max() <= 1, name
     np.testing.assert_allclose(np.load(again / "chart_flow.npy"), flow, atol=1e-4)
 
-    from d2turb.commands.demo import sample_images
+    from d2turb.data.samples import sample_images
     from d2turb.io import write_image
 
     photo = tmp_path / "coffee.png"

@@ -40,7 +40,7 @@ CASES = {
         {"backbone_cfg": TINY_ADAIR, "rectifier_cfg": TINY_RECT},
     ),
 }
-KEYS = {"deblurred", "restored", "flow", "guide"}
+KEYS = {"deblurred", "restored", "bwd_flow_px", "flow", "guide"}
 # each method's own training terms (extra_loss), logged next to the project's photometric / multi-stage terms
 OWN_TERMS = {
     "atnet": {"half", "angular", "grad_angular", "prior"},
@@ -62,7 +62,7 @@ def build(case_id, seed=0):
 def fake_batch(h=67, w=93, seed=1):
     g = torch.Generator().manual_seed(seed)
     turb, gt, tilt = torch.rand(3, 2, 3, h, w, generator=g)
-    return {"turb": turb, "gt": gt, "tilt": tilt, "flow": torch.randn(2, 2, h, w, generator=g)}
+    return {"turb": turb, "gt": gt, "tilt": tilt, "bwd_flow_px": torch.randn(2, 2, h, w, generator=g)}
 
 
 def test_paper_rows_are_registered():
@@ -91,7 +91,7 @@ def test_forward_backward_every_parameter_gets_a_gradient(case_id):
         assert out[key].shape == batch["turb"].shape and torch.isfinite(out[key]).all()
     assert out["guide"].shape[-2:] == (67, 93)
     two_stage = case_id.startswith("d2turb")
-    assert (out["flow"] is not None) == two_stage
+    assert (out["bwd_flow_px"] is not None) == two_stage
     assert set(terms) == {"photo"} | ({"deblur", "flow"} if two_stage else set()) | OWN_TERMS[case_id]
     assert torch.isfinite(loss)
     for name, p in model.named_parameters():

@@ -297,7 +297,7 @@ def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch
         gt = torch.rand(3, size, size, generator=g)
         turb = (gt + 0.1 * (k + 1) * torch.randn(frames_n, 3, size, size, generator=g)).clamp(0, 1)
         items.append(
-            {"id": f"{k:07d}", "turb": turb, "gt": gt, "flow": torch.randn(frames_n, 2, size, size, generator=g)}
+            {"id": f"{k:07d}", "turb": turb, "gt": gt, "bwd_flow_px": torch.randn(frames_n, 2, size, size, generator=g)}
         )
     records = [{"bin": b, "dr0": 1.0 + k} for k, b in enumerate(bins)]
     data = type("Data", (), {"records": records, "__len__": lambda s: len(items), "__getitem__": lambda s, i: items[i]})
@@ -308,7 +308,7 @@ def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch
 
         def restore(self, frames):
             item = next(it for it in items if it["turb"] is frames)
-            observable = item["flow"] - item["flow"].mean(0, keepdim=True)
+            observable = item["bwd_flow_px"] - item["bwd_flow_px"].mean(0, keepdim=True)
             for i in range(len(frames)):
                 flow = observable[i] + torch.tensor([0.1 * i, 0.0]).view(2, 1, 1)
                 yield type("Out", (), {"index": i, "fused": (frames[i] + item["gt"]) / 2, "bwd_flow_px": flow})
@@ -322,7 +322,7 @@ def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch
 
     expected = []
     for item in items:
-        obs = (item["flow"] - item["flow"].mean(0, keepdim=True)).double().numpy()
+        obs = (item["bwd_flow_px"] - item["bwd_flow_px"].mean(0, keepdim=True)).double().numpy()
         turb, gt = item["turb"], item["gt"]
         rows = {"input": list(turb[::stride]), "temporal mean": [turb.mean(0)] * len(turb[::stride])}
         rows["fused"] = [(f + gt) / 2 for f in turb[::stride]]

@@ -58,7 +58,7 @@ def handmade(tmp_path):
 
 
 def warp_error(s):
-    return (warp(s["tilt"][None], s["flow"][None])[0] - s["gt"]).abs().max().item()
+    return (warp(s["tilt"][None], s["bwd_flow_px"][None])[0] - s["gt"]).abs().max().item()
 
 
 def test_pair_dataset_items(handmade):
@@ -66,7 +66,7 @@ def test_pair_dataset_items(handmade):
     assert len(ds) == 2
     s = ds[1]
     assert s["turb"].shape == s["tilt"].shape == s["gt"].shape == (3, P, P)
-    assert s["flow"].shape == (2, P, P) and s["flow"].dtype == torch.float32
+    assert s["bwd_flow_px"].shape == (2, P, P) and s["bwd_flow_px"].dtype == torch.float32
     assert s["depth"].shape == (1, P, P) and s["depth"][0, -1, 0] == 1.0 and s["depth"][0, 0, 0] == 0.0
     assert s["dr0"].item() == pytest.approx(4.2) and BIN_NAMES[s["bin"].item()] == "strong" and s["id"] == "0000001"
     assert warp_error(s) < 1.5 / 255  # only the 8-bit rounding of gt
@@ -83,9 +83,12 @@ def test_flip_keeps_flow_consistent(handmade, horizontal):
     flipped = flip_sample(s, horizontal=horizontal)
     assert warp_error(flipped) < 1.5 / 255
     # the oracle can fail: mirroring the flow field without negating its component breaks the identity
-    naive = dict(flipped, flow=s["flow"].flip(-1 if horizontal else -2))
+    naive = dict(flipped, bwd_flow_px=s["bwd_flow_px"].flip(-1 if horizontal else -2))
     assert warp_error(naive) > 20 / 255
-    assert torch.equal(flip_sample(flipped, horizontal=horizontal)["flow"], s["flow"])
+    assert torch.equal(flip_sample(flipped, horizontal=horizontal)["bwd_flow_px"], s["bwd_flow_px"])
+    assert s["flow"] is s["bwd_flow_px"] and flipped["flow"] is flipped["bwd_flow_px"]  # the deprecated name
+    old = flip_sample({k: v for k, v in s.items() if k != "bwd_flow_px"}, horizontal=horizontal)  # old name only
+    assert torch.equal(old["flow"], flipped["bwd_flow_px"]) and "bwd_flow_px" not in old
 
 
 def test_random_crop_and_flip_augmentation(handmade):
@@ -94,13 +97,14 @@ def test_random_crop_and_flip_augmentation(handmade):
     full = PairDataset(handmade)[0]
     for _ in range(6):
         s = ds[0]
-        assert s["gt"].shape == (3, 32, 32) and s["flow"].shape == (2, 32, 32)
+        assert s["gt"].shape == (3, 32, 32) and s["bwd_flow_px"].shape == (2, 32, 32)
         # interior check: a crop moves the image border that the warp clamps to
-        m = int(s["flow"].abs().max().ceil()) + 1
-        inner = (warp(s["tilt"][None], s["flow"][None])[0] - s["gt"])[:, m:-m, m:-m].abs().max().item()
+        m = int(s["bwd_flow_px"].abs().max().ceil()) + 1
+        inner = (warp(s["tilt"][None], s["bwd_flow_px"][None])[0] - s["gt"])[:, m:-m, m:-m].abs().max().item()
         assert inner < 1.5 / 255
     c = crop_sample(full, 5, 7, 20)
-    assert torch.equal(c["flow"], full["flow"][:, 5:25, 7:27]) and torch.equal(c["depth"], full["depth"][:, 5:25, 7:27])
+    assert torch.equal(c["bwd_flow_px"], full["bwd_flow_px"][:, 5:25, 7:27])
+    assert torch.equal(c["depth"], full["depth"][:, 5:25, 7:27])
     with pytest.raises(D2TurbError, match="crop 64"):
         PairDataset(handmade, crop=64)
 
@@ -165,7 +169,7 @@ def test_on_the_fly_synthesis(clean_dir):
         ("turb", (4, 3, P, P)),
         ("tilt", (4, 3, P, P)),
         ("gt", (4, 3, P, P)),
-        ("flow", (4, 2, P, P)),
+        ("bwd_flow_px", (4, 2, P, P)),
         ("depth", (4, 1, P, P)),
     ]:
         assert a[key].shape == shape
@@ -173,7 +177,7 @@ def test_on_the_fly_synthesis(clean_dir):
     assert not torch.equal(a["tilt"], b["tilt"])  # new turbulence on every call
     assert torch.equal(a["gt"], batch["gt"]) and a["id"] == batch["id"]
     inner = (slice(None), slice(None), slice(6, -6), slice(6, -6))
-    err_flow = (warp(a["tilt"], a["flow"]) - a["gt"])[inner].abs().mean()
+    err_flow = (warp(a["tilt"], a["bwd_flow_px"]) - a["gt"])[inner].abs().mean()
     err_none = (a["tilt"] - a["gt"])[inner].abs().mean()
     assert err_flow < 0.8 * err_none  # the returned flow is the backward flow: it undoes the tilt
     again = OnTheFlySynthesis(simulator, bins=("strong",), device="cpu", seed=3)(batch)

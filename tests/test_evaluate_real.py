@@ -10,8 +10,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.cli import main
-from d2turb.commands.common import print_error
-from d2turb.errors import D2TurbError
+from d2turb.errors import D2TurbError, print_error
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
 from d2turb.eval.real import GRID_LABEL_H, evaluate_real

@@ -237,7 +237,7 @@ def test_write_failures_become_one_line_errors(tmp_path, monkeypatch):
     def refuse(path):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr("d2turb.io._open_temp", refuse)
+    monkeypatch.setattr("d2turb.io.atomic._open_temp", refuse)
     with pytest.raises(D2TurbError, match=r"cannot write .*a\.png: Permission denied"):
         write_image(tmp_path / "a.png", torch.rand(3, 4, 4))
     monkeypatch.undo()

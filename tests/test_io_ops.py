@@ -35,10 +35,10 @@ def test_read_image_modes(tmp_path, mode):
 @pytest.fixture(params=["imagecodecs", "pillow"])
 def png_codec(request, monkeypatch):
     """Each PNG codec of ``d2turb.io``: imagecodecs, or Pillow as on a machine without it."""
-    import d2turb.io
+    import d2turb.io.png
 
     if request.param == "pillow":
-        monkeypatch.setattr(d2turb.io, "imagecodecs", None)
+        monkeypatch.setattr(d2turb.io.png, "imagecodecs", None)
     else:
         pytest.importorskip("imagecodecs")
     return request.param
@@ -220,3 +220,27 @@ def test_warp_subpixel_shift_of_a_ramp_is_analytic():
     # a constant shift of +2.5 px in x moves content left: out(x) = img(x + 2.5)
     out = warp(img, torch.tensor([2.5, 0.0], dtype=torch.float64).view(1, 2, 1, 1).expand(1, 2, h, w))
     torch.testing.assert_close(out[0, 0, :, :-3], img[0, 0, :, 2:-1] + 0.5 * 0.03, atol=1e-12, rtol=0)
+
+
+def test_check_shape_accepts_matching_shapes_and_names_the_mismatch():
+    from d2turb.ops import check_shape
+
+    check_shape(torch.zeros(2, 3, 4, 5), "B C H W")  # names match any size
+    check_shape(torch.zeros(1, 2, 4, 5), "B 2 H W", floating=True)  # integers only that size
+    check_shape(torch.zeros(3, 1, 40, 56, dtype=torch.uint8), "B 1 40 56")
+    check_shape(torch.zeros(3, 4, 5), "[B] 3 H W")  # bracketed leading dims may be absent
+    check_shape(torch.zeros(2, 3, 4, 5), "[B] 3 H W")
+    cases = [
+        (torch.zeros(3, 4, 5), "B C H W", r"^x must have shape \(B, C, H, W\), got \(3, 4, 5\)$"),  # rank
+        (torch.zeros(1, 3, 4, 5), "B 2 H W", r"^x must have shape \(B, 2, H, W\), got \(1, 3, 4, 5\)$"),  # size
+        (torch.zeros(1, 1, 40, 55), "B 1 40 56", r"^x must have shape \(B, 1, 40, 56\), got \(1, 1, 40, 55\)$"),
+        ([[1.0]], "B C H W", r"^x must be a tensor of shape \(B, C, H, W\), got list$"),
+        (torch.zeros(4, 5), "[B] 3 H W", r"^x must have shape \(\[B\], 3, H, W\), got \(4, 5\)$"),
+        (torch.zeros(1, 2, 3, 4, 5), "[B] 3 H W", r"^x must have shape \(\[B\], 3, H, W\), got \(1, 2, 3, 4, 5\)$"),
+        (torch.zeros(1, 4, 5), "[B] 3 H W", r"^x must have shape \(\[B\], 3, H, W\), got \(1, 4, 5\)$"),
+    ]
+    for x, shape, message in cases:
+        with pytest.raises(D2TurbError, match=message):
+            check_shape(x, shape, "x")
+    with pytest.raises(D2TurbError, match=r"^x must be a floating tensor, got torch.int64$"):
+        check_shape(torch.zeros(1, 2, 4, 5, dtype=torch.long), "B 2 H W", "x", floating=True)

@@ -71,7 +71,7 @@ CASES = {
     ),
 }
 D2TURB_CASES = [k for k, (name, _) in CASES.items() if name.startswith("d2turb")]
-KEYS = {"deblurred", "restored", "flow", "pixel_flow", "guide"}
+KEYS = {"deblurred", "restored", "bwd_flow_px", "flow", "pixel_flow", "guide"}
 
 
 def build(case_id, seed=0):
@@ -97,9 +97,10 @@ def test_forward_odd_size(case_id):
         assert out[key].shape == x.shape and torch.isfinite(out[key]).all()
     assert out["guide"].shape[-2:] == x.shape[-2:] and out["guide"].shape[1] == model.backbone.guide_channels
     if CASES[case_id][0] in ("restormer", "nafnet"):
-        assert out["flow"] is None and out["restored"] is out["deblurred"]
+        assert out["bwd_flow_px"] is None and out["restored"] is out["deblurred"]
     else:
-        assert out["flow"].shape == (2, 2, 67, 93) and out["pixel_flow"] is out["flow"]
+        assert out["bwd_flow_px"].shape == (2, 2, 67, 93)
+        assert out["pixel_flow"] is out["bwd_flow_px"] and out["bwd_flow_px"] is out["bwd_flow_px"]  # deprecated names
 
 
 @pytest.mark.parametrize("size", [(5, 7), (33, 17)])
@@ -122,8 +123,8 @@ def test_every_parameter_gets_a_gradient(case_id):
         opt.zero_grad()
         out = model(x)
         loss = F.l1_loss(out["restored"], target) + F.l1_loss(out["deblurred"], target)
-        if out["flow"] is not None:
-            loss = loss + F.mse_loss(out["flow"], target_flow)
+        if out["bwd_flow_px"] is not None:
+            loss = loss + F.mse_loss(out["bwd_flow_px"], target_flow)
         loss.backward()
         opt.step()
     assert torch.isfinite(loss)
@@ -136,7 +137,7 @@ def test_every_parameter_gets_a_gradient(case_id):
 @pytest.mark.parametrize("case_id", D2TURB_CASES)
 def test_untrained_rectifier_is_identity_warp(case_id):
     out = build(case_id)(torch.rand(1, 3, 67, 93))
-    assert torch.count_nonzero(out["flow"]) == 0
+    assert torch.count_nonzero(out["bwd_flow_px"]) == 0
     torch.testing.assert_close(out["restored"], out["deblurred"], atol=1e-6, rtol=0)
 
 
@@ -156,8 +157,8 @@ def test_flow_is_in_pixels_and_warps_backward(rectifier, rect_cfg, bias):
     with torch.no_grad():
         model.rectifier.flow_head.bias.copy_(torch.tensor(bias))
         out = model(torch.rand(1, 3, 17, 33))
-    torch.testing.assert_close(out["flow"][0, 0], torch.full((17, 33), 2.0), atol=1e-5, rtol=0)
-    torch.testing.assert_close(out["flow"][0, 1], torch.full((17, 33), 1.0), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out["bwd_flow_px"][0, 0], torch.full((17, 33), 2.0), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out["bwd_flow_px"][0, 1], torch.full((17, 33), 1.0), atol=1e-5, rtol=0)
     torch.testing.assert_close(out["restored"][..., :-1, :-2], out["deblurred"][..., 1:, 2:], atol=1e-5, rtol=0)
 
 
@@ -196,7 +197,7 @@ def test_save_load_round_trip(tmp_path, case_id):
     x = torch.rand(1, 3, 37, 45)
     with torch.no_grad():
         a, b = model(x), loaded(x)
-    for key in ("deblurred", "restored", "flow", "guide"):
+    for key in ("deblurred", "restored", "bwd_flow_px", "guide"):
         if a[key] is None:
             assert b[key] is None
         else:
@@ -394,5 +395,5 @@ def test_whole_pipeline_runs_padded_to_32(size, mode):
         h, w = size
         padded = F.pad(x, (0, (-w) % 32, 0, (-h) % 32), mode=mode)
         out, ref = model(x), model(padded)
-    for key in ("deblurred", "restored", "flow", "guide"):
+    for key in ("deblurred", "restored", "bwd_flow_px", "guide"):
         torch.testing.assert_close(out[key], ref[key][..., :h, :w], atol=1e-6, rtol=0)

@@ -74,7 +74,8 @@ def test_untiled_equals_model(photo):
     got = Restorer(model, tile=1024).restore_with_details(photo)
     ref = model(photo[None])
     torch.testing.assert_close(got["restored"], ref["restored"][0].clamp(0, 1), atol=1e-5, rtol=0)
-    torch.testing.assert_close(got["flow"], ref["flow"][0], atol=1e-6, rtol=0)
+    torch.testing.assert_close(got["bwd_flow_px"], ref["flow"][0], atol=1e-6, rtol=0)  # a model naming it "flow"
+    assert got["flow"] is got["bwd_flow_px"]  # the deprecated name
 
 
 def _boundary_columns(length, tile, overlap):
@@ -89,7 +90,7 @@ def test_tiled_equals_untiled_and_has_no_seam(photo):
     model, tile, overlap = LocalModel(), 128, 32
     full = Restorer(model, tile=1024).restore_with_details(photo)
     tiled = Restorer(model, tile=tile, overlap=overlap).restore_with_details(photo)
-    for key in ("restored", "deblurred", "flow"):
+    for key in ("restored", "deblurred", "bwd_flow_px"):
         diff = (tiled[key] - full[key]).abs()
         # the receptive field (2 px) is far inside the overlap, so tiles agree with the untiled model everywhere
         assert diff.mean() < 1e-4, key
@@ -117,7 +118,7 @@ def test_blending_hides_tile_disagreement(astronaut):
     assert jump > 0.1  # the tiles really disagree
     steps = max(deb.diff(dim=0).abs().max(), deb.diff(dim=1).abs().max())
     assert steps <= jump * math.pi / overlap * 1.05 + 1e-4
-    assert out["flow"].isfinite().all() and out["restored"].isfinite().all()
+    assert out["bwd_flow_px"].isfinite().all() and out["restored"].isfinite().all()
 
 
 def test_shapes_batch_and_path(tmp_path, photo):
@@ -127,7 +128,7 @@ def test_shapes_batch_and_path(tmp_path, photo):
     assert torch.equal(r.restore(photo), photo)  # identity baseline returns its input exactly
     batch = torch.stack([photo, photo.flip(-1)])
     out = Restorer(LocalModel(), tile=128, overlap=32).restore_with_details(batch)
-    assert out["restored"].shape == batch.shape and out["flow"].shape == (2, 2, 300, 420)
+    assert out["restored"].shape == batch.shape and out["bwd_flow_px"].shape == (2, 2, 300, 420)
     write_image(tmp_path / "p.png", photo)
     assert r.restore(tmp_path / "p.png").shape == (3, 300, 420)
 

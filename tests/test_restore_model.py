@@ -45,7 +45,7 @@ def results(tiny_model, photo):
     with torch.no_grad():
         direct = tiny_model(photo[None])
     return {
-        "direct": {k: direct[k][0] for k in ("restored", "deblurred", "flow")},
+        "direct": {k: direct[k][0] for k in ("restored", "deblurred", "bwd_flow_px")},
         "untiled": Restorer(tiny_model, tile=1024).restore_with_details(photo),
         "tiled": Restorer(tiny_model, tile=TILE, overlap=OVERLAP).restore_with_details(photo),
         "stitched": Restorer(tiny_model, tile=TILE, overlap=0).restore_with_details(photo),  # negative control
@@ -68,15 +68,15 @@ def _edge_gradient_energy(x, overlap):
 
 
 def test_untiled_restorer_is_the_model(results):
-    assert results["direct"]["flow"].abs().mean() > 2  # the warp really moves pixels
-    for key in ("restored", "deblurred", "flow"):
-        ref = results["direct"][key].clamp(0, 1) if key != "flow" else results["direct"][key]
+    assert results["direct"]["bwd_flow_px"].abs().mean() > 2  # the warp really moves pixels
+    for key in ("restored", "deblurred", "bwd_flow_px"):
+        ref = results["direct"][key].clamp(0, 1) if key != "bwd_flow_px" else results["direct"][key]
         torch.testing.assert_close(results["untiled"][key], ref, atol=2e-4, rtol=0)
 
 
 def test_tiled_equals_untiled_away_from_borders(results):
     band = 8  # exclude the image border, where the untiled model pads the 288x416 image to its multiple of 8
-    for key in ("restored", "deblurred", "flow"):
+    for key in ("restored", "deblurred", "bwd_flow_px"):
         diff = (results["tiled"][key] - results["untiled"][key]).abs()[:, band:-band, band:-band]
         assert diff.mean() < 1e-3, (key, float(diff.mean()))
 
@@ -85,7 +85,7 @@ def test_no_seam_at_tile_edges(results):
     """Across every tile edge, the tiled output's gradient energy equals the untiled output's at the same
     lines (within 2 %), and the tiled−untiled difference map is no larger there than elsewhere. The hard
     stitched control (overlap 0) shows how a seam registers on the same measure."""
-    for key in ("restored", "flow"):
+    for key in ("restored", "bwd_flow_px"):
         tiled, untiled = results["tiled"][key], results["untiled"][key]
         for got, ref in zip(_edge_gradient_energy(tiled, OVERLAP), _edge_gradient_energy(untiled, OVERLAP)):
             assert got <= 1.02 * ref + 1e-5, key
@@ -93,7 +93,7 @@ def test_no_seam_at_tile_edges(results):
         cols = _tile_edges(diff.shape[1], OVERLAP)
         band = torch.cat([diff[:, max(c - 2, 0) : c + 2] for c in cols], dim=1)
         assert band.mean() <= 2 * diff.mean() + 1e-5, key
-    stitched, untiled = results["stitched"]["flow"], results["untiled"]["flow"]
+    stitched, untiled = results["stitched"]["bwd_flow_px"], results["untiled"]["bwd_flow_px"]
     got, ref = _edge_gradient_energy(stitched, 0), _edge_gradient_energy(untiled, 0)
     assert got[0] > 5 * ref[0] and got[1] > 5 * ref[1]  # the measure does detect a real seam
 
@@ -129,4 +129,4 @@ def test_cli_with_saved_weights_matches_api(tmp_path, tiny_model, photo, monkeyp
     )
     assert (read_image(tmp_path / "o" / "img_restored.png") - api["restored"]).abs().max() <= 0.5 / 255 + 1e-4
     assert (read_image(tmp_path / "o" / "img_deblurred.png") - api["deblurred"]).abs().max() <= 0.5 / 255 + 1e-4
-    np.testing.assert_allclose(np.load(tmp_path / "o" / "img_flow.npy"), api["flow"].numpy(), atol=1e-5)
+    np.testing.assert_allclose(np.load(tmp_path / "o" / "img_flow.npy"), api["bwd_flow_px"].numpy(), atol=1e-5)

@@ -164,7 +164,7 @@ def test_demo_restores_with_the_recommended_model(recommended, tmp_path, capsys)
             png = np.asarray(Image.open(out / path).convert("RGB"))
             assert np.array_equal(grid[y : y + 192, x : x + 256], png)
     # the table's restored PSNR is that of the written PNGs against the clean images (numpy recomputation)
-    from d2turb.commands.demo import sample_images
+    from d2turb.data.samples import sample_images
 
     clean = sample_images()
     values = []

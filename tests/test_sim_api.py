@@ -49,12 +49,12 @@ def _bilinear_np(image, x, y):
 def test_shapes_non_square_and_result_fields(sim, image):
     res = sim(image, dr0=torch.tensor([1.5, 4.5]), generator=gen())
     assert res.turb.shape == res.tilt.shape == res.clean.shape == (2, 3, 40, 56)
-    assert res.flow.shape == (2, 2, 40, 56) and res.modulation.shape == (2, 1, 40, 56)
+    assert res.fwd_flow_px.shape == (2, 2, 40, 56) and res.modulation.shape == (2, 1, 40, 56)
     assert res.dr0.tolist() == [1.5, 4.5]
     assert torch.equal(res.clean, image)
     ys, xs = np.mgrid[0:40, 0:56].astype(np.float64)
     for i in range(2):
-        flow = res.flow[i].double().numpy()
+        flow = res.fwd_flow_px[i].double().numpy()
         tx, ty = xs + flow[0], ys + flow[1]  # I_tilt(x) = I(x + Δ(x)), Eq. 7
         np.testing.assert_allclose(res.tilt[i].numpy(), _bilinear_np(image[i].double().numpy(), tx, ty), atol=1e-5)
         turb = np.clip(_bilinear_np(res.blur[i].double().numpy(), tx, ty), 0, 1)  # I_turb = I_blur(x + Δ), Eq. 6
@@ -69,7 +69,7 @@ def test_tilt_is_the_image_sampled_at_x_plus_flow_on_a_ramp(sim):
     ys, xs = torch.meshgrid(torch.arange(40.0), torch.arange(56.0), indexing="ij")
     ramp = torch.stack([0.2 + 0.01 * xs, 0.3 + 0.012 * ys, 0.5 + 0.004 * (xs + ys)])[None].expand(2, 3, 40, 56)
     res = sim(ramp.contiguous(), generator=gen(12))
-    fx, fy = res.flow[:, 0], res.flow[:, 1]
+    fx, fy = res.fwd_flow_px[:, 0], res.fwd_flow_px[:, 1]
     inside = (xs + fx >= 0) & (xs + fx <= 55) & (ys + fy >= 0) & (ys + fy <= 39)
     assert inside.float().mean() > 0.8 and fx.abs().max() > 1  # the flow moves pixels by more than one
     shift = res.tilt - res.clean
@@ -81,16 +81,16 @@ def test_tilt_is_the_image_sampled_at_x_plus_flow_on_a_ramp(sim):
 def test_flow_scales_as_dr0_to_the_five_sixths(sim, image):
     """Same random draw, two strengths: the tilt standard deviation is ∝ (D/r0)^(5/6) (docs/physics.md §2), and the
     simulator draws a unit field first and scales it, so the flows differ by exactly (4.5/1.5)^(5/6)."""
-    weak = sim(image, dr0=1.5, generator=gen(7)).flow
-    strong = sim(image, dr0=4.5, generator=gen(7)).flow
+    weak = sim(image, dr0=1.5, generator=gen(7)).fwd_flow_px
+    strong = sim(image, dr0=4.5, generator=gen(7)).fwd_flow_px
     torch.testing.assert_close(strong, weak * 3 ** (5 / 6), rtol=1e-5, atol=1e-6)
 
 
 def test_deterministic_for_a_generator(sim, image):
     a, b = sim(image, generator=gen(3)), sim(image, generator=gen(3))
-    assert torch.equal(a.turb, b.turb) and torch.equal(a.flow, b.flow)
+    assert torch.equal(a.turb, b.turb) and torch.equal(a.fwd_flow_px, b.fwd_flow_px)
     c = sim(image, generator=gen(4))
-    assert not torch.allclose(a.flow, c.flow)
+    assert not torch.allclose(a.fwd_flow_px, c.fwd_flow_px)
     assert torch.equal(simulate(image, TurbulenceParams(n_zernike=21), seed=3).turb, a.turb)
 
 
@@ -100,7 +100,7 @@ def test_uniform_depth_with_offset_one_reproduces_flat_simulator(image):
     depth = torch.full((2, 1, 40, 56), 0.3)
     res = s(image, depth=depth, generator=gen(2))
     assert torch.equal(res.modulation, torch.ones_like(depth))
-    assert torch.allclose(res.turb, flat.turb, atol=1e-6) and torch.allclose(res.flow, flat.flow)
+    assert torch.allclose(res.turb, flat.turb, atol=1e-6) and torch.allclose(res.fwd_flow_px, flat.fwd_flow_px)
 
 
 def test_blur_and_displacement_scale_with_modulation(image):
@@ -110,7 +110,7 @@ def test_blur_and_displacement_scale_with_modulation(image):
     depth = torch.linspace(0, 1, 56).expand(2, 1, 40, 56).contiguous()
     res = s(image, depth=depth, generator=gen(5))
     assert torch.allclose(res.modulation, depth)
-    assert torch.allclose(res.flow, depth * ref.flow, atol=1e-6)
+    assert torch.allclose(res.fwd_flow_px, depth * ref.fwd_flow_px, atol=1e-6)
     assert torch.allclose(res.blur, depth * ref.blur + (1 - depth) * image, atol=1e-6)
 
 
@@ -123,7 +123,7 @@ def test_default_modulation_is_the_paper_power_law_end_to_end(image):
     res = s(image, depth=depth, generator=gen(13))
     m = (0.5 * depth + 0.5) ** 0.6
     torch.testing.assert_close(res.modulation, m)
-    torch.testing.assert_close(res.flow, m * flat.flow, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(res.fwd_flow_px, m * flat.fwd_flow_px, atol=1e-6, rtol=1e-5)
 
 
 def test_near_region_with_zero_modulation_is_untouched(image):
@@ -131,7 +131,7 @@ def test_near_region_with_zero_modulation_is_untouched(image):
     depth = torch.ones(2, 1, 40, 56)
     depth[..., :20] = 0.0  # near half: z = 0 ⇒ M = 0
     res = s(image, depth=depth, generator=gen(6))
-    assert torch.equal(res.flow[..., :20], torch.zeros_like(res.flow[..., :20]))
+    assert torch.equal(res.fwd_flow_px[..., :20], torch.zeros_like(res.fwd_flow_px[..., :20]))
     assert torch.allclose(res.turb[..., :20], image[..., :20], atol=1e-5)  # grid_sample rounding only
     assert torch.allclose(res.tilt[..., :20], image[..., :20], atol=1e-5)
     assert not torch.allclose(res.turb[..., 30:], image[..., 30:], atol=1e-2)
@@ -234,3 +234,9 @@ def test_rgb_wavelengths_blur_blue_less_in_pixels_than_red():
     peaks = blur[:, 14:19, 14:19].amax(dim=(-2, -1))
     assert peaks[2] > peaks[1] > peaks[0]
     assert torch.allclose(blur.sum(dim=(-2, -1)), torch.ones(3), atol=0.02)
+
+
+def test_flow_is_the_deprecated_name_of_fwd_flow_px(sim, image):
+    res = sim(image, generator=gen())
+    with pytest.warns(DeprecationWarning, match="fwd_flow_px"):
+        assert res.flow is res.fwd_flow_px

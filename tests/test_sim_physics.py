@@ -131,7 +131,8 @@ def test_simulator_flow_follows_the_tilt_law():
     image = torch.full((n, 1, 2, 2), 0.5)
     log_sigma = []
     for k, dr0 in enumerate(dr0s):
-        flow = sim(image, dr0=float(dr0), generator=torch.Generator().manual_seed(20 + k)).flow[:, :, 0, 0].double()
+        res = sim(image, dr0=float(dr0), generator=torch.Generator().manual_seed(20 + k))
+        flow = res.fwd_flow_px[:, :, 0, 0].double()
         log_sigma.append(0.5 * math.log((flow**2).mean().item()))
     x = np.log(dr0s)
     sxx = ((x - x.mean()) ** 2).sum()

@@ -200,9 +200,9 @@ def test_no_wind_no_boiling_gives_identical_frames():
     img = torch.rand(1, 3, 40, 48, generator=torch.Generator().manual_seed(0))
     frames = list(sim.sequence(img, frames=4, wind=0.0, generator=torch.Generator().manual_seed(2)))
     for f in frames[1:]:
-        assert torch.equal(f.turb, frames[0].turb) and torch.equal(f.flow, frames[0].flow)
+        assert torch.equal(f.turb, frames[0].turb) and torch.equal(f.fwd_flow_px, frames[0].fwd_flow_px)
     moving = list(sim.sequence(img, frames=2, wind=2.0, generator=torch.Generator().manual_seed(2)))
-    assert not torch.equal(moving[0].flow, moving[1].flow)
+    assert not torch.equal(moving[0].fwd_flow_px, moving[1].fwd_flow_px)
 
 
 # ---------------------------------------------------------------------------------------------- API
@@ -220,7 +220,7 @@ def test_sequence_frames_are_simulator_frames_with_the_sequence_fields():
     dr0 = torch.full((2,), 2.5, dtype=torch.float64)
     for f in run:
         expected = sim.tilt_fields(2, 24, 32, dr0, unit=state.tilt(2, 24, 32)) * sim.px_per_a2
-        assert torch.allclose(f.flow, expected.float(), atol=1e-5)
+        assert torch.allclose(f.fwd_flow_px, expected.float(), atol=1e-5)
         state.advance()
     frames = [torch.full((3, 24, 32), v) for v in (0.2, 0.5, 0.8)]
     depth = [torch.full((1, 24, 32), v) for v in (0.0, 0.5, 1.0)]
@@ -353,7 +353,7 @@ def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     item = ds[0]
     assert (
         item["turb"].shape == (8, 3, 32, 32)
-        and item["flow"].shape == (8, 2, 32, 32)
+        and item["bwd_flow_px"].shape == (8, 2, 32, 32)
         and item["gt"].shape == (3, 32, 32)
     )
     assert not torch.equal(item["turb"][0], item["turb"][1])
@@ -361,7 +361,7 @@ def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
 
     inner = (slice(None), slice(None), slice(4, -4), slice(4, -4))
     gt = item["gt"].expand_as(item["tilt"])
-    undone = (warp(item["tilt"], item["flow"]) - gt)[inner].abs().mean()
+    undone = (warp(item["tilt"], item["bwd_flow_px"]) - gt)[inner].abs().mean()
     assert undone < 0.8 * (item["tilt"] - gt)[inner].abs().mean()  # the flow of every frame undoes its tilt
     assert SequenceDataset(ref, frames=2)[1]["tilt"].shape == (2, 3, 32, 32)
     with pytest.raises(D2TurbError, match="SequenceDataset"):

@@ -143,10 +143,10 @@ def test_splatted_flow_beats_direct_inversion_on_simulated_strong_turbulence(sim
     """Paper: warping I_tilt by V_bwd reproduces I better than by −Δ (0.001349 vs 0.001436)."""
     clean = _natural_images(128)
     res = simulator(clean, generator=torch.Generator().manual_seed(0))
-    assert res.flow.abs().max() > 3  # strong turbulence: several pixels of displacement
-    v = backward_flow(res.flow)
+    assert res.fwd_flow_px.abs().max() > 3  # strong turbulence: several pixels of displacement
+    v = backward_flow(res.fwd_flow_px)
     mse_splat = _mse(warp(res.tilt, v), res.clean)
-    mse_direct = _mse(warp(res.tilt, -res.flow), res.clean)
+    mse_direct = _mse(warp(res.tilt, -res.fwd_flow_px), res.clean)
     assert (mse_splat < mse_direct).all()
     assert mse_splat.mean() < 0.7 * mse_direct.mean()
 
@@ -161,5 +161,5 @@ def test_splatted_flow_beats_direct_inversion_on_shared_images(shared_data, simu
         pytest.skip("no urban100 images")
     clean = torch.stack([F.interpolate(read_image(f)[None], size=(128, 128), mode="area")[0] for f in files])
     res = simulator(clean, generator=torch.Generator().manual_seed(1))
-    v = backward_flow(res.flow)
-    assert (_mse(warp(res.tilt, v), res.clean) < _mse(warp(res.tilt, -res.flow), res.clean)).all()
+    v = backward_flow(res.fwd_flow_px)
+    assert (_mse(warp(res.tilt, v), res.clean) < _mse(warp(res.tilt, -res.fwd_flow_px), res.clean)).all()

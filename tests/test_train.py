@@ -85,8 +85,8 @@ def tiny_cfg(pairs: Path, data: dict | None = None, val: dict | None = None, **t
 def fake_batch(b=2, h=12, w=10, seed=0):
     g = torch.Generator().manual_seed(seed)
     r = lambda *s: torch.rand(*s, generator=g)  # noqa: E731
-    out = {"deblurred": r(b, 3, h, w), "restored": r(b, 3, h, w), "flow": 3 * r(b, 2, h, w) - 1.5}
-    batch = {"tilt": r(b, 3, h, w), "gt": r(b, 3, h, w), "flow": 3 * r(b, 2, h, w) - 1.5}
+    out = {"deblurred": r(b, 3, h, w), "restored": r(b, 3, h, w), "bwd_flow_px": 3 * r(b, 2, h, w) - 1.5}
+    batch = {"tilt": r(b, 3, h, w), "gt": r(b, 3, h, w), "bwd_flow_px": 3 * r(b, 2, h, w) - 1.5}
     return out, batch
 
 
@@ -95,7 +95,7 @@ def test_multistage_loss_matches_hand_computation():
     out, batch = fake_batch()
     n = lambda t: t.double().numpy()  # noqa: E731
     deblur = np.abs(n(out["deblurred"]) - n(batch["tilt"])).mean()  # Eq. 11 (L1)
-    flow = np.abs(n(out["flow"]) - n(batch["flow"])).mean()  # Eq. 12
+    flow = np.abs(n(out["bwd_flow_px"]) - n(batch["bwd_flow_px"])).mean()  # Eq. 12
     photo = np.abs(n(out["restored"]) - n(batch["gt"])).mean()  # Eq. 13 without VGG
     total, terms = MultiStageLoss()(out, batch)  # defaults: λ_flow 5, λ_photo 1, no perceptual module
     assert total.item() == pytest.approx(deblur + 5.0 * flow + photo, rel=1e-5)
@@ -106,7 +106,7 @@ def test_multistage_loss_matches_hand_computation():
 
 def test_plain_backbone_trains_on_clean_target_only():
     out, batch = fake_batch()
-    out["flow"] = None
+    out["bwd_flow_px"] = None
     total, terms = MultiStageLoss()(out, batch)
     assert set(terms) == {"photo"}
     assert total.item() == pytest.approx(np.abs(out["restored"].numpy() - batch["gt"].numpy()).mean(), rel=1e-5)
@@ -117,7 +117,7 @@ def test_plain_backbone_with_explicit_native_loss_uses_it_against_clean():
     from d2turb.models import create_model
 
     out, batch = fake_batch(b=3)
-    out["flow"] = None
+    out["bwd_flow_px"] = None
     loss = MultiStageLoss(photo=2.0, plain="psnr")
     total, terms = loss(out, batch)
     assert set(terms) == {"photo"}
@@ -186,7 +186,7 @@ def test_vgg_term_with_tiny_random_vgg(tmp_path):
     expected_vgg = sum(((a - b) ** 2).mean() for a, b in zip(fa, fb)).item()
     photo = np.abs(out["restored"].numpy() - batch["gt"].numpy()).mean()
     assert PerceptualLoss.from_file(path)(out["restored"], batch["gt"]).item() == pytest.approx(expected_vgg, rel=1e-4)
-    out["flow"] = None  # baseline: λ_photo L1 + λ_vgg VGG
+    out["bwd_flow_px"] = None  # baseline: λ_photo L1 + λ_vgg VGG
     loss = build_loss({"vgg": 0.02, "vgg_weights": str(path)}, torch.nn.Identity())
     total, terms = loss(out, batch)
     assert terms["vgg"] == pytest.approx(expected_vgg, rel=1e-4)
@@ -353,7 +353,7 @@ def test_validation_writes_best_and_model(pairs, tmp_path):
     epe0, psnr_in = [], []
     for i in range(3):
         s = PairDataset(pairs)[i]
-        flow, turb, gt = (s[k].double().numpy()[..., 8:24, 8:24] for k in ("flow", "turb", "gt"))
+        flow, turb, gt = (s[k].double().numpy()[..., 8:24, 8:24] for k in ("bwd_flow_px", "turb", "gt"))
         epe0.append(np.sqrt((flow**2).sum(0)).mean())
         psnr_in.append(10 * np.log10(1.0 / ((turb - gt) ** 2).mean()))
     for r in vals:
@@ -409,7 +409,7 @@ def test_on_the_fly_synthesis_training(tmp_path, astronaut):
     }
     trainer = Trainer(load_config(base=base), tmp_path / "run")
     batch = trainer.data.to_device(next(iter(trainer.data.loader)))
-    assert batch["turb"].shape == (2, 3, 32, 32) and batch["flow"].shape == (2, 2, 32, 32)
+    assert batch["turb"].shape == (2, 3, 32, 32) and batch["bwd_flow_px"].shape == (2, 2, 32, 32)
     assert float(batch["dr0"].min()) >= 3.75 and not torch.equal(batch["turb"], batch["gt"])
     summary = trainer.fit()
     assert summary["iteration"] == 2 and math.isfinite(summary["loss"])

@@ -60,14 +60,14 @@ def pack_cfg(pack: Path, **train):
 def test_training_from_a_pack_with_pack_validation(pack, tmp_path):
     trainer = Trainer(pack_cfg(pack), tmp_path / "run")
     batch = trainer.data.to_device(next(iter(trainer.data.loader)))
-    assert batch["turb"].shape == (2, 3, 32, 32) and batch["flow"].shape == (2, 2, 32, 32)
+    assert batch["turb"].shape == (2, 3, 32, 32) and batch["bwd_flow_px"].shape == (2, 2, 32, 32)
     assert batch["depth"].shape == (2, 1, 32, 32) and not torch.equal(batch["depth"], torch.ones_like(batch["depth"]))
     # validation: 2 val images × 3 bins, each pair once, fixed (a second trainer synthesises the same set)
     val = trainer.val_loader
     assert sum(len(b["bin"]) for b in val) == 6 and sorted(int(b) for v in val for b in v["bin"]) == [0, 0, 1, 1, 2, 2]
     twin = trainer.validation.pack_batches()  # synthesised again from the same seeds
     assert all(torch.equal(a["turb"], b["turb"]) for a, b in zip(val, twin))
-    flows = [v["flow"][i].double().numpy() for v in val for i in range(len(v["bin"]))]
+    flows = [v["bwd_flow_px"][i].double().numpy() for v in val for i in range(len(v["bin"]))]
     epe_zero = np.mean([np.sqrt((f**2).sum(0)).mean() for f in flows])  # mean ‖V‖₂ over pixels, then pairs
     summary = trainer.fit()
     assert summary["stopped"] == "done" and summary["iteration"] == 2

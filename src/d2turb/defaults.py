@@ -10,3 +10,7 @@ DEVICE_HELP = "auto (a GPU when there is one), cpu, cuda or cuda:N"
 # `--depth`: the weight-free prior (far = top; d2turb.depth.estimate_depth_prior), so that the simulated turbulence
 # is depth-aware out of the box; `none` (uniform depth) or a map / model are asked for explicitly
 DEFAULT_DEPTH = "prior"
+# `simulate --batch`: images of the same size per simulator call, and at most BATCH_PIXELS pixels in all (8 images of
+# 512²): bounds the blur's FFT planes
+DEFAULT_BATCH = 8
+BATCH_PIXELS = 1 << 21

@@ -28,7 +28,7 @@ import numpy as np
 
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, global_shift_px, to_hwc
-from d2turb.sim.params import positive_finite
+from d2turb.sim.params import cn2_spherical, isoplanatic_angle, positive_finite
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
@@ -107,10 +107,8 @@ def r0_cn2_theta0(dr0: float, optics: Optics) -> dict:
     out = {"r0_m": optics.aperture_m / dr0 if dr0 > 0 else math.inf, "cn2": None, "theta0_urad": None}
     if optics.path_length_m is None or not dr0 > 0:
         return out
-    k = 2 * math.pi / optics.wavelength_m
-    cn2 = out["r0_m"] ** (-5 / 3) / (0.158625 * k * k * optics.path_length_m)
-    beta = math.gamma(8 / 3) ** 2 / math.gamma(16 / 3)
-    theta0 = (2.914 * k * k * cn2 * optics.path_length_m ** (8 / 3) * beta) ** (-3 / 5)
+    cn2 = cn2_spherical(out["r0_m"], optics.path_length_m, optics.wavelength_m)
+    theta0 = isoplanatic_angle(cn2, optics.path_length_m, optics.wavelength_m, wave="spherical")
     out.update(cn2=cn2, theta0_urad=theta0 * 1e6)
     return out
 

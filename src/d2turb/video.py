@@ -71,6 +71,24 @@ def iter_video(path: str | os.PathLike) -> Iterator[tuple[int, torch.Tensor]]:
         raise D2TurbError(f"{path}: cannot read video ({_first_line(exc)}); {VIDEO_HINT}") from exc
 
 
+def video_size(path: str | os.PathLike) -> tuple[int, int, int]:
+    """(frames, width, height) of a video from its container, without decoding it; frames is 0 where the container
+    does not store it (mkv, webm: count by decoding).
+
+    Raises:
+        D2TurbError: imageio/PyAV missing, or the file cannot be read (one line naming the file).
+    """
+    path = Path(path)
+    iio = _imageio(path)
+    try:
+        props = iio.improps(path, plugin=_plugin(path))
+    except Exception as exc:  # noqa: BLE001 - any decoder failure means "cannot read this video"
+        raise D2TurbError(f"{path}: cannot read video ({_first_line(exc)}); {VIDEO_HINT}") from exc
+    frames = int(props.n_images) if props.is_batch else 1
+    dims = props.shape[1:3] if props.is_batch else props.shape[0:2]
+    return frames, int(dims[1]), int(dims[0])
+
+
 def video_fps(path: str | os.PathLike) -> float:
     """Frames per second stored in the container (``DEFAULT_FPS`` when it holds none)."""
     path = Path(path)

@@ -1,10 +1,10 @@
-"""The app's work, in plain Python (no gradio): each run is the real ``d2turb simulate`` / ``d2turb restore`` command
-line, executed in-process inside the app's temp folder, plus the pictures and numbers the page shows.
+"""The app's work, in plain Python (no gradio): each run calls the library job that ``d2turb simulate`` /
+``simulate-video`` / ``restore`` run (:mod:`d2turb.data.simulate`, :mod:`d2turb.restore.files`) inside the app's temp
+folder, with the values of the command line it shows, plus the pictures and numbers the page shows.
 
-Running the CLI itself (parsed by ``d2turb.cli.build_parser``) makes the command line shown in the page the one
-definition of what the app did: pasted into a shell next to the downloaded input it writes the same files. Every
-problem a user can cause raises :class:`d2turb.errors.D2TurbError` with a one-line message; the UI layer turns it
-into a message in the page.
+The command line and the call are built from the same checked values, so the command pasted into a shell next to
+the downloaded input writes the same files (tests/test_app.py runs it). Every problem a user can cause raises
+:class:`d2turb.errors.D2TurbError` with a one-line message; the UI layer turns it into a message in the page.
 """
 
 from __future__ import annotations
@@ -26,15 +26,15 @@ import numpy as np
 import torch
 
 from d2turb import __version__
-from d2turb.cli import build_parser
-from d2turb.commands.demo import sample_images
-from d2turb.commands.simulate import make_params
+from d2turb.data.samples import SAMPLES, sample_images
+from d2turb.data.simulate import simulate_files, simulate_video
+from d2turb.defaults import DEFAULT_DEVICE
 from d2turb.depth import depth_for_image
 from d2turb.depth.io import DEPTH_SUFFIXES
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.eval.report import fit_cell, flow_to_rgb
-from d2turb.io import IMAGE_SUFFIXES, read_image, write_image, write_json, write_text
+from d2turb.io import IMAGE_SUFFIXES, image_size, read_image, write_image, write_json, write_text
 from d2turb.models.hub import (
     IDENTITY_NAME,
     RECOMMENDED_WEIGHTS,
@@ -43,11 +43,10 @@ from d2turb.models.hub import (
     shipped_weights_dir,
     weights_search_path,
 )
-from d2turb.sim import MODULATIONS, Simulator, depth_modulation, dr0_bin, fried_r0_spherical
-from d2turb.sim.geometry import footprint_px
-from d2turb.video import VIDEO_HINT, VIDEO_SUFFIXES, iter_video
+from d2turb.restore.files import restore_clip_files, restore_files
+from d2turb.sim import MODULATIONS, depth_modulation, derived_quantities, make_params
+from d2turb.video import VIDEO_SUFFIXES, iter_video, video_size
 
-SAMPLES = ("astronaut", "coffee", "chelsea", "chart")  # d2turb.commands.demo.sample_images
 STRENGTHS = ("D/r0", "Cn²")
 DEPTH_SOURCES = ("none", "prior", "upload")
 IMAGE_SOURCES = ("sample", "upload")
@@ -137,19 +136,6 @@ def _known(suffixes) -> str:
     return " ".join(sorted(suffixes))
 
 
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels (refuses decompression bombs)."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as img:
-            return img.size
-    except Image.DecompressionBombError as exc:
-        raise D2TurbError(f"{path.name}: image is far too large ({exc})") from exc
-    except Exception as exc:  # noqa: BLE001 - any decoder failure is "not an image" to the user
-        raise D2TurbError(f"{path.name}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
-
-
 def check_pixels(name: str, width: int, height: int, limit: int) -> None:
     if width * height > limit:
         raise D2TurbError(
@@ -158,20 +144,10 @@ def check_pixels(name: str, width: int, height: int, limit: int) -> None:
         )
 
 
-def parse_cli(argv: list[str]):
-    """The real ``d2turb`` parser on ``argv``; argparse's exit becomes a D2TurbError."""
-    try:
-        return build_parser().parse_args(argv)
-    except SystemExit as exc:
-        raise D2TurbError(f"invalid parameters for d2turb {argv[0]}") from exc
-
-
-def run_cli(argv: list[str]) -> None:
-    """Run one d2turb command in-process, as ``d2turb.cli.main`` would (errors stay D2TurbError)."""
-    args = parse_cli(argv)
-    rc = args.func(args)
-    if rc:
-        raise D2TurbError(f"d2turb {argv[0]} failed (exit status {rc})")
+def _check_status(status: int, argv: list[str]) -> None:
+    """A job's exit status as the command line would end: nonzero (some inputs failed) is an error in the page."""
+    if status:
+        raise D2TurbError(f"d2turb {argv[0]} failed (exit status {status})")
 
 
 def write_command(path: Path, *argvs: list[str]) -> str:
@@ -220,45 +196,7 @@ def flow_view(flow: torch.Tensor, path: Path) -> tuple[Path, float]:
     return preview(rgb, path), scale
 
 
-# ---- derived quantities ----------------------------------------------------------------------------------------
-def isoplanatic_angle(cn2: float, path_length_m: float, wavelength_m: float) -> float:
-    """θ0 = [2.914 k² ∫ Cn²(z) z^(5/3) dz]^(−3/5) for constant Cn² over a path of length L:
-    [2.914·(3/8)·k² Cn² L^(8/3)]^(−3/5) rad (= 0.314 r0_spherical / L; Fried, JOSA 72, 1982)."""
-    k = 2 * math.pi / wavelength_m
-    return (2.914 * 3 / 8 * k * k * cn2 * path_length_m ** (8 / 3)) ** (-3 / 5)
-
-
-def derived_quantities(params, mean_modulation: float | None = None) -> dict:
-    """What a parameter set means physically. ``params``: :class:`d2turb.sim.TurbulenceParams` (D/r0 resolved).
-
-    Keys: dr0, r0_m, cn2 (spherical-wave value that gives this r0), theta0_urad / theta0_px (isoplanatic angle),
-    tilt_sigma_px (per axis, where M = 1; the simulator's own scale), footprint_px (tilt correlation scale),
-    samples_per_lambda_d (q = λ/(D·ifov), 2 = Nyquist), ifov_urad, bin; with ``mean_modulation`` also
-    tilt_sigma_px_mean_m (σ at the mean M: Δ = M·Δ0, Eq. 5)."""
-    lam, length = params.reference_wavelength, params.path_length_m
-    r0 = params.r0_m
-    cn2 = (fried_r0_spherical(1.0, length, lam) / r0) ** (5 / 3)  # r0 ∝ Cn²^(−3/5)
-    theta0 = isoplanatic_angle(cn2, length, lam)
-    sim = Simulator(params)
-    sigma = sim.tilt_std * sim.px_per_a2 * params.dr0 ** (5 / 6)
-    out = {
-        "dr0": params.dr0,
-        "bin": dr0_bin(params.dr0),
-        "r0_m": r0,
-        "cn2": cn2,
-        "theta0_urad": theta0 * 1e6,
-        "theta0_px": theta0 / params.ifov_rad,
-        "tilt_sigma_px": sigma,
-        "footprint_px": footprint_px(params),
-        "samples_per_lambda_d": lam / (params.aperture_m * params.ifov_rad),
-        "ifov_urad": params.ifov_rad * 1e6,
-    }
-    if mean_modulation is not None:
-        out["mean_modulation"] = float(mean_modulation)
-        out["tilt_sigma_px_mean_m"] = sigma * float(mean_modulation)
-    return out
-
-
+# ---- derived quantities (d2turb.sim.derived_quantities) ------------------------------------------------------
 _DERIVED_ROWS = (
     ("dr0", "D/r0", "{:.3g}", ""),
     ("bin", "strength bin", "{}", ""),
@@ -333,35 +271,81 @@ def sample_image(name: str) -> torch.Tensor:
     return _samples()[name]
 
 
-def simulate_argv(s: SimSettings, input_name: str, depth_name: str | None, out: str = "out") -> list[str]:
-    """The ``d2turb simulate`` arguments (without ``d2turb``) for these settings."""
+@dataclass(frozen=True)
+class SimValues:
+    """The checked values of one Simulate run, in SI units: both its ``d2turb simulate`` command line
+    (:func:`simulate_argv`) and its library call are made from these. ``depth``: none, prior or the depth file's
+    name in the run folder."""
+
+    seed: int
+    dr0: float | None
+    cn2: float | None
+    depth: str
+    disparity: bool
+    aperture_m: float
+    wavelength_m: list[float]
+    path_length_m: float
+    ifov_rad: float | None
+    modulation: str
+    offset_s: float
+
+    def params(self):
+        """The simulator's :class:`~d2turb.sim.TurbulenceParams` (one-line D2TurbError for impossible values)."""
+        return make_params(
+            self.aperture_m,
+            self.wavelength_m,
+            self.path_length_m,
+            dr0=self.dr0,
+            cn2=self.cn2,
+            ifov_rad=self.ifov_rad,
+            offset_s=self.offset_s,
+            modulation=self.modulation,
+        )
+
+
+def sim_values(s: SimSettings, depth_name: str | None) -> SimValues:
+    """The page's settings checked and converted (nm, µrad → m, rad), each problem a one-line D2TurbError."""
     seed = _number("seed", s.seed, positive=False)
     if not (seed.is_integer() and 0 <= seed < 2**63):
         raise D2TurbError(f"seed must be a whole number in [0, 2^63), got {s.seed!r}")
-    argv = ["simulate", input_name, "--out", out, "--seed", str(int(seed))]
     if s.strength == "D/r0":
-        argv += ["--dr0", fmt_float(_number("D/r0", s.dr0))]
+        dr0, cn2 = _number("D/r0", s.dr0), None
     elif s.strength == "Cn²":
-        argv += ["--cn2", fmt_float(_number("Cn²", s.cn2))]
+        dr0, cn2 = None, _number("Cn²", s.cn2)
     else:
         raise D2TurbError(f"strength must be one of {', '.join(STRENGTHS)}, got {s.strength!r}")
     if s.depth == "upload":
         if not depth_name:
             raise D2TurbError("depth source 'upload': upload a depth map first")
-        argv += ["--depth", depth_name] + (["--disparity"] if s.disparity else [])
+        depth, disparity = depth_name, bool(s.disparity)
     elif s.depth in ("none", "prior"):
-        argv += ["--depth", s.depth]
+        depth, disparity = s.depth, False
     else:
         raise D2TurbError(f"depth source must be one of {', '.join(DEPTH_SOURCES)}, got {s.depth!r}")
-    argv += ["--aperture", fmt_float(_number("aperture", s.aperture_m))]
-    argv += ["--wavelength", *[fmt_float(w) for w in parse_wavelengths_nm(s.wavelength_nm)]]
-    argv += ["--path-length", fmt_float(_number("path length", s.path_length_m))]
-    if s.ifov_urad not in (None, "", 0, 0.0):
-        argv += ["--ifov", fmt_float(_scaled("pixel IFOV (µrad)", s.ifov_urad, -6))]
+    aperture = _number("aperture", s.aperture_m)
+    wavelengths = parse_wavelengths_nm(s.wavelength_nm)
+    path_length = _number("path length", s.path_length_m)
+    ifov = None if s.ifov_urad in (None, "", 0, 0.0) else _scaled("pixel IFOV (µrad)", s.ifov_urad, -6)
     if s.modulation not in MODULATIONS:
         raise D2TurbError(f"modulation must be one of {', '.join(MODULATIONS)}, got {s.modulation!r}")
     offset = _number("offset s", s.offset_s, positive=False)
-    argv += ["--modulation", s.modulation, "--offset", fmt_float(offset), "--save-flow"]
+    return SimValues(
+        int(seed), dr0, cn2, depth, disparity, aperture, wavelengths, path_length, ifov, s.modulation, offset
+    )
+
+
+def simulate_argv(s: SimSettings | SimValues, input_name: str, depth_name: str | None = None, out: str = "out"):
+    """The ``d2turb simulate`` arguments (without ``d2turb``) for these settings (or their checked values)."""
+    v = s if isinstance(s, SimValues) else sim_values(s, depth_name)
+    argv = ["simulate", input_name, "--out", out, "--seed", str(v.seed)]
+    argv += ["--dr0", fmt_float(v.dr0)] if v.dr0 is not None else ["--cn2", fmt_float(v.cn2)]
+    argv += ["--depth", v.depth] + (["--disparity"] if v.disparity else [])
+    argv += ["--aperture", fmt_float(v.aperture_m)]
+    argv += ["--wavelength", *[fmt_float(w) for w in v.wavelength_m]]
+    argv += ["--path-length", fmt_float(v.path_length_m)]
+    if v.ifov_rad is not None:
+        argv += ["--ifov", fmt_float(v.ifov_rad)]
+    argv += ["--modulation", v.modulation, "--offset", fmt_float(v.offset_s), "--save-flow"]
     return argv
 
 
@@ -400,15 +384,22 @@ def run_simulation(s: SimSettings, workspace: Workspace, limits: Limits | None =
             raise D2TurbError(f"{src.name}: not a depth map file type ({_known(DEPTH_SUFFIXES)})")
         depth_name = f"{stem}_depthmap{src.suffix.lower()}"
         shutil.copyfile(src, run / depth_name)
-    argv = simulate_argv(s, name, depth_name)
-    run_argv = [str(run / a) if a in (name, depth_name) else a for a in argv]
-    run_argv[run_argv.index("--out") + 1] = str(run / "out")
-
-    # validate everything the command will meet before running it, with the user's file names in messages
-    args = parse_cli(run_argv)
-    params = make_params(args, args.dr0)
-    depth = depth_for_image(args.depth, run / name, image, is_disparity=args.disparity)  # refuses another aspect
-    run_cli(run_argv)
+    values = sim_values(s, depth_name)
+    argv = simulate_argv(values, name)
+    # check what the job will meet before running it, with the user's file names in messages
+    params = values.params()
+    depth_spec = str(run / depth_name) if values.depth == depth_name else values.depth
+    depth = depth_for_image(depth_spec, run / name, image, is_disparity=values.disparity)  # refuses another aspect
+    status = simulate_files(
+        [run / name],
+        run / "out",
+        params,
+        depth=depth_spec,
+        disparity=values.disparity,
+        seed=values.seed,
+        save_flow=True,
+    )
+    _check_status(status, argv)
     command = write_command(run / "command.sh", argv)
 
     out = run / "out"
@@ -488,24 +479,8 @@ def _niqe(image: torch.Tensor) -> float | str:
         return f"n/a ({exc})"
 
 
-def _video_size(path: Path) -> tuple[int, int, int]:
-    """(frames, width, height) of a video from its container, without decoding it."""
-    try:
-        import imageio.v3 as iio
-    except ImportError as exc:
-        raise D2TurbError(f"{path.name}: reading video needs imageio; {VIDEO_HINT}") from exc
-    plugin = "pillow" if path.suffix.lower() == ".gif" else "pyav"
-    try:
-        props = iio.improps(path, plugin=plugin)
-    except Exception as exc:  # noqa: BLE001 - any decoder failure means "cannot read this video"
-        first = (str(exc).strip().splitlines() or [exc.__class__.__name__])[0]
-        raise D2TurbError(f"{path.name}: cannot read video ({first}); {VIDEO_HINT}") from exc
-    frames = int(props.n_images) if props.is_batch else 1
-    dims = props.shape[1:3] if props.is_batch else props.shape[0:2]
-    return frames, int(dims[1]), int(dims[0])
-
-
 def restore_argv(input_name: str, weights: str, tile: int, overlap: int, device: str, out: str = "out") -> list[str]:
+    """The ``d2turb restore`` arguments (without ``d2turb``); ``device`` "cpu" is left to the command's default."""
     argv = ["restore", input_name, "--weights", weights, "--out", out, "--tile", str(tile), "--overlap", str(overlap)]
     return argv + (["--device", device] if device != "cpu" else []) + ["--save-flow"]
 
@@ -540,7 +515,7 @@ def run_restore(
 
     is_video = src.suffix.lower() in VIDEO_SUFFIXES
     if is_video:
-        frames, w, h = _video_size(src)
+        frames, w, h = video_size(src)
         if frames > limits.video_frames:
             raise D2TurbError(
                 f"{src.name}: {frames} frames is more than the app takes ({limits.video_frames}); "
@@ -564,9 +539,11 @@ def run_restore(
     else:
         first = read_image(run / name)
     argv = restore_argv(name, weights, tile, overlap, device)
-    run_argv = [str(run / a) if a == name else a for a in argv]
-    run_argv[run_argv.index("--out") + 1] = str(run / "out")
-    run_cli(run_argv)
+    job_device = device if "--device" in argv else DEFAULT_DEVICE  # as the command line runs
+    status = restore_files(
+        [run / name], run / "out", weights, tile=tile, overlap=overlap, device=job_device, save_flow=True
+    )
+    _check_status(status, argv)
     command = write_command(run / "command.sh", argv)
 
     out = run / "out"
@@ -622,6 +599,7 @@ CLIP_SIM_FRAMES = 32  # frames simulated from an uploaded image
 
 
 def clip_argv(clip: str, temporal: int, dr0: float | None, out: str = "out") -> list[str]:
+    """The ``d2turb restore --temporal`` arguments (without ``d2turb``); no ``dr0``: fusion without deblurring."""
     argv = ["restore", clip, "--temporal", str(temporal), "--out", out, "--save-intermediate"]
     return argv + (["--dr0", f"{dr0:g}"] if dr0 else ["--deblur", "none"])
 
@@ -652,7 +630,7 @@ def run_clip(
     shutil.copyfile(src, run / name)
     commands, notes = [], []
     if src.suffix.lower() in VIDEO_SUFFIXES:
-        frames, w, h = _video_size(run / name)
+        frames, w, h = video_size(run / name)
         if frames == 0:  # containers that do not store it (mkv, webm): count by decoding
             frames = sum(1 for _ in iter_video(run / name))
         if frames > limits.video_frames:
@@ -665,19 +643,22 @@ def run_clip(
     elif src.suffix.lower() in IMAGE_SUFFIXES:
         w, h = image_size(src)
         check_pixels(src.name, w, h, limits.sim_pixels)
-        sim_dr0 = dr0 or 3.0
+        sim_dr0 = float(f"{dr0 or 3.0:g}")  # the value the command line below gives
         sim = ["simulate-video", name, "--out", "clip", "--frames", str(CLIP_SIM_FRAMES), "--dr0", f"{sim_dr0:g}"]
         sim += ["--wind", "2", "--boil", "0.1", "--no-mp4"]
-        run_cli([str(run / a) if a in (name, "clip") else a for a in sim])
+        params = make_params(dr0=sim_dr0)
+        status = simulate_video(run / name, run / "clip", params, frames=CLIP_SIM_FRAMES, wind=2.0, boil=0.1, mp4=False)
+        _check_status(status, sim)
         commands.append(sim)
         clip, frames, mp4, dr0 = "clip/turb", CLIP_SIM_FRAMES, "turb_restored.mp4", sim_dr0
         notes.append(f"a {frames}-frame clip was simulated from the image at D/r0 = {sim_dr0:g} and restored with it")
     else:
         raise D2TurbError(f"{src.name}: not a video or image file type ({_known(IMAGE_SUFFIXES | VIDEO_SUFFIXES)})")
     argv = clip_argv(clip, temporal, dr0)
-    run_argv = [str(run / a) if a in (name, clip) else a for a in argv]
-    run_argv[run_argv.index("--out") + 1] = str(run / "out")
-    run_cli(run_argv)
+    job_dr0 = float(f"{dr0:g}") if dr0 else None  # as the command line gives it
+    deblur = "auto" if dr0 else "none"
+    status = restore_clip_files(run / clip, run / "out", temporal, deblur=deblur, dr0=job_dr0, save_intermediate=True)
+    _check_status(status, argv)
     commands.append(argv)
     text = write_command(run / "command.sh", *commands)
     out, views = run / "out", run / "views"

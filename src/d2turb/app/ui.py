@@ -19,7 +19,7 @@ import gradio as gr
 from d2turb.app import core
 from d2turb.errors import D2TurbError
 from d2turb.eval.labels import GENERIC_STEMS, weights_label
-from d2turb.io import read_image, write_image
+from d2turb.io import image_size, read_image, write_image
 from d2turb.sim import MODULATIONS
 from d2turb.sim.params import BINS_RULE
 from d2turb.video import VIDEO_SUFFIXES
@@ -90,7 +90,7 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             return None
 
         p = Path(path)
-        w, h = core.image_size(p)
+        w, h = image_size(p)
         core.check_pixels(p.name, w, h, max(limits.sim_pixels, limits.restore_pixels))
         return core.preview(read_image(p), workspace.new_run("preview") / "input.png")
 

@@ -28,7 +28,7 @@ def run(args) -> int:
     spec = importlib.util.find_spec("gradio")
     if spec is None or spec.origin in (None, "namespace"):  # no origin: a stray folder named gradio, not the package
         raise D2TurbError(INSTALL_HINT)
-    # lazy: app.core imports torch and the pipeline; d2turb --help starts without them
+    # lazy: see d2turb.commands
     from d2turb.app.core import Workspace, prepare_environment
 
     workspace = Workspace()

@@ -58,7 +58,7 @@ def _config(args) -> dict:
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     import torch
 
     from d2turb.device import resolve_device

@@ -18,7 +18,7 @@ def register(sub):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.data.check import check_dataset
 
     report = check_dataset(args.root, decode=not args.quick)

@@ -1,6 +1,7 @@
 """Options and behaviour shared by the subcommands: seed range, device, image-size limit, PNG level, the
-rule for folders with bad files (every readable file is processed, one ``error:`` line per bad file, a
-summary, exit status 1; ``--fail-fast`` stops at the first), and the stderr handler of the ``d2turb`` loggers."""
+rule for folders with bad files (``FileErrors``, from :mod:`d2turb.errors`: every readable file is processed, one
+``error:`` line per bad file, a summary, exit status 1; ``--fail-fast`` stops at the first), and the stderr handler
+of the ``d2turb`` loggers."""
 
 from __future__ import annotations
 
@@ -129,48 +130,6 @@ def add_fail_fast_arg(p) -> None:
         action="store_true",
         help="stop at the first unreadable or failing input (default: report it, go on, exit 1 at the end)",
     )
-
-
-def print_error(message: str) -> None:
-    """``error: message`` on stderr in one line, above any progress bar."""
-    message = " ".join(message.split())
-    if "tqdm" in sys.modules:
-        from tqdm import tqdm
-
-        tqdm.write(f"error: {message}", file=sys.stderr)
-    else:
-        print(f"error: {message}", file=sys.stderr, flush=True)
-
-
-class FileErrors:
-    """Per-input failures of a batch command.
-
-    ``record(exc)`` prints one ``error:`` line and goes on, or re-raises the error with ``fail_fast`` (and
-    when there is a single input, whose error then is the command's one line). ``finish`` prints the
-    summary and returns the exit status: 0 all done, 1 some inputs failed, 2 all failed.
-    """
-
-    def __init__(self, total: int, fail_fast: bool = False):
-        self.total, self.fail_fast = total, fail_fast or total == 1
-        self.failed: list[str] = []
-
-    def record(self, exc: D2TurbError) -> None:
-        if self.fail_fast:
-            raise exc
-        print_error(str(exc))
-        self.failed.append(str(exc))
-
-    def finish(self, command: str) -> int:
-        return summary(command, self.total, len(self.failed))
-
-
-def summary(command: str, total: int, failed: int) -> int:
-    """The closing line of a batch with failed inputs, and the exit status (0 none, 1 some, 2 all failed)."""
-    if not failed:
-        return 0
-    done = total - failed
-    print(f"{command}: {done} of {total} inputs done, {failed} failed (see the error lines)", file=sys.stderr)
-    return 1 if done else 2
 
 
 class StderrHandler(logging.Handler):

@@ -45,7 +45,7 @@ def _config(text: str | None) -> dict:
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from pathlib import Path
 
     from d2turb.models import count_parameters, load_pretrained, save_pretrained

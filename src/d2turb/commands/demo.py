@@ -5,11 +5,10 @@ with a rectifier) and a per-bin PSNR/SSIM table."""
 from __future__ import annotations
 
 from d2turb.commands.common import add_seed_arg
-from d2turb.commands.simulate import add_physics_args, make_params
+from d2turb.commands.simulate import add_physics_args, physics_params
 from d2turb.errors import D2TurbError
 
 LEVELS = (("weak", 1.5), ("medium", 3.0), ("strong", 4.5))
-SIZE = (192, 256)  # H, W of every demo image
 DEMO_PATH_LENGTH_M = 3000.0  # D = 0.1 m at Nyquist: tilt footprint 12.7 px, inside the training geometries
 
 
@@ -33,36 +32,6 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def line_chart():
-    """A generated chart of straight lines (3, H, W): turbulence tilt shows as wavy lines."""
-    import torch
-
-    h, w = SIZE
-    ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-    lines = ((ys % 16) < 2) | ((xs % 16) < 2)
-    chart = torch.where(lines, 0.1, 0.9).float()
-    return chart.expand(3, h, w).contiguous()
-
-
-def sample_images() -> dict:
-    """Three skimage samples, centre-cropped to 4:3 and resized to SIZE, plus a generated line chart,
-    as (3, H, W) tensors."""
-    import numpy as np
-    import torch
-    from skimage import data, transform
-
-    out = {}
-    for name in ("astronaut", "coffee", "chelsea"):
-        img = getattr(data, name)()
-        h, w = img.shape[:2]
-        ch, cw = (h, h * 4 // 3) if w * 3 >= h * 4 else (w * 3 // 4, w)
-        y0, x0 = (h - ch) // 2, (w - cw) // 2
-        img = transform.resize(img[y0 : y0 + ch, x0 : x0 + cw], SIZE, anti_aliasing=True)
-        out[name] = torch.from_numpy(np.asarray(img, dtype=np.float32)).permute(2, 0, 1).contiguous()
-    out["chart"] = line_chart()
-    return out
-
-
 def _label(tile, text):
     from PIL import ImageDraw
 
@@ -73,11 +42,12 @@ def _label(tile, text):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     import numpy as np
     import torch
     from PIL import Image
 
+    from d2turb.data.samples import sample_images
     from d2turb.depth import estimate_depth_prior
     from d2turb.device import resolve_device
     from d2turb.io import check_output_dir, to_uint8, write_image, write_json
@@ -86,7 +56,7 @@ def run(args):
     out = check_output_dir(args.out)
     images = sample_images()
     names = list(images)
-    params = make_params(args)
+    params = physics_params(args)
     sim = Simulator(params, device=resolve_device(args.device))
     batch = torch.stack([images[n] for n in names])
     depth = estimate_depth_prior(batch)  # (B, 1, H, W), far = 1
@@ -136,7 +106,8 @@ def run(args):
 def restore_demo(weights, res, names: list[str], out, device) -> dict:
     """Restore every simulated image with ``weights``; write restore.png and demo_results.md; return the table.
     A model with a rectifier also gets predicted | true flow columns and the flow end-point errors."""
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
+    from d2turb.data.samples import SAMPLE_SIZE
     from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
     from d2turb.eval.report import comparison_grid, flow_to_rgb
     from d2turb.io import write_image, write_text
@@ -145,8 +116,8 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
 
     restorer = Restorer(weights, device=device)
     details = restorer.restore_with_details(res.turb.float().cpu())
-    has_flow = bool(details["flow"].any())  # a plain restorer (no rectifier) predicts no flow
-    true_flow = backward_flow(res.flow).float().cpu()
+    has_flow = bool(details["bwd_flow_px"].any())  # a plain restorer (no rectifier) predicts no flow
+    true_flow = backward_flow(res.fwd_flow_px).float().cpu()
     gt = res.clean.float().cpu()
     b = len(names)
     rows, labels, table = [], [], {}
@@ -160,12 +131,12 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
             for label, image in (("input", res.turb[j].float().cpu()), ("restored", restored)):
                 scores[f"psnr_{label}"], scores[f"ssim_{label}"] = float(psnr(image, gt[j])), float(ssim(image, gt[j]))
             scores["epe_zero_flow_px"] = float(end_point_error(true_flow[j]))
-            scores["epe_px"] = float(end_point_error(details["flow"][j], true_flow[j]))
+            scores["epe_px"] = float(end_point_error(details["bwd_flow_px"][j], true_flow[j]))
             mean.update(scores, groups=level)
             row = [res.turb[j].float().cpu(), restored, gt[j]]
             if has_flow:
                 peak = float(true_flow[j].norm(dim=0).max())
-                row += [flow_to_rgb(details["flow"][j], peak), flow_to_rgb(true_flow[j], peak)]
+                row += [flow_to_rgb(details["bwd_flow_px"][j], peak), flow_to_rgb(true_flow[j], peak)]
             rows.append(row)
             labels.append(f"{name} {level}")
         means = mean.compute(level)
@@ -173,14 +144,15 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
         keys += ["epe_zero_flow_px", "epe_px"] if has_flow else []
         table[level] = {"dr0": value} | {key: means[key] for key in keys}
     columns = ["input", restorer.name, "clean"] + (["predicted flow", "true flow"] if has_flow else [])
-    write_image(out / "restore.png", comparison_grid(rows, columns, labels, cell=SIZE[1]))
+    write_image(out / "restore.png", comparison_grid(rows, columns, labels, cell=SAMPLE_SIZE[1]))
     header = "| bin | D/r0 | PSNR input | PSNR restored | SSIM input | SSIM restored |"
     rule = "|---|---:|---:|---:|---:|---:|"
     if has_flow:
         header, rule = header + " EPE zero flow (px) | EPE (px) |", rule + "---:|---:|"
     lines = [
         f"# d2turb demo: restoration with {restorer.name}\n",
-        f"{len(names)} built-in images per bin, {SIZE[1]}x{SIZE[0]} px (a demo, not a benchmark: see MODEL_CARD.md).\n",
+        f"{len(names)} built-in images per bin, {SAMPLE_SIZE[1]}x{SAMPLE_SIZE[0]} px "
+        "(a demo, not a benchmark: see MODEL_CARD.md).\n",
         header,
         rule,
     ]

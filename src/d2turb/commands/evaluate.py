@@ -5,8 +5,8 @@ from __future__ import annotations
 import os
 import sys
 
-from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg, print_error, summary
-from d2turb.errors import D2TurbError
+from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
+from d2turb.errors import D2TurbError, print_error, summary
 
 
 def register(sub):
@@ -82,7 +82,7 @@ def register(sub):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.device import resolve_device
     from d2turb.io import check_output_dir, remove_stale_temp_files
 

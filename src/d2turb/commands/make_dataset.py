@@ -63,7 +63,7 @@ def register(sub):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.data.generate import DatasetConfig, generate_dataset
 
     params = parse_params(args.param)

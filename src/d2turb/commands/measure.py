@@ -50,7 +50,7 @@ def parse_params(items: list[str]) -> dict:
 
 def read_clip(path: Path, max_frames: int | None = None) -> list:
     """Frames of a folder of images or of a video file, as (3,H,W) tensors."""
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.io import list_images, read_image
     from d2turb.video import is_video, iter_video
 
@@ -91,7 +91,7 @@ def plot(result: dict, path: Path) -> None:
 
 
 def run(args):
-    # lazy: the pipeline (numpy, OpenCV, torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.io import check_output_dir, write_json
     from d2turb.measure import Optics, measure_clip
 

@@ -16,7 +16,7 @@ def register(sub):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     import json
 
     import torch

@@ -31,7 +31,7 @@ def register(sub):
 
 
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.data.pack import make_pack
 
     summary = make_pack(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from d2turb.commands.common import (
-    FileErrors,
     add_depth_arg,
     add_device_arg,
     add_fail_fast_arg,
@@ -11,9 +10,7 @@ from d2turb.commands.common import (
     add_png_level_arg,
     add_seed_arg,
 )
-from d2turb.errors import D2TurbError
-
-BATCH_PIXELS = 1 << 21  # pixels per simulator call (8 images of 512²): bounds the blur's FFT planes
+from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH
 
 
 def add_physics_args(p, path_length_m: float = 1000.0):
@@ -89,9 +86,10 @@ def register(sub):
     p.add_argument(
         "--batch",
         type=int,
-        default=8,
+        default=DEFAULT_BATCH,
         metavar="N",
-        help=f"images of the same size per simulator call, at most {BATCH_PIXELS} pixels in all (default 8)",
+        help=f"images of the same size per simulator call, at most {BATCH_PIXELS} pixels in all "
+        f"(default {DEFAULT_BATCH})",
     )
     p.add_argument(
         "--save-flow",
@@ -106,17 +104,15 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def make_params(args, dr0=None):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    from d2turb.sim import TurbulenceParams
+def physics_params(args, dr0=None):
+    """The ``TurbulenceParams`` of the options of :func:`add_physics_args` (and ``--cn2`` where the command has it)."""
+    # lazy: see d2turb.commands
+    from d2turb.sim import make_params
 
-    wl = args.wavelength
-    if len(wl) not in (1, 3):
-        raise D2TurbError(f"--wavelength takes one or three values, got {len(wl)}")
-    return TurbulenceParams(
-        aperture_m=args.aperture,
-        wavelength_m=tuple(wl) if len(wl) == 3 else wl[0],
-        path_length_m=args.path_length,
+    return make_params(
+        args.aperture,
+        args.wavelength,
+        args.path_length,
         dr0=dr0,
         cn2=getattr(args, "cn2", None),
         ifov_rad=args.ifov,
@@ -125,125 +121,22 @@ def make_params(args, dr0=None):
     )
 
 
-def _batches(items, batch: int):
-    """Group (path, dr0, image, depth) items of the same image size into lists of at most ``batch`` images
-    and BATCH_PIXELS pixels, in input order per size; at most ~2 batches of images wait in memory."""
-    pending: dict[tuple[int, int], list] = {}
-    for item in items:
-        size = tuple(item[2].shape[-2:])
-        group = pending.setdefault(size, [])
-        group.append(item)
-        if len(group) >= max(1, min(batch, BATCH_PIXELS // (size[0] * size[1]))):
-            yield pending.pop(size)
-        elif sum(len(g) for g in pending.values()) > 2 * batch:
-            yield pending.pop(next(iter(pending)))  # the oldest size
-    yield from pending.values()
-
-
-def _check_depth_spec(spec: str) -> None:
-    """Refuse a --depth that cannot work for any image once, rather than once per image."""
-    from pathlib import Path
-
-    if spec in ("none", "prior"):
-        return
-    if spec.startswith("anything:"):
-        folder = Path(spec[len("anything:") :])
-        if not (folder / "config.json").is_file():
-            raise D2TurbError(f"--depth {spec}: {folder} is not a Depth Anything model folder (no config.json)")
-    elif not Path(spec).exists():
-        raise D2TurbError(f"--depth {spec}: no such depth file or folder (or use none, prior, anything:PATH)")
-
-
-def _write_outputs(out, name: str, turb, tilt, flow, meta: dict, png_level: int) -> None:
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    from d2turb.io import write_image, write_json, write_npy
-
-    write_image(out / f"{name}_turb.png", turb, png_level)
-    if tilt is not None:
-        write_image(out / f"{name}_tilt.png", tilt, png_level)
-    if flow is not None:
-        write_npy(out / f"{name}_flow.npy", flow.numpy().astype("float32"))
-    write_json(out / f"{name}_meta.json", meta)
-
-
 def run(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
-    import torch
+    # lazy: see d2turb.commands
+    from d2turb.data.simulate import simulate_files
 
-    from d2turb.depth import depth_for_image
-    from d2turb.device import resolve_device
-    from d2turb.io import (
-        BackgroundWriter,
-        check_output_dir,
-        check_unique_stems,
-        expand_inputs,
-        read_image,
+    return simulate_files(
+        args.inputs,
+        args.out,
+        physics_params(args, args.dr0),
+        dr0_range=args.dr0_range,
+        depth=args.depth,
+        disparity=args.disparity,
+        seed=args.seed,
+        batch=args.batch,
+        save_flow=args.save_flow,
+        save_tilt=not args.no_tilt,
+        png_level=args.png_level,
+        device=args.device,
+        fail_fast=args.fail_fast,
     )
-    from d2turb.sim import Simulator, dr0_bin, sample_dr0
-
-    if args.batch < 1:
-        raise D2TurbError(f"--batch must be at least 1, got {args.batch}")
-    paths = expand_inputs(args.inputs)
-    check_unique_stems(paths)
-    _check_depth_spec(args.depth)
-    params = make_params(args, args.dr0)
-    device = resolve_device(args.device)
-    out = check_output_dir(args.out, inputs=paths)
-    sim = Simulator(params, device=device)
-    gen = torch.Generator().manual_seed(args.seed)
-    if args.dr0_range is not None:
-        strengths = sample_dr0(len(paths), *args.dr0_range, generator=gen).tolist()
-    else:
-        strengths = [params.dr0] * len(paths)
-    errors = FileErrors(len(paths), args.fail_fast)
-
-    def readable():
-        for path, dr0 in zip(paths, strengths):
-            try:
-                image = read_image(path)
-                depth = depth_for_image(args.depth, path, image, is_disparity=args.disparity, device=device)
-            except D2TurbError as exc:
-                errors.record(exc)
-                continue
-            yield path, dr0, image, depth
-
-    base_meta = params.to_dict()
-    with BackgroundWriter(max_pending=2 * args.batch, compute_device=device) as writer:
-        for group in _batches(readable(), args.batch):
-            writer.before_compute()
-            images = torch.stack([item[2] for item in group])
-            depths = (
-                None if group[0][3] is None else torch.stack([item[3].reshape(1, *images.shape[-2:]) for item in group])
-            )
-            dr0 = torch.tensor([item[1] for item in group], dtype=torch.float64)
-            res = sim(images, depth=depths, dr0=dr0, generator=gen)
-            turb = res.turb.float().cpu()
-            tilt = None if args.no_tilt else res.tilt.float().cpu()
-            flow = res.flow.float().cpu() if args.save_flow else None
-            modulation = res.modulation.flatten(1).mean(1).tolist()
-            for b, (path, value, image, _) in enumerate(group):
-                meta = dict(
-                    base_meta,
-                    dr0=float(value),
-                    r0_m=params.aperture_m / float(value),
-                    bin=dr0_bin(value),
-                    seed=args.seed,
-                    batch=args.batch,
-                    input=str(path),
-                    depth=args.depth,
-                    height=image.shape[1],
-                    width=image.shape[2],
-                    mean_modulation=float(modulation[b]),
-                )
-                writer.submit(
-                    _write_outputs,
-                    out,
-                    path.stem,
-                    turb[b],
-                    None if tilt is None else tilt[b],
-                    None if flow is None else flow[b],
-                    meta,
-                    args.png_level,
-                )
-                print(f"{path.name}: D/r0 = {value:.3g} ({dr0_bin(value)}) -> {out / (path.stem + '_turb.png')}")
-    return errors.finish("simulate")

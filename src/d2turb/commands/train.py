@@ -50,7 +50,7 @@ def register(sub):
 
 
 def _config_and_out(args):
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.train import load_config
 
     if not args.config:
@@ -63,7 +63,7 @@ def _config_and_out(args):
 
 
 def _refuse_if_running(out: str) -> None:
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.train.status import STATUS, read_status
 
     if os.path.isfile(os.path.join(out, STATUS)):
@@ -113,7 +113,7 @@ def _hms(seconds) -> str:
 
 
 def print_status(run_dir: str) -> int:
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.train.status import read_status
 
     s = read_status(run_dir)
@@ -158,7 +158,7 @@ def run(args):
     _refuse_if_running(out)
     if args.detach:
         return _detach(args, out)
-    # lazy: the pipeline (torch) loads when the command runs; d2turb --help starts without it
+    # lazy: see d2turb.commands
     from d2turb.train import Trainer
 
     log_to_stderr({"d2turb.train": logging.INFO})

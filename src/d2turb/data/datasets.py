@@ -1,4 +1,7 @@
-"""PyTorch datasets: generated pairs from disk, and clean crops + on-the-fly synthesis on the training device."""
+"""PyTorch datasets: generated pairs from disk, and clean crops + on-the-fly synthesis on the training device.
+
+Samples hold the backward flow V as ``bwd_flow_px``: (…, 2, H, W) in pixels, x then y, ``warp(tilt, bwd_flow_px) ≈
+gt`` (the files' ``flow/<id>.npy``); ``flow``, its deprecated name, is kept beside it (the same tensor)."""
 
 from __future__ import annotations
 
@@ -12,8 +15,20 @@ from d2turb.data.generate import make_depth_fn, resize_up
 from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
+from d2turb.ops.checks import check_shape
 from d2turb.ops.splat import backward_flow
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
+
+FLOW_KEYS = ("bwd_flow_px", "flow")  # the backward flow of a sample, and its deprecated name
+
+
+def _with_flow(sample: dict, out: dict, change) -> dict:
+    """``out`` with ``change`` applied to the sample's backward flow, under each of its names the sample has."""
+    flow = next((sample[k] for k in FLOW_KEYS if sample.get(k) is not None), None)
+    if flow is not None:
+        flow = change(flow)
+        out.update({k: flow for k in FLOW_KEYS if sample.get(k) is not None})
+    return out
 
 
 def flip_sample(sample: dict, horizontal: bool = True) -> dict:
@@ -21,31 +36,34 @@ def flip_sample(sample: dict, horizontal: bool = True) -> dict:
     (mirroring x → W-1-x turns a displacement +v into -v)."""
     dim, comp = (-1, 0) if horizontal else (-2, 1)
     out = dict(sample)
-    for key in ("turb", "tilt", "gt", "depth", "flow"):
+    for key in ("turb", "tilt", "gt", "depth"):
         if key in out and out[key] is not None:
             out[key] = out[key].flip(dim)
-    if out.get("flow") is not None:
-        flow = out["flow"].clone()
+
+    def flip(flow):
+        flow = flow.flip(dim)
         flow[..., comp, :, :] = -flow[..., comp, :, :]
-        out["flow"] = flow
-    return out
+        return flow
+
+    return _with_flow(sample, out, flip)
 
 
 def crop_sample(sample: dict, y0: int, x0: int, size: int) -> dict:
     """Crop every image-like entry; flow is in pixels, so its values stay valid after a crop."""
     out = dict(sample)
-    for key in ("turb", "tilt", "gt", "depth", "flow"):
+    for key in ("turb", "tilt", "gt", "depth"):
         if key in out and out[key] is not None:
             out[key] = out[key][..., y0 : y0 + size, x0 : x0 + size]
-    return out
+    return _with_flow(sample, out, lambda flow: flow[..., y0 : y0 + size, x0 : x0 + size])
 
 
 class PairDataset(Dataset):
     """Pairs written by ``d2turb make-dataset`` in ``root`` (or ``root/<split>``); ``split`` must match the data's.
 
-    Item: dict(turb, tilt, gt (3,H,W) float32 in [0,1]; flow (2,H,W) float32 px backward flow;
-    depth (1,H,W) in [0,1]; dr0 float32 scalar; bin int64 scalar (index into ("weak","medium","strong"));
-    id str). ``crop`` = random crop size, ``hflip``/``vflip`` = random mirroring (flow kept consistent).
+    Item: dict(turb, tilt, gt (3,H,W) float32 in [0,1]; bwd_flow_px (2,H,W) float32 px backward flow (and ``flow``,
+    its deprecated name); depth (1,H,W) in [0,1]; dr0 float32 scalar; bin int64 scalar (index into
+    ("weak","medium","strong")); id str). ``crop`` = random crop size, ``hflip``/``vflip`` = random mirroring (flow
+    kept consistent).
     Augmentation randomness comes from ``torch``'s global RNG (seeded per DataLoader worker).
     """
 
@@ -79,21 +97,28 @@ class PairDataset(Dataset):
         skips bad samples, as evaluate does, skips it)."""
         rec = self.records[index]
         sid = rec["id"]
+        flow = torch.from_numpy(load_flow(file_path(self.root, "flow", sid)))
         sample = {
             "turb": read_image(file_path(self.root, "turb", sid)),
             "tilt": read_image(file_path(self.root, "tilt", sid)),
             "gt": read_image(file_path(self.root, "gt", sid)),
-            "flow": torch.from_numpy(load_flow(file_path(self.root, "flow", sid))),
+            "bwd_flow_px": flow,
+            "flow": flow,
             "depth": read_depth_png(file_path(self.root, "depth", sid)),
             "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
             "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
             "id": sid,
         }
         h, w = sample["gt"].shape[-2:]
-        for kind, channels in (("turb", 3), ("tilt", 3), ("flow", 2), ("depth", 1)):
-            if tuple(sample[kind].shape) != (channels, h, w):
+        for kind, key, channels in (
+            ("turb", "turb", 3),
+            ("tilt", "tilt", 3),
+            ("flow", "bwd_flow_px", 2),
+            ("depth", "depth", 1),
+        ):
+            if tuple(sample[key].shape) != (channels, h, w):
                 raise D2TurbError(
-                    f"{file_path(self.root, kind, sid)}: {kind} has shape {tuple(sample[kind].shape)}, expected "
+                    f"{file_path(self.root, kind, sid)}: {kind} has shape {tuple(sample[key].shape)}, expected "
                     f"({channels}, {h}, {w}) like gt/{sid}.png"
                 )
         return sample
@@ -175,7 +200,8 @@ class OnTheFlySynthesis:
     """Applied to a collated CleanCropDataset batch on the training device: draws D/r0 uniformly over the union of
     ``bins`` per sample and one imaging geometry per batch (``simulator`` is one Simulator or a list, e.g. one per
     geometry of :func:`d2turb.sim.geometry.geometry_bank`), runs the simulator batched (new turbulence on every call)
-    and returns the same dict as PairDataset, with ``flow`` the backward flow of the simulator's forward flow.
+    and returns the same dict as PairDataset, with ``bwd_flow_px`` (and ``flow``) the backward flow of the simulator's
+    forward flow.
     """
 
     def __init__(
@@ -212,8 +238,7 @@ class OnTheFlySynthesis:
 
     def __call__(self, batch: dict) -> dict:
         gt = batch["gt"].to(self.device, non_blocking=True)
-        if gt.ndim != 4 or gt.shape[1] != 3:
-            raise D2TurbError(f"expected a batch of clean images (B,3,H,W), got {tuple(gt.shape)}")
+        check_shape(gt, "B 3 H W", "batch of clean images")
         depth = batch.get("depth")
         depth = depth.to(self.device, non_blocking=True) if (depth is not None and self.use_depth) else None
         dr0 = self.sample_dr0(gt.shape[0])
@@ -224,11 +249,12 @@ class OnTheFlySynthesis:
         )
         with torch.no_grad():
             res = self.simulators[g](gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
-            flow = backward_flow(res.flow)
+            flow = backward_flow(res.fwd_flow_px)
         return {
             "turb": res.turb,
             "tilt": res.tilt,
             "gt": gt,
+            "bwd_flow_px": flow,
             "flow": flow,
             "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
             "dr0": dr0.to(self.device),

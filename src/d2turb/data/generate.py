@@ -536,7 +536,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                 )
             else:
                 res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
-                turb, tilt, flow = res.turb, res.tilt, backward_flow(res.flow).float()
+                turb, tilt, flow = res.turb, res.tilt, backward_flow(res.fwd_flow_px).float()
             if not torch.isfinite(flow).all() or not torch.isfinite(turb).all():
                 raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
             turb, tilt, flow = turb.float().cpu(), tilt.float().cpu(), flow.cpu()

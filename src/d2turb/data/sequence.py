@@ -52,16 +52,16 @@ def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, sett
     for res in sim.sequence(clean, frames=frames, depth=depth, dr0=dr0, generator=generator, **settings):
         turb.append(res.turb.float().cpu())
         tilt.append(res.tilt.float().cpu())
-        flow.append(backward_flow(res.flow).float().cpu())
+        flow.append(backward_flow(res.fwd_flow_px).float().cpu())
     return torch.cat(turb, -2), torch.cat(tilt, -2), torch.stack(flow, 1)
 
 
 class SequenceDataset(Dataset):
     """Sequences written by ``d2turb make-dataset --frames N`` in ``root`` (or ``root/<split>``).
 
-    Item: dict(turb, tilt (N,3,H,W) float32 in [0,1]; gt (3,H,W); flow (N,2,H,W) float32 px backward flow
-    per frame; depth (1,H,W); dr0 float32 scalar; bin int64 scalar; id str). ``frames`` = a random window
-    of that many consecutive frames (default: all).
+    Item: dict(turb, tilt (N,3,H,W) float32 in [0,1]; gt (3,H,W); bwd_flow_px (N,2,H,W) float32 px backward flow
+    per frame (and ``flow``, its deprecated name); depth (1,H,W); dr0 float32 scalar; bin int64 scalar; id str).
+    ``frames`` = a random window of that many consecutive frames (default: all).
     """
 
     def __init__(self, root: str | Path, split: str | None = None, frames: int | None = None):
@@ -88,12 +88,13 @@ class SequenceDataset(Dataset):
         sid, n, p = rec["id"], self.frames, self.patch
         f0 = int(torch.randint(0, n - self.window + 1, ())) if self.window < n else 0
         sl = slice(f0, f0 + self.window)
-        flow = load_flow(file_path(self.root, "flow", sid))[sl]
+        flow = torch.from_numpy(load_flow(file_path(self.root, "flow", sid))[sl].astype(np.float32))
         return {
             "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
             "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
             "gt": read_image(file_path(self.root, "gt", sid)),
-            "flow": torch.from_numpy(flow.astype(np.float32)),
+            "bwd_flow_px": flow,
+            "flow": flow,
             "depth": read_depth_png(file_path(self.root, "depth", sid)),
             "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
             "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),

@@ -1,4 +1,4 @@
-"""The fixed split of the clean image folders, by folder name (issue 15; the model card states it).
+"""The fixed split of the clean image folders, by folder name (the model card states it).
 
 * test: ``bsd100``, ``sunhays_outdoor`` — never seen in training or model selection;
 * validation: ``set14``, ``mcmaster`` — model selection;
@@ -13,7 +13,6 @@ from pathlib import Path
 
 TEST_FOLDERS: tuple[str, ...] = ("bsd100", "sunhays_outdoor")
 VAL_FOLDERS: tuple[str, ...] = ("set14", "mcmaster")
-TRAIN_FOLDERS: tuple[str, ...] = ("urban100", "bsds500", "camvid", "strecha_mvs", "sfm_landmarks", "t91")  # as known
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 
 
@@ -32,10 +31,3 @@ def split_of(folder: str | os.PathLike) -> str:
     if name in VAL_FOLDERS:
         return "val"
     return "train"
-
-
-def folders_of(root: str | os.PathLike, split: str) -> list[Path]:
-    """The sub-folders of ``root`` (e.g. ``../shared/data/clean``) that belong to ``split``, sorted by name."""
-    if split not in SPLITS:
-        raise ValueError(f"unknown split {split!r}; choose from {', '.join(SPLITS)}")
-    return sorted(p for p in Path(root).iterdir() if p.is_dir() and split_of(p) == split)

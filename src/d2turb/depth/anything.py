@@ -11,6 +11,7 @@ import torch.nn.functional as F
 
 from d2turb.depth.io import DEFAULT_MAX_DEPTH_RATIO, depth_from_values
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -75,11 +76,10 @@ class DepthAnything:
     @torch.no_grad()
     def disparity(self, image: torch.Tensor) -> torch.Tensor:
         """Raw relative disparity (B,1,H,W) at the image resolution."""
+        check_shape(image, "[B] 3 H W", "DepthAnything: RGB image")
         x = image[None] if image.ndim == 3 else image
-        if x.ndim != 4 or x.shape[1] != 3 or not torch.isfinite(x).all():
-            raise D2TurbError(
-                f"DepthAnything: expected a finite RGB image (3,H,W) or (B,3,H,W), got {tuple(image.shape)}"
-            )
+        if not torch.isfinite(x).all():
+            raise D2TurbError("DepthAnything: image contains NaN or infinite values")
         h, w = x.shape[-2:]
         x = x.to(self.device, torch.float32).clamp(0, 1)
         x = F.interpolate(x, size=self._input_shape(h, w), mode="bicubic", align_corners=False).clamp(0, 1)

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 
 METHODS = ("vertical", "haze", "cap", "haze+vertical", "cap+vertical")
 DEFAULT_METHOD = "cap+vertical"
@@ -127,10 +128,9 @@ def estimate_depth_prior(
     """
     if method not in METHODS:
         raise D2TurbError(f"depth prior method {method!r}: expected one of {', '.join(METHODS)}")
+    check_shape(image, "[B] 3 H W", "estimate_depth_prior: RGB image")
     single = image.ndim == 3
     x = image[None] if single else image
-    if x.ndim != 4 or x.shape[1] != 3:
-        raise D2TurbError(f"estimate_depth_prior: expected an RGB image (3,H,W) or (B,3,H,W), got {tuple(image.shape)}")
     if not torch.isfinite(x).all():
         raise D2TurbError("estimate_depth_prior: image contains NaN or infinite values")
     x = x.float().clamp(0, 1)

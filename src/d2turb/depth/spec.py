@@ -19,6 +19,22 @@ from d2turb.errors import D2TurbError
 _ANYTHING_CACHE: dict[str, object] = {}
 
 
+def check_depth_spec(spec: str) -> None:
+    """Refuse a ``--depth`` spec that cannot work for any image, once, rather than once per image.
+
+    Raises:
+        D2TurbError: ``anything:PATH`` without a model folder there, or a FILE/DIR that does not exist.
+    """
+    if spec in ("none", "prior"):
+        return
+    if spec.startswith("anything:"):
+        folder = Path(spec[len("anything:") :])
+        if not (folder / "config.json").is_file():
+            raise D2TurbError(f"--depth {spec}: {folder} is not a Depth Anything model folder (no config.json)")
+    elif not Path(spec).exists():
+        raise D2TurbError(f"--depth {spec}: no such depth file or folder (or use none, prior, anything:PATH)")
+
+
 def depth_for_image(
     spec: str | None,
     image_path: str | os.PathLike | None,

@@ -49,7 +49,7 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
     """Means over one clip's frames: ``epe``, ``epe_zero`` (every frame) and ``"<row> psnr"``, ``"<row> ssim"`` of
     each row (every ``stride``-th frame)."""
     frames, gt = item["turb"], item["gt"]
-    observable = item["flow"] - item["flow"].mean(0, keepdim=True)
+    observable = item["bwd_flow_px"] - item["bwd_flow_px"].mean(0, keepdim=True)
     temporal_mean = frames.mean(0)
     mean = KeyedMean(sync_on_compute=False)
     for o in restorer.restore(frames):

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from d2turb.device import collective_device
 from d2turb.errors import D2TurbError
 from d2turb.eval.lpips import LPIPS
-from d2turb.io import check_image_tensor
+from d2turb.ops.checks import check_image_tensor
 
 K1, K2 = 0.01, 0.03  # Wang et al. 2004 stabilising constants
 MAX_PSNR_DB = 100.0  # identical images: PSNR is capped here instead of +inf, so means stay finite

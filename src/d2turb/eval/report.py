@@ -135,26 +135,37 @@ def comparison_grid(
     smaller), column labels on top, row labels on the left."""
     cell = min(cell, max(max(im.shape[-2:]) for images in rows for im in images))
     font = ImageFont.load_default()
-    label_h = 18
-    label_w = max([int(font.getlength(t)) for t in row_labels] + [0]) + 2 * gap
+    label_w = _row_label_width(row_labels, gap)
     n_cols = len(col_labels)
     width = label_w + n_cols * (cell + gap)
-    height = label_h + len(rows) * (cell + gap)
+    height = _LABEL_H + len(rows) * (cell + gap)
     canvas = Image.new("RGB", (width, height), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
     for j, text in enumerate(col_labels):
         draw.text((label_w + j * (cell + gap) + 2, 3), text, fill=(0, 0, 0), font=font)
     for i, (images, text) in enumerate(zip(rows, row_labels)):
-        top = label_h + i * (cell + gap)
+        top, _ = _cell_origin(i, 0, label_w, cell, gap)
         draw.text((gap, top + cell // 2 - 6), text, fill=(0, 0, 0), font=font)
         for j, image in enumerate(images):
             arr = (fit_cell(image, cell).clamp(0, 1).permute(1, 2, 0).numpy() * 255.0).round().astype(np.uint8)
-            canvas.paste(Image.fromarray(arr), (label_w + j * (cell + gap), top))
+            y, x = _cell_origin(i, j, label_w, cell, gap)
+            canvas.paste(Image.fromarray(arr), (x, y))
     return np.asarray(canvas)
 
 
-def grid_cell_origin(row: int, col: int, row_labels: list[str], cell: int = 192, gap: int = 4) -> tuple[int, int]:
-    """(y, x) of the top-left pixel of a cell in :func:`comparison_grid`'s output."""
+_LABEL_H = 18  # the column labels' band at the top of a comparison grid
+
+
+def _row_label_width(row_labels: list[str], gap: int) -> int:
     font = ImageFont.load_default()
-    label_w = max([int(font.getlength(t)) for t in row_labels] + [0]) + 2 * gap
-    return 18 + row * (cell + gap), label_w + col * (cell + gap)
+    return max([int(font.getlength(t)) for t in row_labels] + [0]) + 2 * gap
+
+
+def _cell_origin(row: int, col: int, label_w: int, cell: int, gap: int) -> tuple[int, int]:
+    return _LABEL_H + row * (cell + gap), label_w + col * (cell + gap)
+
+
+def grid_cell_origin(row: int, col: int, row_labels: list[str], cell: int = 192, gap: int = 4) -> tuple[int, int]:
+    """(y, x) of the top-left pixel of a cell in :func:`comparison_grid`'s output (``cell``: the size it drew
+    cells at, after shrinking to the largest image)."""
+    return _cell_origin(row, col, _row_label_width(row_labels, gap), cell, gap)

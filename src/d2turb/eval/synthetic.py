@@ -113,7 +113,7 @@ def _scores(
         with torch.no_grad():
             values["lpips"] = float(lpips_model(pred[None].to(device), gt[None].to(device))[0])
     if "epe" in metrics:  # both flows are backward flows: warp(tilt, flow) ≈ gt
-        values["epe"] = float(end_point_error(details["flow"], item["flow"]))
+        values["epe"] = float(end_point_error(details["bwd_flow_px"], item["bwd_flow_px"]))
     if "psnr_tilt" in metrics:
         values["psnr_tilt"] = float(psnr(_quantise(details["deblurred"]), item["tilt"]))
     return values, pred

@@ -16,6 +16,7 @@ from d2turb.models.complexity import (
 from d2turb.models.d2turb import BackboneRestorer, D2Turb
 from d2turb.models.hub import load_pretrained, save_pretrained
 from d2turb.models.injection import ASPI, CosineASPI
+from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.rectifier import TiltRectifier, UNetRectifier
 from d2turb.models.registry import (
     create_backbone,
@@ -27,6 +28,8 @@ from d2turb.models.registry import (
 )
 
 __all__ = [
+    "ModelOutput",
+    "model_output",
     "create_model",
     "create_backbone",
     "list_models",

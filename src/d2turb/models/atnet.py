@@ -25,6 +25,7 @@ from torch import nn
 
 from d2turb.models.common import pad_to_multiple
 from d2turb.models.d2turb import _check_input
+from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
 
 
@@ -141,9 +142,10 @@ def gradient_angular_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Ten
 
 @register_model("atnet")
 class ATNet(nn.Module):
-    """forward(image) -> {"deblurred" = "restored", "flow": None, "guide": the main stream's 16-channel head feature,
-    "uncertainty": σ}; in training also "restored_half", "prior", "prior_half". ``mc_samples`` = K (≥ 2); ``width``:
-    channels of the half-resolution blocks; ``base_width``, ``cardinality``, ``scale``: the Res2NeXt blocks'."""
+    """forward(image) -> ModelOutput {"deblurred" = "restored", "bwd_flow_px": None, "guide": the main stream's
+    16-channel head feature, "uncertainty": σ}; in training also "restored_half", "prior", "prior_half".
+    ``mc_samples`` = K (≥ 2); ``width``: channels of the half-resolution blocks; ``base_width``, ``cardinality``,
+    ``scale``: the Res2NeXt blocks'."""
 
     half_weight, angular_weight, gradient_weight = 0.33, 1.0, 0.25  # AT-Net's loss weights
     uncertainty_gain = 5.0  # σ enters the main stream as 5σ
@@ -167,7 +169,7 @@ class ATNet(nn.Module):
         self.mc_samples = mc_samples
         self.guide_channels = 16
 
-    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    def forward(self, image: torch.Tensor) -> ModelOutput:
         _check_input(image)
         x, (h, w) = pad_to_multiple(image, 2)
         x_half = F.interpolate(x, scale_factor=0.5)  # nearest, as AT-Net
@@ -182,7 +184,7 @@ class ATNet(nn.Module):
             sigma = torch.stack(samples).float().std(dim=0).to(x.dtype)
         restored, restored_half, feat = self.main(x, x_half, self.uncertainty_gain * sigma)
         restored = restored[..., :h, :w]
-        out.update(deblurred=restored, restored=restored, flow=None, guide=feat[..., :h, :w])
+        out.update(model_output(restored, restored, None, feat[..., :h, :w]))
         out["uncertainty"] = sigma[..., :h, :w]
         if self.training:
             out["restored_half"] = restored_half

@@ -29,8 +29,8 @@ class ChannelLayerNorm(nn.Module):
     """LayerNorm over channels of a (B, C, H, W) map, computed in float32. ``bias=False`` = Restormer's BiasFree
     variant (x / sqrt(var + eps) * w, the mean is not subtracted).
 
-    With bias, ``F.layer_norm`` runs on the channels-last view (one fused pass; 1.5× faster forward of
-    d2turb_lite on a CPU than var + mean) and the output keeps that memory layout.
+    With bias, ``F.layer_norm`` runs on the channels-last view (one fused pass, faster than var + mean on a CPU:
+    benchmarks/RESULTS.md) and the output keeps that memory layout.
     """
 
     def __init__(self, channels: int, bias: bool = True, eps: float = 1e-5):

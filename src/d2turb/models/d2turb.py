@@ -8,23 +8,24 @@ from torch import nn
 
 from d2turb.errors import D2TurbError
 from d2turb.models.common import pad_to_multiple
+from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.rectifier import create_rectifier
 from d2turb.models.registry import create_backbone, register_model, register_standalone
+from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
 
 
 def _check_input(image: torch.Tensor) -> None:
-    if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 3 or not image.is_floating_point():
-        shape = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
-        raise D2TurbError(f"model input must be a float tensor (B, 3, H, W), got {shape}")
+    check_shape(image, "B 3 H W", "model input", floating=True)
     if min(image.shape[-2:]) < 2:
         raise D2TurbError(f"model input is too small: {tuple(image.shape[-2:])}")
 
 
 @register_model("d2turb")
 class D2Turb(nn.Module):
-    """D²Turb. forward(image (B,3,H,W)) -> {"deblurred": Î_tilt, "restored": Î_clean, "flow": V̂ (B,2,H,W) in pixels,
-    x then y, "pixel_flow": the same tensor (the authors' name), "guide": F_guide}.
+    """D²Turb. forward(image (B,3,H,W)) -> :class:`~d2turb.models.output.ModelOutput`: {"deblurred": Î_tilt,
+    "restored": Î_clean, "bwd_flow_px": V̂ (B,2,H,W) in pixels, x then y, "guide": F_guide} (and the deprecated
+    names "flow", "pixel_flow" of V̂).
 
     Defaults = the paper configuration, exactly the authors' model (31,823,767 parameters): ``restormer`` backbone
     (LayerNorm with bias, 26,126,644), the authors' rectifier (``rectifier="authors"``) and ASPI
@@ -59,7 +60,7 @@ class D2Turb(nn.Module):
         except (TypeError, ValueError) as exc:
             raise D2TurbError(f"d2turb: bad rectifier/injection config ({exc})") from exc
 
-    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, image: torch.Tensor) -> ModelOutput:
         _check_input(image)
         h, w = image.shape[-2:]
         x, _ = pad_to_multiple(image, self.multiple)
@@ -70,14 +71,7 @@ class D2Turb(nn.Module):
         # exactly the identity).
         wide = torch.float32 if deblurred.device.type == "mps" else torch.float64
         restored = warp(deblurred.to(wide), flow.to(wide)).to(deblurred.dtype)
-        flow = flow[..., :h, :w]
-        return {
-            "deblurred": deblurred[..., :h, :w],
-            "restored": restored[..., :h, :w],
-            "flow": flow,
-            "pixel_flow": flow,
-            "guide": guide[..., :h, :w],
-        }
+        return model_output(deblurred[..., :h, :w], restored[..., :h, :w], flow[..., :h, :w], guide[..., :h, :w])
 
 
 @register_standalone
@@ -88,10 +82,10 @@ class BackboneRestorer(nn.Module):
         super().__init__()
         self.backbone = create_backbone(backbone, **backbone_cfg)
 
-    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    def forward(self, image: torch.Tensor) -> ModelOutput:
         _check_input(image)
         out, guide = self.backbone(image)
-        return {"deblurred": out, "restored": out, "flow": None, "pixel_flow": None, "guide": guide}
+        return model_output(out, out, None, guide)
 
 
 @register_model("d2turb_lite")

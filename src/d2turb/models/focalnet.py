@@ -175,7 +175,7 @@ class FocalNet(nn.Module):
         side, self._side = self._side, None
         if side is None:
             return {}
-        target = batch["gt"] if out.get("flow") is None else batch["tilt"]
+        target = batch["gt"] if out.get("bwd_flow_px") is None else batch["tilt"]
         target = pad_to_size(target.float(), side[-1].shape[-2:])
         return multiscale_fft_loss(side, target, self.fft_weight)
 

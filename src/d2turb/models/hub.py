@@ -32,7 +32,7 @@ CONFIG_KEY, CHECKSUM_KEY, FORMAT_KEY = "d2turb_config", "d2turb_sha256", "d2turb
 IDENTITY_NAME = "input"  # the identity baseline: restore returns its input
 WEIGHTS_SUFFIX = ".safetensors"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
-FORMAT = "2"  # 2: the authors' architecture is the default (issue 8); files without the key are format 1
+FORMAT = "2"  # 2: the authors' architecture is the default; files without the key are format 1
 # The shipped weights recommended for single-frame restoration: the default of `d2turb restore`, Restorer(), the demo
 # and the page (MODEL_CARD.md). Shipped weights are the package's resources/weights/NAME.safetensors.
 RECOMMENDED_WEIGHTS = "nafnet-cpu-small"

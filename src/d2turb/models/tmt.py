@@ -23,6 +23,7 @@ from torch import nn
 
 from d2turb.models.common import ChannelLayerNorm, pad_to_multiple, transposed_attention
 from d2turb.models.d2turb import _check_input
+from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
 from d2turb.models.restormer import GDFN
 
@@ -79,7 +80,8 @@ class Upsample(nn.Sequential):  # conv doubles channels, pixel-shuffle: (C, H, W
 
 @register_model("tmt")
 class TMT(nn.Module):
-    """forward(image) -> {"deblurred" = "restored", "flow": None, "guide": refinement feature (2·dim channels)}."""
+    """forward(image) -> ModelOutput {"deblurred" = "restored", "bwd_flow_px": None, "guide": refinement feature
+    (2·dim channels)}."""
 
     multiple = 8  # three 2× downsamples
 
@@ -125,7 +127,7 @@ class TMT(nn.Module):
         self.output = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
         self.guide_channels = dim * 2
 
-    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    def forward(self, image: torch.Tensor) -> ModelOutput:
         _check_input(image)
         x, (h, w) = pad_to_multiple(image, self.multiple)
         hp, wp = x.shape[-2:]
@@ -140,7 +142,7 @@ class TMT(nn.Module):
         d1 = self.decoder_level1(torch.cat([self.up2_1(d2), e1], 1))
         guide = self.refinement(d1)
         out = self.output(guide)[..., :h, :w] + image
-        return {"deblurred": out, "restored": out, "flow": None, "guide": guide[..., :h, :w]}
+        return model_output(out, out, None, guide[..., :h, :w])
 
 
 # modules whose TMT kernels are 3 frames deep (3×7×7 embeddings, 3×3×3 resampling / feed-forward / output convs)

@@ -17,6 +17,7 @@ from torch import nn
 
 from d2turb.models.common import pad_to_multiple
 from d2turb.models.d2turb import _check_input
+from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
 from d2turb.models.restormer import Restormer, _stage
 
@@ -34,7 +35,8 @@ def restormer_decoder_feature(net: Restormer, x: torch.Tensor) -> torch.Tensor:
 
 @register_model("turbnet")
 class TurbNet(Restormer):
-    """forward(image) -> {"deblurred" = "restored" = J, "flow": None, "guide": refinement feature} and, in training,
+    """forward(image) -> ModelOutput {"deblurred" = "restored" = J, "bwd_flow_px": None, "guide": refinement feature}
+    and, in training,
     "redegraded": I = T ⊙ J + ε."""
 
     alpha = 0.9  # TurbNet's weight of the reconstruction term; the re-degradation term has 1 − α
@@ -57,13 +59,13 @@ class TurbNet(Restormer):
             nn.Conv2d(in_channels, 8 * in_channels, 1), nn.ReLU(), nn.Conv2d(8 * in_channels, in_channels, 1)
         )
 
-    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    def forward(self, image: torch.Tensor) -> ModelOutput:
         _check_input(image)
         x, (h, w) = pad_to_multiple(image, self.multiple)
         d1 = restormer_decoder_feature(self, x)
         guide = self.refinement(d1)
         clean = self.output(guide)[..., :h, :w] + image  # J
-        out = {"deblurred": clean, "restored": clean, "flow": None, "guide": guide[..., :h, :w]}
+        out = model_output(clean, clean, None, guide[..., :h, :w])
         if self.training:
             turb_map = self.output_t(self.refinement_t(d1))[..., :h, :w]  # T
             out["redegraded"] = turb_map * clean + self.epsilon(image)  # I = T ⊙ J + ε

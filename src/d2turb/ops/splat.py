@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import base_grid, warp
 
 
@@ -61,10 +62,7 @@ def _fill_holes(field: torch.Tensor, known: torch.Tensor, fallback: torch.Tensor
 
 
 def check_flow(flow: torch.Tensor, name: str = "flow") -> None:
-    if not isinstance(flow, torch.Tensor) or flow.ndim != 4 or flow.shape[1] != 2:
-        raise D2TurbError(f"{name}: expected a (B, 2, H, W) tensor, got {tuple(getattr(flow, 'shape', ()))}")
-    if not flow.is_floating_point():
-        raise D2TurbError(f"{name}: expected a floating tensor, got {flow.dtype}")
+    check_shape(flow, "B 2 H W", name, floating=True)
     if not torch.isfinite(flow).all():
         raise D2TurbError(f"{name}: contains NaN or infinite values")
 

@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 
 
 def base_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -40,10 +41,8 @@ def warp(image: torch.Tensor, flow: torch.Tensor, padding_mode: str = "border", 
     image (B, C, H, W); flow (B, 2, H, W) in pixels, channel 0 = x, channel 1 = y.
     Differentiable with respect to both image and flow.
     """
-    if image.ndim != 4 or flow.ndim != 4 or flow.shape[1] != 2:
-        raise D2TurbError(
-            f"warp: expected image (B,C,H,W) and flow (B,2,H,W), got {tuple(image.shape)} and {tuple(flow.shape)}"
-        )
+    check_shape(image, "B C H W", "warp: image")
+    check_shape(flow, "B 2 H W", "warp: flow")
     if image.shape[0] != flow.shape[0] or image.shape[-2:] != flow.shape[-2:]:
         raise D2TurbError(f"warp: image {tuple(image.shape)} and flow {tuple(flow.shape)} do not match")
     _, _, h, w = image.shape

@@ -22,9 +22,11 @@ from torch import nn
 
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
-from d2turb.io import check_image_tensor, read_image
+from d2turb.io import read_image
 from d2turb.models.common import pad_to_multiple
 from d2turb.models.hub import IDENTITY_NAME, load_pretrained, recommended_weights, resolve_weights
+from d2turb.models.output import ModelOutput, model_output
+from d2turb.ops.checks import check_image_tensor
 from d2turb.ops.warp import base_grid, sample_at
 
 _WARP_STRIP_PIXELS = 1 << 21  # output pixels per strip of the global warp (bounds its temporaries)
@@ -34,8 +36,8 @@ _WINDOW_FLOOR = 1e-6  # tile windows never reach 0, so every pixel has a positiv
 class IdentityRestorer(nn.Module):
     """The "input" baseline: returns its input unchanged (zero flow)."""
 
-    def forward(self, x: torch.Tensor) -> dict:
-        return {"deblurred": x, "restored": x, "flow": torch.zeros_like(x[:, :2]), "guide": None}
+    def forward(self, x: torch.Tensor) -> ModelOutput:
+        return model_output(x, x, torch.zeros_like(x[:, :2]))
 
 
 def load_restoration_model(weights, device: str | torch.device = "cpu") -> tuple[nn.Module, str]:
@@ -130,12 +132,15 @@ class Restorer:
         return self.restore_with_details(image)["restored"]
 
     def restore_with_details(self, image) -> dict:
-        """dict(restored, deblurred, flow): images shaped like the input, flow (…,2,H,W) in pixels."""
+        """dict(restored, deblurred, bwd_flow_px): images shaped like the input, and the model's backward flow V̂
+        (…, 2, H, W) in pixels, x then y (zero for a model without a rectifier); ``flow``: its deprecated name."""
         x, single = self._as_batch(image)
         with torch.no_grad():
             outs = [self._restore_one(x[i : i + 1]) for i in range(x.shape[0])]
-        result = {k: torch.cat([o[k] for o in outs]) for k in ("restored", "deblurred", "flow")}
-        return {k: v[0] for k, v in result.items()} if single else result
+        result = {k: torch.cat([o[k] for o in outs]) for k in ("restored", "deblurred", "bwd_flow_px")}
+        result = {k: v[0] for k, v in result.items()} if single else result
+        result["flow"] = result["bwd_flow_px"]
+        return result
 
     # -- internals --------------------------------------------------------------------------------
     @staticmethod
@@ -158,14 +163,14 @@ class Restorer:
         if not isinstance(out, dict) or ("restored" not in out and "deblurred" not in out):
             raise D2TurbError(f"model {self.name} did not return a dict with 'restored'/'deblurred'")
         deblurred = out.get("deblurred", out.get("restored"))
-        flow = out.get("flow")
+        flow = out.get("bwd_flow_px", out.get("flow"))  # a model of another package may name it "flow" only
         if not all(torch.isfinite(v).all() for v in (deblurred, flow, out.get("restored")) if v is not None):
             raise D2TurbError(
                 f"model {self.name} produced NaN or infinite values; refusing to write them (corrupt weights?)"
             )
         result = {"deblurred": deblurred.float().cpu()}
         if flow is not None:
-            result["flow"] = flow.float().cpu()
+            result["bwd_flow_px"] = flow.float().cpu()
         if flow is None or keep_restored:  # a model without a rectifier: its restored output is blended as is
             result["restored"] = out.get("restored", deblurred).float().cpu()
         return result
@@ -205,10 +210,10 @@ class Restorer:
         for value in acc.values():
             value.div_(weight)
         deblurred = acc["deblurred"]
-        if "flow" in acc and single and "restored" in acc:  # one tile: the model's own Eq. 9, on its padded canvas
-            flow, restored = acc["flow"], acc["restored"]
-        elif "flow" in acc:
-            flow = acc["flow"]
+        if "bwd_flow_px" in acc and single and "restored" in acc:  # one tile: the model's Eq. 9, on its padded canvas
+            flow, restored = acc["bwd_flow_px"], acc["restored"]
+        elif "bwd_flow_px" in acc:
+            flow = acc["bwd_flow_px"]
             if flow.any():  # Eq. 9, on the whole blended image (on the model's device), on the model's canvas
                 pad_to = int(getattr(self.model, "multiple", 1) or 1)
                 restored = warp_in_strips(deblurred.to(self.device), flow.to(self.device), pad_to).cpu()
@@ -216,4 +221,4 @@ class Restorer:
                 restored = deblurred.clone()
         else:
             flow, restored = torch.zeros(1, 2, h, w), acc["restored"]
-        return {"restored": restored.clamp_(0, 1), "deblurred": deblurred.clamp_(0, 1), "flow": flow}
+        return {"restored": restored.clamp_(0, 1), "deblurred": deblurred.clamp_(0, 1), "bwd_flow_px": flow}

@@ -35,6 +35,39 @@ def fried_r0_spherical(cn2: float, path_length_m: float, wavelength_m: float) ->
     return (0.158625 * k * k * cn2 * path_length_m) ** (-3 / 5)
 
 
+def cn2_spherical(r0_m: float, path_length_m: float, wavelength_m: float) -> float:
+    """The constant Cn² (m^-2/3) whose spherical-wave Fried parameter is ``r0_m``: the inverse of
+    :func:`fried_r0_spherical`, Cn² = r0^(-5/3) / (0.158625 k² L)."""
+    k = 2 * math.pi / wavelength_m
+    return r0_m ** (-5 / 3) / (0.158625 * k * k * path_length_m)
+
+
+ISOPLANATIC_WEIGHTS = {  # ∫0^L w(z) dz / L^(8/3) of the θ0 path weighting, z from the aperture
+    "plane": 3 / 8,  # w = z^(5/3): a source at infinity (Fried, JOSA 72, 1982)
+    "spherical": math.gamma(8 / 3) ** 2 / math.gamma(16 / 3),  # w = z^(5/3)(1 − z/L)^(5/3): B(8/3, 8/3) = 0.05641
+}
+
+
+def isoplanatic_angle(cn2: float, path_length_m: float, wavelength_m: float, wave: str = "spherical") -> float:
+    """Isoplanatic angle θ0 (rad) of a path of constant Cn²: [2.914 k² Cn² ∫0^L w(z) dz]^(−3/5).
+
+    Args:
+        cn2: refractive-index structure constant, m^-2/3.
+        path_length_m: path length L, m.
+        wavelength_m: wavelength λ (k = 2π/λ), m.
+        wave: the path weighting w, a key of ``ISOPLANATIC_WEIGHTS``: ``"spherical"`` (a point of the scene seen
+            from the aperture; d2turb measure) or ``"plane"`` (Fried's θ0 = 0.314 r0/L with the spherical-wave r0;
+            the page's derived quantities).
+
+    Returns:
+        θ0 in radians.
+    """
+    if wave not in ISOPLANATIC_WEIGHTS:
+        raise D2TurbError(f"unknown wave {wave!r}; choose one of {', '.join(ISOPLANATIC_WEIGHTS)}")
+    k = 2 * math.pi / wavelength_m
+    return (2.914 * k * k * cn2 * path_length_m ** (8 / 3) * ISOPLANATIC_WEIGHTS[wave]) ** (-3 / 5)
+
+
 @dataclass
 class TurbulenceParams:
     """Imaging and turbulence parameters.
@@ -141,6 +174,43 @@ class TurbulenceParams:
         d["r0_m"] = self.r0_m
         d["reference_wavelength_m"] = self.reference_wavelength
         return d
+
+
+def make_params(
+    aperture_m: float = 0.1,
+    wavelength_m=525e-9,
+    path_length_m: float = 1000.0,
+    *,
+    dr0: float | None = None,
+    cn2: float | None = None,
+    ifov_rad: float | None = None,
+    offset_s: float = 0.5,
+    modulation: str = "power_offset",
+) -> TurbulenceParams:
+    """The :class:`TurbulenceParams` of the physical options that ``d2turb simulate``, ``simulate-video``, ``demo``
+    and the page's Simulate tab share (their defaults are these).
+
+    Args:
+        wavelength_m: one wavelength, or a sequence of one or three (R G B), m.
+        dr0, cn2: the strength (at most one; neither: D/r0 = 3).
+        Others: the :class:`TurbulenceParams` fields of the same names.
+
+    Raises:
+        D2TurbError: not one or three wavelengths, or a value the parameters refuse (one line).
+    """
+    wl = list(wavelength_m) if isinstance(wavelength_m, (list, tuple)) else [wavelength_m]
+    if len(wl) not in (1, 3):
+        raise D2TurbError(f"--wavelength takes one or three values, got {len(wl)}")
+    return TurbulenceParams(
+        aperture_m=aperture_m,
+        wavelength_m=tuple(wl) if len(wl) == 3 else wl[0],
+        path_length_m=path_length_m,
+        dr0=dr0,
+        cn2=cn2,
+        ifov_rad=ifov_rad,
+        offset_s=offset_s,
+        modulation=modulation,
+    )
 
 
 def dr0_bin(x: float) -> str:

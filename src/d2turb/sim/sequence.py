@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 from d2turb.sim.tilt import PlaneWaveGrid, layer_tilt_radial_cdf, path_nodes
 
 # ring edges in cycles per unit s: sparse below 0.01 (25 % of the power, nearly uniform over an image),
@@ -302,10 +303,9 @@ def _run(sim, get_image, get_depth, frames, fps, wind, wind_dir, boil, dr0, gene
             raise D2TurbError(f"depth ran out at frame {t}")
         if callable(dep):
             dep = dep(img[0] if img.ndim == 4 else img)
-        if isinstance(img, torch.Tensor) and img.ndim == 3:
+        check_shape(img, "[B] C H W", f"frame {t}: image")
+        if img.ndim == 3:
             img = img[None]
-        if not isinstance(img, torch.Tensor) or img.ndim != 4:
-            raise D2TurbError(f"frame {t}: image must be a tensor (B, C, H, W) or (C, H, W)")
         if state is None:
             b, _, h, w = img.shape
             state = FrozenFlow(sim, b, h, w, fps, wind, wind_dir, boil, generator, n_layers=n_layers)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -11,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
 from d2turb.sim.params import MAX_DR0, TurbulenceParams, depth_modulation
 from d2turb.sim.psf import PupilOptics, blur_with_basis, pca_basis
@@ -21,16 +23,31 @@ from d2turb.sim.zernike import noll_covariance, noll_to_nm
 
 @dataclass
 class SimResult:
-    """All tensors batched: turb/tilt/clean/blur (B,C,H,W), flow (B,2,H,W) forward displacement Δ in
-    pixels (x then y; tilt = warp(clean, flow)), modulation M (B,1,H,W), dr0 (B,)."""
+    """One realisation, all tensors batched.
+
+    Shape:
+        turb, tilt, clean, blur: (B, C, H, W); fwd_flow_px: (B, 2, H, W), the forward displacement Δ in pixels, x then
+        y (tilt = warp(clean, fwd_flow_px); :func:`d2turb.ops.backward_flow` gives the backward flow that undoes it);
+        modulation M: (B, 1, H, W); dr0: (B,).
+    """
 
     turb: torch.Tensor
     tilt: torch.Tensor
     clean: torch.Tensor
-    flow: torch.Tensor
+    fwd_flow_px: torch.Tensor
     modulation: torch.Tensor
     dr0: torch.Tensor
     blur: torch.Tensor
+
+    @property
+    def flow(self) -> torch.Tensor:
+        """Deprecated name of :attr:`fwd_flow_px`."""
+        warnings.warn(
+            "SimResult.flow is deprecated; use SimResult.fwd_flow_px (the forward displacement in px)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return self.fwd_flow_px
 
 
 class Simulator:
@@ -149,13 +166,9 @@ class Simulator:
     ) -> SimResult:
         """One realisation; ``fields`` (a :class:`~d2turb.sim.sequence.FrozenFlow`) supplies the unit random
         fields of the current frame of a sequence instead of fresh independent ones."""
-        if isinstance(image, torch.Tensor) and image.ndim == 3:
+        check_shape(image, "[B] C H W", "image", floating=True)
+        if image.ndim == 3:
             image = image[None]
-        if not isinstance(image, torch.Tensor) or image.ndim != 4 or not image.is_floating_point():
-            raise D2TurbError(
-                "image must be a floating tensor (B, C, H, W) or (C, H, W), "
-                f"got {getattr(image, 'shape', type(image).__name__)}"
-            )
         if not torch.isfinite(image).all():
             raise D2TurbError("image contains NaN or infinite values")
         b, c, h, w = image.shape
@@ -211,7 +224,7 @@ class Simulator:
             turb=turb,
             tilt=tilt,
             clean=image,
-            flow=flow,
+            fwd_flow_px=flow,
             modulation=modulation,
             dr0=dr0.float().to(self.device),
             blur=blurred,
@@ -254,8 +267,7 @@ class Simulator:
             depth = depth[None, None]
         elif depth.ndim == 3:
             depth = depth[None] if depth.shape[0] == 1 else depth[:, None]
-        if depth.ndim != 4 or depth.shape[1] != 1 or depth.shape[-2:] != (h, w) or depth.shape[0] not in (1, b):
-            raise D2TurbError(f"depth must have shape ({b}, 1, {h}, {w}), got {tuple(depth.shape)}")
+        check_shape(depth, f"{1 if depth.shape[:1] == (1,) else b} 1 {h} {w}", "depth")  # one map for all, or one each
         return depth.to(self.device, torch.float32).expand(b, 1, h, w)
 
 

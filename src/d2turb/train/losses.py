@@ -101,7 +101,7 @@ class MultiStageLoss(nn.Module):
 
     def forward(self, out: dict, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
         restored, gt = out["restored"].float(), batch["gt"]
-        two_stage = out.get("flow") is not None
+        two_stage = out.get("bwd_flow_px") is not None
         photo = l1_loss if two_stage else NATIVE_LOSSES[self.plain]  # Eq. 13, first term (plain: l1 or psnr)
         terms: dict[str, torch.Tensor] = {"photo": photo(restored, gt)}
         total = self.w_photo * terms["photo"]
@@ -110,7 +110,7 @@ class MultiStageLoss(nn.Module):
             total = total + self.w_vgg * terms["vgg"]
         if two_stage:  # two-stage model; plain baselines train on the clean target only
             terms["deblur"] = NATIVE_LOSSES[self.native](out["deblurred"].float(), batch["tilt"])  # Eq. 11
-            terms["flow"] = l1_loss(out["flow"].float(), batch["flow"])  # Eq. 12
+            terms["flow"] = l1_loss(out["bwd_flow_px"].float(), batch["bwd_flow_px"])  # Eq. 12
             total = total + self.w_deblur * terms["deblur"] + self.w_flow * terms["flow"]  # Eq. 14
         for name, value in (self.extra(out, batch) if self.extra is not None else {}).items():
             terms[name] = value

@@ -60,7 +60,7 @@ class Validation:
                 synth = self.make_synthesis([b], seed=val.seed + _VAL_IMAGE_SEED_STRIDE * k + j)
                 batch = {"gt": crop["gt"][None], "depth": crop["depth"][None], "id": [crop["id"]]}
                 out = synth(batch)
-                pairs.append({key: out[key] for key in ("turb", "gt", "flow", "bin")})
+                pairs.append({key: out[key] for key in ("turb", "gt", "bwd_flow_px", "bin")})
         return [
             {key: torch.cat([p[key] for p in pairs[i : i + val.batch]]) for key in pairs[0]}
             for i in range(0, len(pairs), val.batch)
@@ -77,7 +77,7 @@ class Validation:
         under DDP: every rank calls it).
 
         Args:
-            model: ``turb (B, 3, H, W) -> {"restored", "flow" (or None)}``.
+            model: ``turb (B, 3, H, W) -> {"restored", "bwd_flow_px" (or None)}``.
             prepare: the model's input from a batch's ``turb`` (device, memory format).
             autocast: the training's autocast context (bf16 or none).
 
@@ -113,8 +113,8 @@ class Validation:
         restored = out["restored"].float().clamp(0, 1)
         values = {"psnr": psnr(restored, gt), "ssim": ssim(restored, gt)}
         values |= {"psnr_input": psnr(turb, gt), "ssim_input": ssim(turb, gt)}
-        flow = batch.get("flow")
-        if out.get("flow") is not None and flow is not None:
+        flow = batch.get("bwd_flow_px")
+        if out.get("bwd_flow_px") is not None and flow is not None:
             flow = flow.to(self.device).float()
-            values |= {"epe": end_point_error(out["flow"].float(), flow), "epe_zero": end_point_error(flow)}
+            values |= {"epe": end_point_error(out["bwd_flow_px"].float(), flow), "epe_zero": end_point_error(flow)}
         return values

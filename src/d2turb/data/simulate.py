@@ -1,0 +1,346 @@
+"""Simulated files from image files: what ``d2turb simulate`` (per image: NAME_turb.png, NAME_tilt.png,
+NAME_flow.npy, NAME_meta.json) and ``d2turb simulate-video`` (a clip: turb/NNNNNN.png, tilt/, flow/, meta.json,
+turb.mp4) write. The commands and the page both run these.
+
+Flows on disk (``NAME_flow.npy``, ``flow/NNNNNN.npy``): float32 (2, H, W), the forward displacement Δ in px,
+x then y (``SimResult.fwd_flow_px``)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH, DEFAULT_DEPTH, DEFAULT_DEVICE, DEFAULT_PNG_LEVEL
+from d2turb.depth import check_depth_spec, depth_for_image
+from d2turb.device import resolve_device
+from d2turb.errors import D2TurbError, FileErrors
+from d2turb.io import (
+    BackgroundWriter,
+    check_output_dir,
+    check_unique_stems,
+    expand_inputs,
+    list_images,
+    read_image,
+    to_uint8,
+    write_image,
+    write_json,
+    write_npy,
+)
+from d2turb.sim import Simulator, TurbulenceParams, dr0_bin, sample_dr0
+from d2turb.sim.sequence import check_sequence_args, wind_speeds
+from d2turb.sim.tilt import path_nodes
+from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video
+
+
+def batches(items, batch: int):
+    """Group (path, dr0, image, depth) items of the same image size into lists of at most ``batch`` images
+    and BATCH_PIXELS pixels, in input order per size; at most ~2 batches of images wait in memory."""
+    pending: dict[tuple[int, int], list] = {}
+    for item in items:
+        size = tuple(item[2].shape[-2:])
+        group = pending.setdefault(size, [])
+        group.append(item)
+        if len(group) >= max(1, min(batch, BATCH_PIXELS // (size[0] * size[1]))):
+            yield pending.pop(size)
+        elif sum(len(g) for g in pending.values()) > 2 * batch:
+            yield pending.pop(next(iter(pending)))  # the oldest size
+    yield from pending.values()
+
+
+def _write_outputs(out: Path, name: str, turb, tilt, flow, meta: dict, png_level: int) -> None:
+    write_image(out / f"{name}_turb.png", turb, png_level)
+    if tilt is not None:
+        write_image(out / f"{name}_tilt.png", tilt, png_level)
+    if flow is not None:
+        write_npy(out / f"{name}_flow.npy", flow.numpy().astype("float32"))
+    write_json(out / f"{name}_meta.json", meta)
+
+
+def simulate_files(
+    inputs: list,
+    out,
+    params: TurbulenceParams,
+    *,
+    dr0_range: tuple[float, float] | None = None,
+    depth: str = DEFAULT_DEPTH,
+    disparity: bool = False,
+    seed: int = 0,
+    batch: int = DEFAULT_BATCH,
+    save_flow: bool = False,
+    save_tilt: bool = True,
+    png_level: int = DEFAULT_PNG_LEVEL,
+    device: str = DEFAULT_DEVICE,
+    fail_fast: bool = False,
+) -> int:
+    """Simulate turbulence on image files into the folder ``out`` (``d2turb simulate``).
+
+    Images of the same size are simulated in batches (the result depends on ``seed``, ``batch`` and the input
+    list); outputs are written in the background. An unreadable input is reported in one ``error:`` line and
+    skipped (``fail_fast``: raised).
+
+    Args:
+        inputs: image files and folders of images.
+        out: the output folder.
+        params: the simulator's parameters; their D/r0 unless ``dr0_range`` draws one per image.
+        depth: a depth spec of :func:`d2turb.depth.depth_for_image`; ``disparity``: its maps hold disparity.
+        save_flow: also write NAME_flow.npy, float32 (2, H, W): the forward displacement Δ in px, x then y.
+        save_tilt: write NAME_tilt.png.
+
+    Returns:
+        The exit status: 0 all done, 1 some inputs failed, 2 all failed.
+    """
+    if batch < 1:
+        raise D2TurbError(f"--batch must be at least 1, got {batch}")
+    paths = expand_inputs(inputs)
+    check_unique_stems(paths)
+    check_depth_spec(depth)
+    device = resolve_device(device)
+    out = check_output_dir(out, inputs=paths)
+    sim = Simulator(params, device=device)
+    gen = torch.Generator().manual_seed(seed)
+    if dr0_range is not None:
+        strengths = sample_dr0(len(paths), *dr0_range, generator=gen).tolist()
+    else:
+        strengths = [params.dr0] * len(paths)
+    errors = FileErrors(len(paths), fail_fast)
+
+    def readable():
+        for path, dr0 in zip(paths, strengths):
+            try:
+                image = read_image(path)
+                depth_map = depth_for_image(depth, path, image, is_disparity=disparity, device=device)
+            except D2TurbError as exc:
+                errors.record(exc)
+                continue
+            yield path, dr0, image, depth_map
+
+    base_meta = params.to_dict()
+    with BackgroundWriter(max_pending=2 * batch, compute_device=device) as writer:
+        for group in batches(readable(), batch):
+            writer.before_compute()
+            images = torch.stack([item[2] for item in group])
+            depths = (
+                None if group[0][3] is None else torch.stack([item[3].reshape(1, *images.shape[-2:]) for item in group])
+            )
+            dr0 = torch.tensor([item[1] for item in group], dtype=torch.float64)
+            res = sim(images, depth=depths, dr0=dr0, generator=gen)
+            turb = res.turb.float().cpu()
+            tilt = res.tilt.float().cpu() if save_tilt else None
+            flow = res.fwd_flow_px.float().cpu() if save_flow else None
+            modulation = res.modulation.flatten(1).mean(1).tolist()
+            for b, (path, value, image, _) in enumerate(group):
+                meta = dict(
+                    base_meta,
+                    dr0=float(value),
+                    r0_m=params.aperture_m / float(value),
+                    bin=dr0_bin(value),
+                    seed=seed,
+                    batch=batch,
+                    input=str(path),
+                    depth=depth,
+                    height=image.shape[1],
+                    width=image.shape[2],
+                    mean_modulation=float(modulation[b]),
+                )
+                writer.submit(
+                    _write_outputs,
+                    out,
+                    path.stem,
+                    turb[b],
+                    None if tilt is None else tilt[b],
+                    None if flow is None else flow[b],
+                    meta,
+                    png_level,
+                )
+                print(f"{path.name}: D/r0 = {value:.3g} ({dr0_bin(value)}) -> {out / (path.stem + '_turb.png')}")
+    return errors.finish("simulate")
+
+
+# ---- clips ---------------------------------------------------------------------------------------------------------
+def _input_frames(path: Path, frames: int | None):
+    """(iterator of (3,H,W) frames or a still tensor, number of frames or None, kind)."""
+    if path.is_dir():
+        files = list_images(path)
+        if not files:
+            raise D2TurbError(f"{path}: no images in the folder")
+        files = files[:frames] if frames else files
+        return (read_image(f) for f in files), len(files), "frames"
+    if is_video(path):
+        return (frame for _, frame in iter_video(path)), frames, "video"
+    return read_image(path), frames or 64, "image"
+
+
+def remove_stale_frames(out: Path, frames: int, kept: dict[str, bool]) -> None:
+    """Frames an earlier run into ``out`` wrote beyond this run's ``frames`` (and all of those of a kind this run
+    did not write), so that turb/, tilt/ and flow/ match meta.json. Only names of this job's pattern
+    (six digits) are touched; a folder left empty is removed, and turb.mp4 when the earlier meta.json names it
+    and this run wrote none."""
+    for kind, suffix in (("turb", ".png"), ("tilt", ".png"), ("flow", ".npy")):
+        folder = out / kind
+        if not folder.is_dir():
+            continue
+        for p in folder.iterdir():
+            m = re.fullmatch(r"(\d{6})" + re.escape(suffix), p.name)
+            if m and (not kept[kind] or int(m.group(1)) >= frames) and p.is_file():
+                p.unlink()
+        if not kept[kind] and not any(folder.iterdir()):
+            folder.rmdir()
+    if not kept["mp4"] and (out / "turb.mp4").is_file() and (out / "meta.json").is_file():
+        try:
+            earlier = json.loads((out / "meta.json").read_text())
+        except (OSError, ValueError):
+            earlier = None
+        if isinstance(earlier, dict) and earlier.get("mp4") == "turb.mp4":
+            (out / "turb.mp4").unlink()
+
+
+def simulate_video(
+    src,
+    out,
+    params: TurbulenceParams,
+    *,
+    frames: int | None = None,
+    fps: float = 30.0,
+    wind: float | list[float] = 1.0,
+    wind_dir: float = 0.0,
+    boil: float = 0.0,
+    depth: str = DEFAULT_DEPTH,
+    disparity: bool = False,
+    seed: int = 0,
+    save_tilt: bool = False,
+    save_flow: bool = False,
+    mp4: bool = True,
+    device: str = DEFAULT_DEVICE,
+) -> int:
+    """A turbulent clip into the folder ``out`` (``d2turb simulate-video``): frozen-flow layers moved by the wind.
+
+    Args:
+        src: a still image (the scene stays, the air moves), a video file or a folder of frames (used frame by
+            frame).
+        out: the output folder: turb/NNNNNN.png per frame, meta.json, turb.mp4 (``mp4`` and the video extra),
+            tilt/NNNNNN.png (``save_tilt``), flow/NNNNNN.npy (``save_flow``: float32 (2, H, W), the forward
+            displacement Δ in px, x then y).
+        frames: number of frames (default: 64 for an image, all frames of a video or folder).
+        wind: transverse wind in m/s, or speeds from the aperture to the object interpolated along the path.
+        wind_dir: drift direction in the image in degrees (0 = +x, 90 = +y); ``boil``: fraction of each layer's
+            variance refreshed per frame.
+        depth: a depth spec of :func:`d2turb.depth.depth_for_image` (of a video input: per frame).
+
+    Returns:
+        The exit status, 0.
+    """
+    src = Path(src)
+    if not src.exists():
+        raise D2TurbError(f"{src}: no such file or directory")
+    device = resolve_device(device)
+    # the input's folder (for a folder of frames, that folder itself) may not be the output folder
+    out = check_output_dir(out, inputs=[src] if src.is_file() else [src / "frame"])
+    check_sequence_args(frames, fps, wind_dir, boil)
+    t, _ = path_nodes(params.tilt_geometry, params.layer_z_frac, 12)
+    speeds = wind_speeds(wind, t)
+    source, n_frames, kind = _input_frames(src, frames)
+    sim = Simulator(params, device=device)
+    gen = torch.Generator().manual_seed(seed)
+    mp4_path = None
+    if mp4:
+        if can_write_mp4():
+            mp4_path = out / "turb.mp4"
+        else:
+            print(f"note: no mp4 written; {VIDEO_HINT}")
+
+    def depth_of(frame):
+        d = depth_for_image(depth, src if kind == "image" else None, frame, disparity, device)
+        return None if d is None else d[None]
+
+    h, w = source.shape[-2:] if kind == "image" else (None, None)
+    depth_text = "none" if depth == "none" else f"{depth}, " + ("once" if kind == "image" else "per frame")
+    print(
+        f"{src.name}: simulating {n_frames} frames"
+        + (f" of {w}x{h}" if h else "")
+        + f" at D/r0 = {params.dr0:.3g} (depth: {depth_text}); each frame is written to {out / 'turb'} as it is "
+        "done, the bar's time estimate follows the first one",
+        file=sys.stderr,
+        flush=True,
+    )
+    if kind == "image":
+        image, depth_maps = source[None], depth_of(source)
+    else:  # a moving input: depth (if any) per frame
+        image, depth_maps = (f[None] for f in source), (None if depth == "none" else depth_of)
+    seq = sim.sequence(
+        image,
+        frames=n_frames,
+        fps=fps,
+        wind=wind,
+        wind_dir=wind_dir,
+        boil=boil,
+        depth=depth_maps,
+        generator=gen,
+    )
+    written, size, mean_mod = 0, None, []
+    with contextlib.ExitStack() as stack:
+        writer = None if mp4_path is None else stack.enter_context(Mp4Writer(mp4_path, fps))
+        for i, res in enumerate(tqdm(seq, total=n_frames, unit="frame", desc=src.name)):
+            write_image(out / "turb" / f"{i:06d}.png", res.turb[0])
+            if save_tilt:
+                write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
+            if save_flow:
+                write_npy(out / "flow" / f"{i:06d}.npy", res.fwd_flow_px[0].detach().cpu().numpy().astype(np.float32))
+            if writer is not None:
+                writer.write(to_uint8(res.turb[0]))
+            size = tuple(res.turb.shape[-2:])
+            mean_mod.append(float(res.modulation.mean()))
+            written += 1
+        if written == 0:
+            raise D2TurbError(f"{src}: no frames to simulate")
+    kept = {"turb": True, "tilt": save_tilt, "flow": save_flow, "mp4": mp4_path is not None}
+    try:
+        remove_stale_frames(out, written, kept)
+    except OSError as exc:
+        raise D2TurbError(f"cannot remove the frames of an earlier run in {out}: {exc.strerror or exc}") from exc
+    p = sim.params
+    meta = p.to_dict()
+    ifov_l = p.ifov_rad * p.path_length_m  # m per px at the object
+    meta.update(
+        input=str(src),
+        input_kind=kind,
+        frames=written,
+        fps=fps,
+        wind_m_s=wind,
+        wind_dir_deg=wind_dir,
+        boil=boil,
+        layers=[
+            {
+                "z_frac": float(z),
+                "wind_m_s": float(v),
+                "s_per_frame": float(v / fps / (p.aperture_m * (1 - z))),
+                "px_per_frame": float(v / fps / (ifov_l * z)),
+            }
+            for z, v in zip(t, speeds)
+        ],
+        dr0=float(p.dr0),
+        bin=dr0_bin(p.dr0),
+        seed=seed,
+        depth=depth,
+        height=size[0],
+        width=size[1],
+        mean_modulation=float(np.mean(mean_mod)),
+        mp4=mp4_path.name if mp4_path is not None else None,
+    )
+    write_json(out / "meta.json", meta)
+    # the wind's shift per frame of each layer's phase screen over the width of the beam there (meta.json: layers,
+    # s_per_frame): consecutive frames decorrelate as it nears 1 (px_per_frame is the same shift at the object's
+    # scale, huge for layers near the camera: not an image motion, so not printed)
+    near = min(meta["layers"], key=lambda m: m["z_frac"])["s_per_frame"]  # the layers that weigh most in the tilt
+    print(
+        f"{src.name}: {written} frames of {size[1]}x{size[0]}, D/r0 = {p.dr0:.3g}; the wind moves the turbulence near "
+        f"the camera {near:.2g} beam widths per frame (frame-to-frame tilt decorrelates as this nears 1; per layer: "
+        f"meta.json) -> {out}" + (f" ({mp4_path.name})" if mp4_path else "")
+    )
+    return 0

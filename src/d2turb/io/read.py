@@ -1,0 +1,216 @@
+"""Reading images: the files and folders named as inputs, robust decoding of odd images (16-bit, float, palette,
+EXIF orientation) with a pixel limit against decompression bombs, and header-only sizes."""
+
+from __future__ import annotations
+
+import errno
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from d2turb.defaults import DEFAULT_MAX_PIXELS
+from d2turb.errors import D2TurbError
+from d2turb.io.atomic import _reason
+from d2turb.io.png import decode_plain_png
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
+_limits = {"max_pixels": DEFAULT_MAX_PIXELS}
+
+
+def cache_dir(*parts: str) -> Path:
+    """The user's folder of local weights: ``$D2TURB_CACHE_DIR`` (default ``~/.cache/d2turb``) / parts."""
+    return Path(os.environ.get("D2TURB_CACHE_DIR", Path.home() / ".cache" / "d2turb")).expanduser().joinpath(*parts)
+
+
+def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path]:
+    """Image files directly inside ``folder`` (with ``recursive``, also in its sub-folders), sorted by path.
+    Hidden files and folders (names starting with a dot: our temp files, macOS ``._`` files) are skipped."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise D2TurbError(f"{folder}: not a directory")
+    try:
+        entries = list(folder.rglob("*") if recursive else folder.iterdir())
+    except OSError as exc:
+        raise D2TurbError(f"{folder}: cannot read folder ({_reason(exc)})") from exc
+    found = []
+    for p in entries:
+        hidden = any(part.startswith(".") for part in p.relative_to(folder).parts)
+        # a dangling or looping symbolic link is kept: reading it reports it, like any unreadable file
+        if not hidden and p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or _broken_link(p)):
+            found.append(p)
+    return sorted(found, key=lambda p: p.relative_to(folder).parts)
+
+
+def _broken_link(path: Path) -> bool:
+    return path.is_symlink() and not path.exists()
+
+
+def _missing_reason(path: Path) -> str:
+    """Why ``path`` is no readable file: a dangling or looping symbolic link, or absent."""
+    if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                return f"{path}: cannot read image (symbolic link loop)"
+            return f"{path}: cannot read image (dangling symbolic link to {os.readlink(path)})"
+    if path.is_dir():
+        return f"{path}: is a folder, not an image file"
+    return f"{path}: no such file"
+
+
+def expand_inputs(inputs: list[str]) -> list[Path]:
+    """Files and folders of images on the command line → list of image files."""
+    paths: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            paths.extend(list_images(p))
+        elif p.is_file():
+            paths.append(p)
+        else:
+            raise D2TurbError(_missing_reason(p) if p.is_symlink() else f"{p}: no such file or directory")
+    if not paths:
+        raise D2TurbError("no input images found")
+    return paths
+
+
+def check_unique_stems(paths: Iterable[str | os.PathLike]) -> None:
+    """Per-input outputs are named by the input's stem: refuse inputs that would write the same names
+    (``a.png a.jpg``; compared case-insensitively, as some file systems do)."""
+    seen: dict[str, list[str]] = {}
+    for p in paths:
+        seen.setdefault(Path(p).stem.casefold(), []).append(str(p))
+    clash = [names for names in seen.values() if len(names) > 1]
+    if clash:
+        listed = "; ".join(", ".join(names) for names in clash[:3]) + ("; ..." if len(clash) > 3 else "")
+        raise D2TurbError(f"several inputs would write the same output names ({listed}); rename or process apart")
+
+
+FLOAT_TOLERANCE = 1e-3  # float pixels this far outside [0, 1] (rounding of an earlier computation) are clipped
+
+
+def _to_float_array(img: Image.Image, path: Path | str = "image") -> np.ndarray:
+    """PIL image of any mode → float32 HxWx3 RGB in [0, 1] (alpha dropped, grey replicated).
+
+    Integer images are scaled by their type's maximum (16-bit: 65535; 32-bit: 65535 when a value exceeds 255).
+    Float images (TIFF ``F``) must hold finite values in [0, 1]: NaN/inf, or values beyond [0, 1] by more than
+    :data:`FLOAT_TOLERANCE` (radiance, a 0-255 or 0-1000 scale), are refused naming the range found, rather than
+    clipped into a saturated image."""
+    mode = img.mode
+    if mode in ("I;16", "I;16B", "I;16L", "I"):
+        arr = np.asarray(img, dtype=np.float64)
+        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+        if lo < 0 or hi > 65535:
+            raise D2TurbError(
+                f"{path}: 32-bit integer pixels span {lo:g} to {hi:g}, outside 0-65535; save the image as 8- or 16-bit"
+            )
+        scale = 65535.0 if hi > 255 or mode.startswith("I;16") else 255.0
+        arr = (arr / scale)[..., None].repeat(3, axis=2)
+    elif mode == "F":
+        arr = np.asarray(img, dtype=np.float64)
+        if not np.isfinite(arr).all():
+            raise D2TurbError(f"{path}: image contains NaN or infinite values")
+        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+        if lo < -FLOAT_TOLERANCE or hi > 1 + FLOAT_TOLERANCE:
+            raise D2TurbError(
+                f"{path}: floating-point pixels span {lo:g} to {hi:g}, outside [0, 1]; rescale the image to [0, 1] "
+                "(or save it as 8- or 16-bit)"
+            )
+        arr = arr[..., None].repeat(3, axis=2)
+    else:
+        if mode not in ("RGB", "L"):
+            img = img.convert("RGBA").convert("RGB") if "A" in mode or mode == "P" else img.convert("RGB")
+        arr = np.asarray(img.convert("RGB"), dtype=np.float64) / 255.0
+    return np.clip(arr, 0.0, 1.0).astype(np.float32)
+
+
+def set_max_pixels(limit: int | None) -> None:
+    """Largest image (width × height) that :func:`read_image` decodes; None or 0 = no limit.
+
+    Bigger headers are refused before decoding (decompression bombs: a tiny file claiming 100000²
+    pixels). The CLI sets it from ``--max-pixels``; the default is Pillow's own limit.
+    """
+    if limit is not None and limit < 0:
+        raise D2TurbError(f"--max-pixels must be >= 0 (0 = no limit), got {limit}")
+    _limits["max_pixels"] = limit or None
+
+
+def open_image(path: str | os.PathLike, max_pixels: int | None = -1) -> Image.Image:
+    """Decode an image file with Pillow (EXIF orientation applied), refusing oversized headers.
+
+    Args:
+        path: image file.
+        max_pixels: pixel limit; -1 (default) = the limit of :func:`set_max_pixels`, None = no limit.
+
+    Returns:
+        The loaded PIL image (its file closed).
+
+    Raises:
+        D2TurbError: missing, unreadable or corrupt file, or a header larger than the limit.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise D2TurbError(_missing_reason(path))
+    limit = _limits["max_pixels"] if max_pixels == -1 else max_pixels
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None  # the limit is applied below, with a message that names the file
+    try:
+        with Image.open(path) as img:
+            w, h = img.size
+            if limit and w * h > limit:
+                raise D2TurbError(
+                    f"{path}: image claims {w}x{h} pixels ({w * h / 1e6:.0f} megapixels), over the limit of "
+                    f"{limit / 1e6:.0f} megapixels (decompression-bomb guard); allow it with --max-pixels {w * h}"
+                )
+            img.load()
+            return ImageOps.exif_transpose(img)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) from an image file's header, without decoding it (EXIF orientation not applied)."""
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None  # only the header is read
+    try:
+        with Image.open(path) as img:
+            return img.size
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def read_image(path: str | os.PathLike) -> torch.Tensor:
+    """Read an image as a float32 tensor (3, H, W) in [0, 1].
+
+    Grayscale is replicated to RGB, alpha is dropped, 16-bit is scaled by 65535, palette images are
+    expanded and EXIF orientation is applied. Corrupt or unreadable files, and headers over the pixel
+    limit (:func:`set_max_pixels`), raise ``D2TurbError``.
+    """
+    path = Path(path)
+    pixels = decode_plain_png(path, _limits["max_pixels"])
+    if pixels is None:
+        img = open_image(path)
+        if img.mode == "RGB" and min(img.size) >= 2:
+            pixels = np.asarray(img)
+    if pixels is not None:  # the common case, in float32 (x/255 rounds as in float64); numpy: see float_array
+        arr = pixels.transpose(2, 0, 1).astype(np.float32, order="C")
+        arr /= np.float32(255.0)
+        return torch.from_numpy(arr)
+    try:
+        arr = _to_float_array(img, path)
+    except (OSError, ValueError) as exc:
+        raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
+    if arr.shape[0] < 2 or arr.shape[1] < 2:
+        raise D2TurbError(f"{path}: image is too small ({arr.shape[1]}x{arr.shape[0]})")
+    if not np.isfinite(arr).all():
+        raise D2TurbError(f"{path}: image contains NaN or infinite values")
+    return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))

@@ -1,0 +1,288 @@
+"""Restored files from image files, videos and clips: what ``d2turb restore`` writes (NAME_restored.png, and on
+request NAME_flow.npy / NAME_deblurred.png; NAME.mp4 for a video) and ``d2turb restore --temporal`` (a clip
+restored across frames). The commands and the page both run these."""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+from tqdm import tqdm
+
+from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_PNG_LEVEL
+from d2turb.device import resolve_device
+from d2turb.errors import D2TurbError, FileErrors, summary
+from d2turb.io import (
+    BackgroundWriter,
+    check_output_dir,
+    check_unique_stems,
+    expand_inputs,
+    list_images,
+    read_image,
+    write_image,
+    write_npy,
+)
+from d2turb.measure import measure_clip
+from d2turb.ops.splat import backward_flow
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
+from d2turb.restore.single import Restorer
+from d2turb.sim import TurbulenceParams
+from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps
+
+
+def split_inputs(inputs: list) -> tuple[list[Path], list[Path]]:
+    """(image files, video files) of ``inputs`` (files and folders); output names must be unique."""
+    images, videos = [], []
+    for item in inputs:
+        p = Path(item)
+        if is_video(p):
+            videos.append(p)
+        else:
+            images.extend(expand_inputs([item]))
+    check_unique_stems(images + videos)
+    return images, videos
+
+
+def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
+    write_image(out_dir / f"{stem}_restored.png", details["restored"], png_level)
+    if save_flow:
+        write_npy(out_dir / f"{stem}_flow.npy", details["bwd_flow_px"].numpy().astype(np.float32))
+    if save_intermediate:
+        write_image(out_dir / f"{stem}_deblurred.png", details["deblurred"], png_level)
+
+
+def _named(path: Path, exc: D2TurbError) -> D2TurbError:
+    return exc if str(exc).startswith(str(path)) else D2TurbError(f"{path}: {exc}")
+
+
+def restore_files(
+    inputs: list,
+    out,
+    weights=None,
+    *,
+    tile: int = 512,
+    overlap: int = 64,
+    device: str = DEFAULT_DEVICE,
+    save_flow: bool = False,
+    save_intermediate: bool = False,
+    png_level: int = DEFAULT_PNG_LEVEL,
+    fail_fast: bool = False,
+) -> int:
+    """Restore images, folders of images and videos (frame by frame) with a model into the folder ``out``.
+
+    Writes NAME_restored.png per image (a video's frames: NAME_NNNNNN_restored.png, and NAME.mp4 with the video
+    extra), NAME_flow.npy (``save_flow``: float32 (2, H, W), the predicted backward flow V̂ in px, x then y) and
+    NAME_deblurred.png (``save_intermediate``: Î_tilt). An unreadable input is reported in one ``error:`` line and
+    skipped (``fail_fast``: raised).
+
+    Args:
+        weights: as :class:`~d2turb.restore.Restorer` takes them (None: the recommended shipped model).
+        tile, overlap: tiling of large images, px.
+
+    Returns:
+        The exit status: 0 all done, 1 some inputs failed, 2 all failed.
+    """
+    images, videos = split_inputs(inputs)
+    out_dir = check_output_dir(out, inputs=images + videos)
+    restorer = Restorer(weights, device=resolve_device(device), tile=tile, overlap=overlap, progress=True)
+    errors = FileErrors(len(images) + len(videos), fail_fast)
+    options = (save_flow, save_intermediate, png_level)
+    count = 0
+    with BackgroundWriter(max_pending=4, compute_device=restorer.device) as writer:
+        for path in tqdm(images, desc="restore", unit="img", disable=len(images) < 2):
+            try:
+                image = read_image(path)
+                writer.before_compute()
+                details = restorer.restore_with_details(image)
+            except D2TurbError as exc:
+                errors.record(_named(path, exc))
+                continue
+            writer.submit(_save, out_dir, path.stem, details, *options)
+            count += 1
+        for video in videos:
+            bar = tqdm(iter_video(video), desc=video.name, unit="frame")
+            frames = iter(bar)
+            with contextlib.ExitStack() as stack:
+                mp4 = None
+                if can_write_mp4():  # the restored clip as a video too, at the input's frame rate
+                    mp4 = stack.enter_context(Mp4Writer(out_dir / f"{video.stem}.mp4", video_fps(video)))
+                while True:
+                    try:
+                        i, frame = next(frames, (None, None))
+                        if frame is None:
+                            break
+                        writer.before_compute()
+                        details = restorer.restore_with_details(frame)
+                    except D2TurbError as exc:
+                        bar.close()
+                        errors.record(_named(video, exc))
+                        break
+                    writer.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
+                    if mp4 is not None:
+                        mp4.write(details["restored"])
+                    count += 1
+                if mp4 is not None and not mp4.frames:
+                    stack.pop_all()
+                    mp4.abort()
+    print(f"restored {count} image(s) with {restorer.name} into {out_dir}")
+    return errors.finish("restore")
+
+
+# ---- clips ---------------------------------------------------------------------------------------------------------
+def clip_frames(src: Path, errors) -> tuple[list[str], object]:
+    """(frame names, iterator of (3,H,W) frames) of a clip; an unreadable frame of a folder is reported and
+    skipped, a video that stops decoding ends the clip there (reported) through ``errors.record``."""
+    names: list[str] = []
+    if is_video(src):
+
+        def decoded():
+            try:
+                for i, frame in iter_video(src):
+                    names.append(f"{src.stem}_{i:06d}")
+                    yield frame
+            except D2TurbError as exc:
+                errors.record(_named(src, exc))
+
+        return names, decoded()
+    if not src.is_dir():
+        raise D2TurbError(f"{src}: a clip is a video file or a folder of frames")
+    files = list_images(src)
+    if not files:
+        raise D2TurbError(f"{src}: no images in the folder")
+
+    def read():
+        for f in files:
+            try:
+                frame = read_image(f)
+            except D2TurbError as exc:
+                errors.record(_named(f, exc))
+                continue
+            names.append(f.stem)
+            yield frame
+
+    return names, read()
+
+
+MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when it is not given
+
+
+def _measured_dr0(src: Path, params: dict) -> float:
+    """D/r0 measured on the clip's first MEASURE_FRAMES frames (d2turb.measure); D2TurbError if it cannot be."""
+    quiet = SimpleNamespace(record=lambda exc: None)  # bad frames are reported once, by the restoring pass
+    _, frames = clip_frames(src, quiet)
+    head = list(itertools.islice(frames, MEASURE_FRAMES))
+    optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
+    return float(measure_clip(head, optics, bootstrap=50)["dr0"])
+
+
+def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64):
+    """The deblur step of a clip: (None, a PhysicsDeblur or a model's restore; its description).
+
+    Args:
+        choice: ``none``, ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 measured on the
+            clip's first MEASURE_FRAMES frames), ``auto`` (physics, or none when D/r0 can be neither given nor
+            measured) or a weights name/path.
+        params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
+    """
+    if choice == "none":
+        return None, "none"
+    if choice in ("physics", "auto"):
+        params = dict(params or {})
+        source = "given"
+        if dr0 is None:
+            try:
+                dr0, source = _measured_dr0(src, params), "measured on the clip"
+            except D2TurbError as exc:
+                if choice == "physics":
+                    raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
+                print(f"note: no deblurring: {exc}", file=sys.stderr)
+                return None, "none (D/r0 could not be measured)"
+        try:
+            p = TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, dr0=min(dr0, 10.0))
+        except TypeError as exc:
+            raise D2TurbError(f"--param: {exc}") from exc
+        lambda_over_d_px = p.reference_wavelength / (p.aperture_m * p.ifov_rad)
+        deblur = PhysicsDeblur(p.dr0, lambda_over_d_px)
+        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {lambda_over_d_px:.3g} px)"
+    restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
+    return restorer.restore, restorer.name
+
+
+def restore_clip_files(
+    src,
+    out,
+    temporal: int,
+    *,
+    deblur: str = "auto",
+    dr0: float | None = None,
+    params: dict | None = None,
+    passes: int = 2,
+    preset: str = "fast",
+    fusion: str = "mean",
+    fps: float | None = None,
+    tile: int = 512,
+    overlap: int = 64,
+    device: str = DEFAULT_DEVICE,
+    save_flow: bool = False,
+    save_intermediate: bool = False,
+    png_level: int = DEFAULT_PNG_LEVEL,
+    fail_fast: bool = False,
+) -> int:
+    """Restore a clip across frames into the folder ``out`` (``d2turb restore --temporal``): registration to a
+    sliding window of ``temporal`` frames, fusion, deblurring (:class:`~d2turb.restore.clip.ClipRestorer`).
+
+    Writes NNN_restored.png per frame (a video's: NAME_NNNNNN_restored.png), an mp4 (video extra; a video keeps its
+    name, a folder's is FOLDER_restored.mp4), NNN_fused.png (``save_intermediate``) and flow/NNNNNN.npy
+    (``save_flow``: float32 (2, H, W), the forward displacement of each frame from the restored one, px, x then y).
+
+    Args:
+        src: a video file or a folder of frames.
+        deblur, dr0, params: see :func:`clip_deblur`.
+        passes, preset, fusion: registration rounds, DIS preset, fusion of the registered frames.
+        fps: frame rate of a folder clip's mp4 (default 30).
+
+    Returns:
+        The exit status: 0, or 1 when some frames could not be read (2 when none could).
+    """
+    src = Path(src)
+    if not src.exists():
+        raise D2TurbError(f"{src}: no such file or directory")
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise D2TurbError(f"--fps must be positive, got {fps}")
+    restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
+    device = resolve_device(device)
+    restorer.deblur, deblur_name = clip_deblur(
+        deblur, src, dr0=dr0, params=params, device=device, tile=tile, overlap=overlap
+    )
+    out_dir = check_output_dir(out, inputs=list_images(src) if src.is_dir() else [src])
+    errors = FileErrors(2, fail_fast)  # per frame: a bad one is reported and skipped
+    names, frames = clip_frames(src, errors)
+    fps = video_fps(src) if is_video(src) else (fps or 30.0)
+    # a video keeps its name (its folder cannot be --out); a folder's mp4 is marked, so a user's CLIP.mp4 beside the
+    # frames is never replaced
+    mp4 = out_dir / (f"{src.stem}.mp4" if is_video(src) else f"{src.resolve().name}_restored.mp4")
+    if not can_write_mp4():
+        print(f"note: no mp4 written; {VIDEO_HINT}")
+        mp4 = None
+    print(f"restoring {src} over windows of {temporal} frames, deblur: {deblur_name}", file=sys.stderr)
+    count = 0
+    with contextlib.ExitStack() as stack:
+        writer = stack.enter_context(BackgroundWriter(max_pending=4, compute_device=device))
+        video = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, fps))
+        for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame"):
+            stem = names[frame.index]
+            writer.submit(write_image, out_dir / f"{stem}_restored.png", frame.restored, png_level)
+            if save_intermediate:
+                writer.submit(write_image, out_dir / f"{stem}_fused.png", frame.fused, png_level)
+            if save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
+                fwd = backward_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
+                writer.submit(write_npy, out_dir / "flow" / f"{frame.index:06d}.npy", fwd)
+            if video is not None:
+                video.write(frame.restored)
+            count += 1
+    print(f"restored {count} frame(s) of {src.name} into {out_dir}" + (f" ({mp4.name})" if mp4 else ""))
+    return summary("restore", count + len(errors.failed), len(errors.failed))
