@@ -58,7 +58,12 @@ def register(sub):
         choices=["fast", "medium", "fine"],
         help="registration (DIS): fast = flow at half resolution (default), medium/fine = full resolution, slower",
     )
-    clip.add_argument("--fusion", default="mean", choices=["mean", "robust"], help="fusion of the registered frames")
+    clip.add_argument(
+        "--fusion",
+        default="mean",
+        choices=["mean", "robust", "fba"],
+        help="fusion of the registered frames: mean (default), robust, fba (Fourier burst accumulation: sharper)",
+    )
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--tile", type=int, default=512, help="tile size in pixels (default 512)")

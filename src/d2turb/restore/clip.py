@@ -8,9 +8,10 @@ Each frame i is registered to a reference of its own window, in ``passes`` round
    global shift of frame i against it (phase correlation: camera shake);
 2. round k: dense backward flow of frame i onto R^(k−1)_i (OpenCV DIS, started from the previous round),
    frame i unwarped; R^k_i = mean of the unwarped frames of W(i) (sharper, same geometry);
-3. output t = fusion of the last round's unwarped frames of W(t) (mean, or robust: each pixel weighted by its
-   agreement with the reference); where the frame's own residual stays high (a moving object) the single frame
-   is used instead (no ghost); then deblurred (none, a physics Wiener filter, or a model).
+3. output t = fusion of the last round's unwarped frames of W(t) (mean; robust: each pixel weighted by its
+   agreement with the reference; fba: Fourier burst accumulation, restore/fusion.py); where the frame's own
+   residual stays high (a moving object) the single frame is used instead (no ghost); then deblurred (none, a
+   physics Wiener filter, or a model).
 
 Memory holds about 2·temporal·passes frames whatever the clip's length (a stream). Assumes a static scene seen by a
 static or slowly moving camera; moving objects fall back to the single frame (not restored).
@@ -28,10 +29,11 @@ import torch
 
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
+from d2turb.restore.fusion import fourier_burst_accumulation
 from d2turb.sim.otf import image_otf
 from d2turb.sim.params import MAX_DR0
 
-FUSIONS = ("mean", "robust")
+FUSIONS = ("mean", "robust", "fba")
 DEFAULT_TEMPORAL = 24
 # Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
 # fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
@@ -180,7 +182,8 @@ class ClipRestorer:
     Args:
         temporal: frames per window (≥ 2).
         passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion.
-        fusion: "mean" or "robust" (pixels weighted by their agreement with the reference).
+        fusion: "mean", "robust" (pixels weighted by their agreement with the reference) or "fba" (Fourier burst
+            accumulation: each frequency mostly from the frames that kept it best, ``restore/fusion.py``).
         deblur: "none", a :class:`PhysicsDeblur`, or any callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
         preset: registration accuracy, a key of ``d2turb.registration.DIS_PRESETS`` (default "fast": the flow at
             half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
@@ -339,6 +342,8 @@ class ClipRestorer:
         fused = self._reference(buf, index, self.passes, length)
         if self.fusion == "robust":
             fused = self._robust([buf[j].warped[-1] for j in self._window(buf, index, length)], fused)
+        elif self.fusion == "fba":
+            fused = fourier_burst_accumulation([buf[j].warped[-1] for j in self._window(buf, index, length)])
         frame = buf[index]
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
