@@ -10,7 +10,7 @@ import re
 import sys
 
 from d2turb import __version__
-from d2turb.commands.common import log_to_stderr
+from d2turb.commands.common import apply_wait_policy, log_to_stderr
 from d2turb.defaults import DEFAULT_MAX_PIXELS
 from d2turb.errors import D2TurbError
 
@@ -73,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     log_to_stderr()
+    apply_wait_policy(args)  # before torch is imported
     from d2turb.io import set_max_pixels  # lazy: d2turb.io imports torch, which --help and usage errors never need
 
     set_max_pixels(getattr(args, "max_pixels", DEFAULT_MAX_PIXELS))

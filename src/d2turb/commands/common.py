@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 
 from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE, DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL, DEVICE_HELP
@@ -80,6 +81,25 @@ def add_motion_args(p) -> None:
     p.add_argument(
         "--boil", type=float, default=0.0, metavar="X", help="fraction of each layer's variance refreshed per frame"
     )
+
+
+def wait_passively(p) -> None:
+    """Mark a command whose CPU work should run with ``OMP_WAIT_POLICY=PASSIVE`` (see :func:`apply_wait_policy`)."""
+    p.set_defaults(passive_openmp=True)
+
+
+def apply_wait_policy(args) -> None:
+    """``OMP_WAIT_POLICY=PASSIVE`` for a command marked by :func:`wait_passively`, unless the user set a policy.
+
+    Called by ``d2turb.cli.main`` before torch is imported (OpenMP reads the variable once, when torch loads it).
+    By default OpenMP threads spin between parallel regions; on a CPU that other processes also use, torch's two
+    threads then spin against them and every region waits for a descheduled thread: on a shared 2-core machine
+    (load 14–17) simulate-video took 268 s for 64 frames of 512x384 instead of 21 s, make-dataset 26 s to its
+    first pair instead of 4 (medians; benchmarks/RESULTS.md, "Time to first output"). Waiting threads sleep; the
+    outputs are the same (the work is split among the threads as before). Once torch is loaded (``main`` called
+    in a process that imported it) the setting could no longer act, and the environment is left as it is."""
+    if getattr(args, "passive_openmp", False) and "torch" not in sys.modules:
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def add_param_arg(p, help_text: str = "simulator parameter override (repeatable)") -> None:

@@ -13,6 +13,7 @@ from d2turb.commands.common import (
     add_png_level_arg,
     add_seed_arg,
     parse_params,
+    wait_passively,
 )
 
 
@@ -59,6 +60,7 @@ def register(sub):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_png_level_arg(p)
     add_max_pixels_arg(p)
+    wait_passively(p)
     p.set_defaults(func=run)
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from d2turb.commands.common import add_depth_arg, add_max_pixels_arg, add_motion_args, add_seed_arg
+from d2turb.commands.common import add_depth_arg, add_max_pixels_arg, add_motion_args, add_seed_arg, wait_passively
 from d2turb.commands.simulate import add_physics_args, physics_params
 
 
@@ -31,6 +31,7 @@ def register(sub):
     p.add_argument("--no-mp4", action="store_true", help="do not write turb.mp4")
     add_physics_args(p)
     add_max_pixels_arg(p)
+    wait_passively(p)
     p.set_defaults(func=run)
 
 

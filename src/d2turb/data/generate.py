@@ -540,6 +540,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             if not torch.isfinite(flow).all() or not torch.isfinite(turb).all():
                 raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
             turb, tilt, flow = turb.float().cpu(), tilt.float().cpu(), flow.cpu()
+            new = 0
             for b, (plan, meta) in enumerate(zip(plans, metas)):
                 if plan.id in done:
                     continue
@@ -551,9 +552,10 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                     "depth": depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
                 }
                 writer.submit(_write_sample, root, plan.id, sample, meta, shard, shard_lock, cfg.png_level)
-                written += 1
-                if bar is not None:
-                    bar.update(1)
+                new += 1
+            written += new
+            if bar is not None:  # the chunk's pairs at once: one per-pair step would time 1 pair, not the chunk
+                bar.update(new)
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - start
