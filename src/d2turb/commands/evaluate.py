@@ -31,6 +31,9 @@ def register(sub):
         "--preset", default="fast", choices=["fast", "medium", "fine"], help="with --clips: registration (default fast)"
     )
     p.add_argument(
+        "--fusion", default="mean", choices=["mean", "robust", "fba"], help="with --clips: fusion (default mean)"
+    )
+    p.add_argument(
         "--deblur",
         nargs="+",
         default=["physics"],
@@ -103,6 +106,7 @@ def run(args):
             args.out,
             deblur=args.deblur,
             temporal=args.temporal,
+            fusion=args.fusion,
             max_samples=args.max_samples,
             device=device,
         )

@@ -72,6 +72,7 @@ def evaluate_clips(
     deblur: list[str] = ("physics",),
     temporal: int = 32,
     preset: str = "fast",
+    fusion: str = "mean",
     passes: int = 2,
     stride: int = 4,
     max_samples: int | None = None,
@@ -83,6 +84,7 @@ def evaluate_clips(
     Args:
         deblur: deblur options compared after fusion: "physics" (Wiener at the clip's true D/r0 and optics),
             weights names/paths (a model on the fused frame); "none" is always the "fused" row.
+        fusion: the restorer's fusion ("mean", "robust" or "fba").
         stride: image metrics on every ``stride``-th frame (the displacement error on every frame).
     """
     data = SequenceDataset(root)
@@ -103,7 +105,8 @@ def evaluate_clips(
         deblurs = {
             name: (_physics_for(record, item["depth"]) if fn == "physics" else fn) for name, fn in options.items()
         }
-        frame_means = _clip_scores(item, deblurs, ClipRestorer(temporal=temporal, preset=preset, passes=passes), stride)
+        restorer = ClipRestorer(temporal=temporal, preset=preset, passes=passes, fusion=fusion)
+        frame_means = _clip_scores(item, deblurs, restorer, stride)
         sample = {"id": item["id"], "bin": record["bin"], "dr0": float(record["dr0"])} | frame_means
         samples.append(sample)
         per_bin.update({k: v for k, v in sample.items() if isinstance(v, float)}, groups=record["bin"])
@@ -117,6 +120,7 @@ def evaluate_clips(
         "settings": {
             "temporal": temporal,
             "preset": preset,
+            "fusion": fusion,
             "passes": passes,
             "stride": stride,
             "deblur": list(options),
