@@ -143,7 +143,7 @@ def test_pure_global_translation_measures_no_turbulence():
     # no differential motion: D/r0 of ~0 (a registration noise floor of a few hundredths of a pixel)
     assert out["dr0"] < 0.15 and out["dr0_ci"][0] <= out["dr0"] <= out["dr0_ci"][1]
     sds = out["dr0_log_sd"]
-    assert sds["scene"] == M.SCENE_LOG_SD
+    assert sds["scene"] == M.scene_log_sd(out["dr0"]) == M.SCENE_LOG_SD[0]  # clamped below D/r0 = 1.5
     np.testing.assert_allclose(out["dr0_ci"], M.log_normal_interval(out["dr0"], (sds["tiles"], sds["scene"])))
 
 
@@ -166,6 +166,13 @@ def test_interval_covers_a_known_log_normal_90_percent_of_the_time():
     cover_alone = np.mean([lo <= truth <= hi for lo, hi in alone])
     assert abs(cover_both - 0.90) < 0.01  # binomial sd 0.002
     assert abs(cover_alone - (2 * 0.5 * (1 + math.erf(1.6448536 * 0.02 / np.hypot(0.02, 0.04) / 2**0.5)) - 1)) < 0.01
+
+
+def test_scene_term_interpolates_in_the_strength():
+    assert M.scene_log_sd(M.GAIN_DR0[1]) == M.SCENE_LOG_SD[1]
+    mid = (M.GAIN_DR0[1] + M.GAIN_DR0[2]) / 2
+    assert M.scene_log_sd(mid) == pytest.approx((M.SCENE_LOG_SD[1] + M.SCENE_LOG_SD[2]) / 2, rel=1e-12)
+    assert M.scene_log_sd(0.3) == M.SCENE_LOG_SD[0] and M.scene_log_sd(9.0) == M.SCENE_LOG_SD[-1]
 
 
 def test_registration_gain_interpolates_the_table():

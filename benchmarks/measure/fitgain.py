@@ -103,4 +103,9 @@ for name in ("valid_fraction", "textured_fraction", "median_residual_grey", "foo
     v = np.log([r[0][name] for r in rows])
     print(f"  corr(ln(D̂/D), ln {name}) = {np.corrcoef(e, v)[0, 1]:+.2f}")
 scene = float(np.sqrt(max(np.mean(e**2) - np.mean(s**2), 0.0)))
-print(f"SCENE_LOG_SD = {scene:.3f}  (ln D/r0; rms {np.sqrt(np.mean(e**2)):.3f} in quadrature minus the bootstrap's)")
+print(f"pooled scene term {scene:.3f}  (ln D/r0; rms {rms(e):.3f} in quadrature minus the bootstrap's)")
+# the scene variance against the strength: least squares of e² − s_tiles² on (1, D/r0), per clip
+x = np.array([r[0]["dr0"] for r in rows])
+coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), e**2 - s**2, rcond=None)
+print("SCENE_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0))), 3) for v in DR0), "(at GAIN_DR0)")
+print(f"  variance = {coef[0]:.5f} + {coef[1]:.5f}·D/r0")

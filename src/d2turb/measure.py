@@ -54,16 +54,17 @@ GAIN_FOOTPRINT_PX = (4.0, 8.0, 16.0, 38.1)
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
 GAIN_SEPARATIONS_PX = (16, 32, 64)
 GAIN_TABLE = (
-    ((0.470, 0.595, 0.691), (0.457, 0.571, 0.652), (0.445, 0.547, 0.616), (0.433, 0.525, 0.582)),
-    ((0.561, 0.691, 0.781), (0.559, 0.679, 0.755), (0.558, 0.667, 0.731), (0.556, 0.655, 0.708)),
-    ((0.643, 0.771, 0.846), (0.657, 0.776, 0.839), (0.671, 0.781, 0.832), (0.685, 0.786, 0.825)),
-    ((0.719, 0.833, 0.884), (0.758, 0.865, 0.904), (0.798, 0.897, 0.924), (0.841, 0.931, 0.945)),
+    ((0.452, 0.572, 0.677), (0.453, 0.560, 0.648), (0.453, 0.549, 0.621), (0.454, 0.537, 0.595)),
+    ((0.564, 0.692, 0.795), (0.575, 0.691, 0.775), (0.587, 0.689, 0.756), (0.598, 0.687, 0.738)),
+    ((0.658, 0.784, 0.872), (0.683, 0.796, 0.867), (0.710, 0.809, 0.862), (0.738, 0.822, 0.856)),
+    ((0.726, 0.832, 0.892), (0.772, 0.865, 0.907), (0.821, 0.900, 0.923), (0.873, 0.936, 0.939)),
 )
-# the interval: ln D̂ ± z·sqrt(s_tiles² + SCENE_LOG_SD²), s_tiles the sd of ln D̂ over the tile bootstrap and
-# SCENE_LOG_SD the clip-to-clip scatter of ln(D̂/D) that the tiles do not see (scene texture changes how much of the
-# differential tilt DIS recovers), measured on the calibration clips with the gain model refitted without each clip
-# (rms of ln(D̂/D) in quadrature minus the mean bootstrap variance; benchmarks/measure/fitgain.py)
-SCENE_LOG_SD = 0.029
+# the interval: ln D̂ ± z·sqrt(s_tiles² + s_scene²), s_tiles the sd of ln D̂ over the tile bootstrap and s_scene the
+# clip-to-clip scatter of ln(D̂/D) that the tiles do not see (scene texture changes how much of the differential
+# tilt DIS recovers). s_scene from the calibration clips, the gain model refitted without each clip: per clip
+# ln(D̂/D)² minus its bootstrap variance, least squares against D/r0 (the scatter grows with the strength); per
+# D/r0 of GAIN_DR0, linear between, clamped outside (benchmarks/measure/fitgain.py)
+SCENE_LOG_SD = (0.024, 0.033, 0.040, 0.046)
 Z90 = 1.6448536269514722  # two-sided 90 %: Φ⁻¹(0.95)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
@@ -287,6 +288,11 @@ def registration_gain(sep_px, dr0: float, footprint_px: float = 38.1) -> np.ndar
     return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
 
 
+def scene_log_sd(dr0: float) -> float:
+    """The interval's scene term (sd of ln D/r0) at strength ``dr0`` from ``SCENE_LOG_SD``."""
+    return float(np.interp(dr0, GAIN_DR0, SCENE_LOG_SD))
+
+
 def log_normal_interval(estimate: float, log_sds, z: float = Z90) -> tuple[float, float]:
     """``estimate``·exp(∓z·s) with s the quadrature sum of the independent log-sds ``log_sds`` (a 90 % interval
     with the default z when ln of the estimate is normal about ln of the truth)."""
@@ -408,12 +414,13 @@ def estimate_from_sums(num, pairs, series, optics: Optics, footprints, bootstrap
         boot.append(_fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)[0])
     boot_dr0 = dr0_from_tilt_variance(np.array(boot, np.float64), *unit) if boot else np.array([dr0])
     tiles_sd = float(np.std(np.log(boot_dr0))) if dr0 > 0 and np.all(boot_dr0 > 0) else 0.0
-    lo, hi = log_normal_interval(dr0, (tiles_sd, SCENE_LOG_SD))
+    scene_sd = scene_log_sd(dr0)
+    lo, hi = log_normal_interval(dr0, (tiles_sd, scene_sd))
     fi, vi, di, bi = best
     out = {
         "dr0": dr0,
         "dr0_ci": [float(lo), float(hi)],
-        "dr0_log_sd": {"tiles": tiles_sd, "scene": SCENE_LOG_SD},
+        "dr0_log_sd": {"tiles": tiles_sd, "scene": scene_sd},
         "tilt_var_px2": sig2,
         "fit": {
             "footprint_per_px": float(footprints[fi]),
@@ -441,4 +448,5 @@ __all__ = [
     "register_clip",
     "register_measurable",
     "registration_gain",
+    "scene_log_sd",
 ]
