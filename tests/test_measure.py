@@ -143,8 +143,8 @@ def test_pure_global_translation_measures_no_turbulence():
     # no differential motion: D/r0 of ~0 (a registration noise floor of a few hundredths of a pixel)
     assert out["dr0"] < 0.15 and out["dr0_ci"][0] <= out["dr0"] <= out["dr0_ci"][1]
     sds = out["dr0_log_sd"]
-    assert sds["scene"] == M.scene_log_sd(out["dr0"]) == M.SCENE_LOG_SD[0]  # clamped below D/r0 = 1.5
-    np.testing.assert_allclose(out["dr0_ci"], M.log_normal_interval(out["dr0"], (sds["tiles"], sds["scene"])))
+    assert sds["clip"] == M.clip_log_sd(out["dr0"]) == M.CLIP_LOG_SD[0]  # clamped below D/r0 = 1.5
+    np.testing.assert_allclose(out["dr0_ci"], M.log_normal_interval(out["dr0"], (sds["tiles"], sds["clip"])))
 
 
 def test_interval_is_the_quadrature_sum_against_hand_computed_values():
@@ -155,12 +155,12 @@ def test_interval_is_the_quadrature_sum_against_hand_computed_values():
 
 
 def test_interval_covers_a_known_log_normal_90_percent_of_the_time():
-    # an oracle independent of the estimator: ln D̂ = ln D + e_tiles + e_scene, both normal with known sds; the
+    # an oracle independent of the estimator: ln D̂ = ln D + e_tiles + e_clip, both normal with known sds; the
     # interval from the two sds covers D in 90 % of draws, the tiles' sd alone (the old interval) in far fewer
     rng = np.random.default_rng(0)
-    truth, s_tiles, s_scene, n = 3.0, 0.02, 0.04, 20000
-    est = truth * np.exp(rng.normal(0, s_tiles, n) + rng.normal(0, s_scene, n))
-    both = [M.log_normal_interval(e, (s_tiles, s_scene)) for e in est]
+    truth, s_tiles, s_clip, n = 3.0, 0.02, 0.04, 20000
+    est = truth * np.exp(rng.normal(0, s_tiles, n) + rng.normal(0, s_clip, n))
+    both = [M.log_normal_interval(e, (s_tiles, s_clip)) for e in est]
     alone = [M.log_normal_interval(e, (s_tiles,)) for e in est]
     cover_both = np.mean([lo <= truth <= hi for lo, hi in both])
     cover_alone = np.mean([lo <= truth <= hi for lo, hi in alone])
@@ -168,11 +168,11 @@ def test_interval_covers_a_known_log_normal_90_percent_of_the_time():
     assert abs(cover_alone - (2 * 0.5 * (1 + math.erf(1.6448536 * 0.02 / np.hypot(0.02, 0.04) / 2**0.5)) - 1)) < 0.01
 
 
-def test_scene_term_interpolates_in_the_strength():
-    assert M.scene_log_sd(M.GAIN_DR0[1]) == M.SCENE_LOG_SD[1]
+def test_clip_term_interpolates_in_the_strength():
+    assert M.clip_log_sd(M.GAIN_DR0[1]) == M.CLIP_LOG_SD[1]
     mid = (M.GAIN_DR0[1] + M.GAIN_DR0[2]) / 2
-    assert M.scene_log_sd(mid) == pytest.approx((M.SCENE_LOG_SD[1] + M.SCENE_LOG_SD[2]) / 2, rel=1e-12)
-    assert M.scene_log_sd(0.3) == M.SCENE_LOG_SD[0] and M.scene_log_sd(9.0) == M.SCENE_LOG_SD[-1]
+    assert M.clip_log_sd(mid) == pytest.approx((M.CLIP_LOG_SD[1] + M.CLIP_LOG_SD[2]) / 2, rel=1e-12)
+    assert M.clip_log_sd(0.3) == M.CLIP_LOG_SD[0] and M.clip_log_sd(9.0) == M.CLIP_LOG_SD[-1]
 
 
 def test_registration_gain_interpolates_the_table():

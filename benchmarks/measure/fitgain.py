@@ -1,10 +1,10 @@
-# Registration gain and the interval's scene term from the calibration statistics (calibrate.py → calib/*.npz).
+# Registration gain and the interval's clip term from the calibration statistics (calibrate.py → calib/*.npz).
 # 1. Per clip and separation r, the gain ε = (DIS structure function) / (true-flow structure function), same pairs.
 # 2. A smooth least-squares model of ln ε in ln r, ln footprint and D/r0 (quadratic, with interactions) over the
 #    clips that measure_clip would accept (valid area ≥ MIN_VALID_FRACTION); printed as GAIN_TABLE.
 # 3. Leave one clip out: refit the model without it, measure the clip with the predicted gains (the estimator of
-#    d2turb.measure on its DIS sums), compare ln(D̂/D) with the tile bootstrap's own spread. The scene term
-#    SCENE_LOG_SD is the rms of ln(D̂/D) in quadrature minus the mean bootstrap variance.
+#    d2turb.measure on its DIS sums), compare ln(D̂/D) with the tile bootstrap's own spread. The clip term
+#    CLIP_LOG_SD is the rms of ln(D̂/D) in quadrature minus the mean bootstrap variance.
 import glob
 import json
 import sys
@@ -41,6 +41,7 @@ for path in sorted(glob.glob(sys.argv[1] if len(sys.argv) > 1 else "calib/*.npz"
     clips.append(
         dict(info, gain=gain, num=z["num_dis"][:, keep], pairs=z["pairs_dis"][:, keep], series=[ser[j] for j in keep])
     )
+    clips[-1]["true"] = (z["num_true"][:, keep], z["pairs_true"][:, keep])
 used = [c for c in clips if c["valid_fraction"] >= M.MIN_VALID_FRACTION]
 print(f"{len(clips)} calibration clips, {len(used)} with valid area ≥ {M.MIN_VALID_FRACTION:.0%}")
 
@@ -78,8 +79,20 @@ def measure(c, gains_fn, n_boot=200, seed=0):
     for _ in range(n_boot):
         pick = rng.integers(0, n, n)
         boot.append(M._fit(c["num"][pick].sum(0), c["pairs"][pick].sum(0), t_len, models, gains)[0])
+    if not boot:
+        return dr0, 0.0
     return dr0, float(np.std(np.log(dr0_from_tilt_variance(np.array(boot), *unit))))
 
+
+# the estimator on the simulator's true flow (no registration, ε = 1): the theory and the unseen-mean handling
+true_err = []
+for c in used:
+    tc = dict(c, num=c["true"][0], pairs=c["true"][1])
+    ones = np.ones(len(c["series"]))
+    true_err.append((c["dr0"], measure(tc, lambda x, ones=ones: ones, n_boot=0)[0] / c["dr0"]))
+for x in DR0:
+    v = np.array([r for d, r in true_err if d == x])
+    print(f"true flow, D/r0 {x}: D̂/D mean {v.mean():.3f}, min {v.min():.3f}, max {v.max():.3f} ({len(v)} clips)")
 
 rows = []
 for k, c in enumerate(used):
@@ -102,10 +115,10 @@ for x in DR0:
 for name in ("valid_fraction", "textured_fraction", "median_residual_grey", "footprint_px"):
     v = np.log([r[0][name] for r in rows])
     print(f"  corr(ln(D̂/D), ln {name}) = {np.corrcoef(e, v)[0, 1]:+.2f}")
-scene = float(np.sqrt(max(np.mean(e**2) - np.mean(s**2), 0.0)))
-print(f"pooled scene term {scene:.3f}  (ln D/r0; rms {rms(e):.3f} in quadrature minus the bootstrap's)")
-# the scene variance against the strength: least squares of e² − s_tiles² on (1, D/r0), per clip
+clip = float(np.sqrt(max(np.mean(e**2) - np.mean(s**2), 0.0)))
+print(f"pooled clip term {clip:.3f}  (ln D/r0; rms {rms(e):.3f} in quadrature minus the bootstrap's)")
+# the clip variance against the strength: least squares of e² − s_tiles² on (1, D/r0), per clip
 x = np.array([r[0]["dr0"] for r in rows])
 coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), e**2 - s**2, rcond=None)
-print("SCENE_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0))), 3) for v in DR0), "(at GAIN_DR0)")
+print("CLIP_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0))), 3) for v in DR0), "(at GAIN_DR0)")
 print(f"  variance = {coef[0]:.5f} + {coef[1]:.5f}·D/r0")

@@ -6,7 +6,8 @@
 #   calf_X_g  calibration, "field" geometry g of the bank (six of its 16, footprints 4–31 px), bsds500 crops
 #   val_X_i   validation, default optics (i ≤ 8: the first round, images alternating by strength; i ≥ 9: the other
 #             scene type per strength, so that every strength has bsd100 and sunhays_outdoor crops)
-#   valf_X_i  validation, "field" geometry bank (geometry (i + 4·cell) mod 16), scene types alternating
+#   valf_X_i  validation, "field" geometry bank (geometry (i + 4·cell) mod 16), scene types alternating; i = 0…15
+#   (val_X_15, _16 and valf_X_13…15 came in a second batch, after vald_*, to reach ten measured clips per cell)
 #   vald_X_i  validation, default optics with the depth prior (--depth prior), reported without a bar
 # All: 64 frames at 30 fps, boiling 0.1, wind 1–3 m/s, --save-flow, --no-mp4; --depth none except vald_*.
 import glob
@@ -67,6 +68,16 @@ def plan():
         imgs = bsd_new if i == 0 else sun_new
         rounds.append([(f"vald_{x}_{i}", next(imgs), x, wind(i, x), 7000 + i * 10 + int(x), ["--depth", "prior"])
                        for x in STRENGTHS])  # fmt: skip
+    for i in range(13, 16):  # a second batch: three more field clips and (i ≤ 14) two more default clips per strength
+        row = []
+        for c, x in enumerate(STRENGTHS):
+            img = next(bsd_new) if (i + c) % 2 == 0 else next(sun_new)
+            row.append((f"valf_{x}_{i}", img, x, wind(i, x), 5000 + i * 10 + int(x), field_args((i + 4 * c) % 16)))
+        if i < 15:
+            for x in STRENGTHS:
+                img = next(bsd_new) if int(x) % 2 == 1 else next(sun_new)
+                row.append((f"val_{x}_{i + 2}", img, x, wind(i + 2, x), (i + 2) * 10 + int(x), []))
+        rounds.append(row)
     return jobs + [j for r in rounds for j in r]
 
 

@@ -1,5 +1,5 @@
 # 256² centre crops of the clean images: cal/ (first 100 bsds500 images: a train folder, calibration only) and img/
-# (first 60 bsd100 and 60 sunhays_outdoor images: the test folders of the fixed split, validation only)
+# (first 70 bsd100 and all 69 sunhays_outdoor images: the test folders of the fixed split, validation only)
 import glob
 import os
 import sys
@@ -9,7 +9,7 @@ from PIL import Image
 C = sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/clean"
 for folder, files in (
     ("cal", sorted(glob.glob(f"{C}/bsds500/*"))[:100]),
-    ("img", sorted(glob.glob(f"{C}/bsd100/*.png"))[:60] + sorted(glob.glob(f"{C}/sunhays_outdoor/*"))[:60]),
+    ("img", sorted(glob.glob(f"{C}/bsd100/*.png"))[:70] + sorted(glob.glob(f"{C}/sunhays_outdoor/*"))[:70]),
 ):
     os.makedirs(folder, exist_ok=True)
     for f in files:

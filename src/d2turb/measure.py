@@ -16,7 +16,8 @@ at separation j, measured on simulated calibration clips as a function of the se
 tilt's correlation scale D/(ifov·L) (``GAIN_TABLE``). The wind (speed per frame, direction) and the boiling are
 nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is then a ratio of sums. The 90 %
 interval is log-normal: the spread of a bootstrap over spatial tiles (the fit redone per resample) and the
-clip-to-clip scatter of the registration gain measured on the calibration clips (``SCENE_LOG_SD``), in quadrature.
+clip-to-clip scatter measured on the calibration clips (``CLIP_LOG_SD``: the registration gain's dependence on
+the scene, the turbulence at scales larger than a tile), in quadrature.
 """
 
 from __future__ import annotations
@@ -59,12 +60,13 @@ GAIN_TABLE = (
     ((0.658, 0.784, 0.872), (0.683, 0.796, 0.867), (0.710, 0.809, 0.862), (0.738, 0.822, 0.856)),
     ((0.726, 0.832, 0.892), (0.772, 0.865, 0.907), (0.821, 0.900, 0.923), (0.873, 0.936, 0.939)),
 )
-# the interval: ln D̂ ± z·sqrt(s_tiles² + s_scene²), s_tiles the sd of ln D̂ over the tile bootstrap and s_scene the
-# clip-to-clip scatter of ln(D̂/D) that the tiles do not see (scene texture changes how much of the differential
-# tilt DIS recovers). s_scene from the calibration clips, the gain model refitted without each clip: per clip
-# ln(D̂/D)² minus its bootstrap variance, least squares against D/r0 (the scatter grows with the strength); per
-# D/r0 of GAIN_DR0, linear between, clamped outside (benchmarks/measure/fitgain.py)
-SCENE_LOG_SD = (0.024, 0.033, 0.040, 0.046)
+# the interval: ln D̂ ± z·sqrt(s_tiles² + s_clip²), s_tiles the sd of ln D̂ over the tile bootstrap and s_clip the
+# clip-to-clip scatter of ln(D̂/D) that the tiles do not see: the registration gain varies with the scene's texture,
+# and the tiles of one clip share its turbulence at scales larger than a tile. s_clip from the calibration clips,
+# the gain model refitted without each clip: per clip ln(D̂/D)² minus its bootstrap variance, least squares against
+# D/r0 (the scatter grows with the strength); per D/r0 of GAIN_DR0, linear between, clamped outside
+# (benchmarks/measure/fitgain.py)
+CLIP_LOG_SD = (0.024, 0.033, 0.040, 0.046)
 Z90 = 1.6448536269514722  # two-sided 90 %: Φ⁻¹(0.95)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
@@ -288,9 +290,9 @@ def registration_gain(sep_px, dr0: float, footprint_px: float = 38.1) -> np.ndar
     return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
 
 
-def scene_log_sd(dr0: float) -> float:
-    """The interval's scene term (sd of ln D/r0) at strength ``dr0`` from ``SCENE_LOG_SD``."""
-    return float(np.interp(dr0, GAIN_DR0, SCENE_LOG_SD))
+def clip_log_sd(dr0: float) -> float:
+    """The interval's clip-to-clip term (sd of ln D/r0) at strength ``dr0`` from ``CLIP_LOG_SD``."""
+    return float(np.interp(dr0, GAIN_DR0, CLIP_LOG_SD))
 
 
 def log_normal_interval(estimate: float, log_sds, z: float = Z90) -> tuple[float, float]:
@@ -414,13 +416,13 @@ def estimate_from_sums(num, pairs, series, optics: Optics, footprints, bootstrap
         boot.append(_fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)[0])
     boot_dr0 = dr0_from_tilt_variance(np.array(boot, np.float64), *unit) if boot else np.array([dr0])
     tiles_sd = float(np.std(np.log(boot_dr0))) if dr0 > 0 and np.all(boot_dr0 > 0) else 0.0
-    scene_sd = scene_log_sd(dr0)
-    lo, hi = log_normal_interval(dr0, (tiles_sd, scene_sd))
+    clip_sd = clip_log_sd(dr0)
+    lo, hi = log_normal_interval(dr0, (tiles_sd, clip_sd))
     fi, vi, di, bi = best
     out = {
         "dr0": dr0,
         "dr0_ci": [float(lo), float(hi)],
-        "dr0_log_sd": {"tiles": tiles_sd, "scene": scene_sd},
+        "dr0_log_sd": {"tiles": tiles_sd, "clip": clip_sd},
         "tilt_var_px2": sig2,
         "fit": {
             "footprint_per_px": float(footprints[fi]),
@@ -448,5 +450,5 @@ __all__ = [
     "register_clip",
     "register_measurable",
     "registration_gain",
-    "scene_log_sd",
+    "clip_log_sd",
 ]
