@@ -1,9 +1,9 @@
 # The simulated clips of the measure validation (docs/measure.md), from a scratch folder holding cal/ and img/
 # (prep.py). `python3 gen.py` runs the clips still missing; several copies may run at once (each claims a clip by
 # creating clips/NAME.lock). `python3 gen.py --list` prints the plan.
-#   cal_X_i   calibration, default optics, bsds500 crops (cal/), i = 0…4: the registration gain and the interval's
+#   cal_X_i   calibration, default optics, bsds500 crops (cal/), i = 0…7: the registration gain and the interval's
 #             scene term (fitgain.py)
-#   calf_X_g  calibration, "field" geometry g of the bank (six of its 16, footprints 4–31 px), bsds500 crops
+#   calf_X_g  calibration, "field" geometry g of the bank (nine of its 16, footprints 4–31 px), bsds500 crops
 #   val_X_i   validation, default optics (i ≤ 8: the first round, images alternating by strength; i ≥ 9: the other
 #             scene type per strength, so that every strength has bsd100 and sunhays_outdoor crops)
 #   valf_X_i  validation, "field" geometry bank (geometry (i + 4·cell) mod 16), scene types alternating; i = 0…15
@@ -45,6 +45,14 @@ def plan():
     field = [(g, x) for g in (8, 0, 13, 2, 14, 5) for x in STRENGTHS]  # footprints 4.2, 8.5, 16.3, 30.8, 5.7, 18.2 px
     for kind, i, x in [("d", *c) for c in cal_default[:4]] + [("f", *c) for c in field[:12]] + \
             [("d", *c) for c in cal_default[4:]] + [("f", *c) for c in field[12:]]:  # fmt: skip
+        if kind == "d":
+            jobs.append((f"cal_{x}_{i}", next(cal_new), x, wind(i, x), 2000 + 10 * (i - 1) + int(x), []))
+        else:
+            jobs.append((f"calf_{x}_{i}", next(cal_new), x, wind(i, x), 3000 + 10 * i + int(x), field_args(i)))
+    # a second calibration batch (after the first validation: its clip-to-clip term rested on 8–11 clips per strength)
+    for kind, i, x in [("d", i, x) for i in range(5, 8) for x in STRENGTHS] + [
+        ("f", g, x) for g in (15, 7, 9) for x in STRENGTHS  # footprints 13.6, 7.3, 22.2 px
+    ]:
         if kind == "d":
             jobs.append((f"cal_{x}_{i}", next(cal_new), x, wind(i, x), 2000 + 10 * (i - 1) + int(x), []))
         else:

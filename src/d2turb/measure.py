@@ -47,7 +47,7 @@ MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
 # registration gain ε(r, D/r0, footprint): DIS-measured / true differential-tilt power at separation r px, from
 # simulated calibration clips (bsds500 crops, not the validation images; 256², 64 frames, wind 1–3 m/s, the default
-# optics and the 16 geometries of the "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
+# optics and nine geometries of the "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
 # least-squares model of ln ε in ln r, ln footprint and D/r0 tabulated here. Index [footprint][D/r0][separation];
 # linear in ln footprint, D/r0 and ln r between the nodes, clamped outside. The footprint is the tilt's correlation
 # scale D/(ifov·L) in px (38 px for the default optics).
@@ -55,10 +55,10 @@ GAIN_FOOTPRINT_PX = (4.0, 8.0, 16.0, 38.1)
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
 GAIN_SEPARATIONS_PX = (16, 32, 64)
 GAIN_TABLE = (
-    ((0.452, 0.572, 0.677), (0.453, 0.560, 0.648), (0.453, 0.549, 0.621), (0.454, 0.537, 0.595)),
-    ((0.564, 0.692, 0.795), (0.575, 0.691, 0.775), (0.587, 0.689, 0.756), (0.598, 0.687, 0.738)),
-    ((0.658, 0.784, 0.872), (0.683, 0.796, 0.867), (0.710, 0.809, 0.862), (0.738, 0.822, 0.856)),
-    ((0.726, 0.832, 0.892), (0.772, 0.865, 0.907), (0.821, 0.900, 0.923), (0.873, 0.936, 0.939)),
+    ((0.441, 0.560, 0.668), (0.452, 0.560, 0.650), (0.463, 0.559, 0.632), (0.475, 0.558, 0.614)),
+    ((0.548, 0.675, 0.780), (0.570, 0.684, 0.770), (0.593, 0.693, 0.760), (0.617, 0.703, 0.750)),
+    ((0.642, 0.767, 0.859), (0.679, 0.789, 0.861), (0.717, 0.812, 0.862), (0.757, 0.836, 0.864)),
+    ((0.723, 0.830, 0.894), (0.778, 0.870, 0.912), (0.838, 0.912, 0.932), (0.902, 0.956, 0.951)),
 )
 # the interval: ln D̂ ± z·sqrt(s_tiles² + s_clip²), s_tiles the sd of ln D̂ over the tile bootstrap and s_clip the
 # clip-to-clip scatter of ln(D̂/D) that the tiles do not see: the registration gain varies with the scene's texture,
@@ -66,7 +66,7 @@ GAIN_TABLE = (
 # the gain model refitted without each clip: per clip ln(D̂/D)² minus its bootstrap variance, least squares against
 # D/r0 (the scatter grows with the strength); per D/r0 of GAIN_DR0, linear between, clamped outside
 # (benchmarks/measure/fitgain.py)
-CLIP_LOG_SD = (0.024, 0.033, 0.040, 0.046)
+CLIP_LOG_SD = (0.024, 0.032, 0.038, 0.043)
 Z90 = 1.6448536269514722  # two-sided 90 %: Φ⁻¹(0.95)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
