@@ -51,7 +51,9 @@ def plan():
             jobs.append((f"calf_{x}_{i}", next(cal_new), x, wind(i, x), 3000 + 10 * i + int(x), field_args(i)))
     # a second calibration batch (after the first validation: its clip-to-clip term rested on 8–11 clips per strength)
     for kind, i, x in [("d", i, x) for i in range(5, 8) for x in STRENGTHS] + [
-        ("f", g, x) for g in (15, 7, 9) for x in STRENGTHS  # footprints 13.6, 7.3, 22.2 px
+        ("f", g, x)
+        for g in (15, 7, 9)
+        for x in STRENGTHS  # footprints 13.6, 7.3, 22.2 px
     ]:
         if kind == "d":
             jobs.append((f"cal_{x}_{i}", next(cal_new), x, wind(i, x), 2000 + 10 * (i - 1) + int(x), []))
