@@ -1,15 +1,25 @@
-# registration gain: DIS-measured / true differential-tilt power per separation, on the calibration clips (cal_*)
+# Calibration statistics of the clips matching a pattern (default "clips/cal*"): for each clip, the differential
+# structure sums (d2turb.measure.lag_sums) of the DIS flows and of the simulator's true flow (--save-flow) on the
+# same pairs, separations 8–64 px, saved to calib/NAME.npz with the clip's truth, optics and registration
+# diagnostics. fitgain.py turns them into the registration gain and the interval's scene term.
 import glob
 import json
+import os
+import sys
 
 import numpy as np
 
 from d2turb import measure as M
 from d2turb.io import list_images, read_image
 
-rows = []
-for d in sorted(glob.glob("clips/cal_*")):
-    if d.endswith(".err"):
+pattern = sys.argv[1] if len(sys.argv) > 1 else "clips/cal*"
+os.makedirs("calib", exist_ok=True)
+for d in sorted(glob.glob(pattern)):
+    name = os.path.basename(d)
+    out = f"calib/{name}.npz"
+    if d.endswith((".err", ".lock")) or not os.path.exists(f"{d}/meta.json") or os.path.exists(f"{d}.lock"):
+        continue  # not a clip, or still being simulated
+    if os.path.exists(out):
         continue
     meta = json.load(open(f"{d}/meta.json"))
     frames = [read_image(f) for f in list_images(f"{d}/turb")]
@@ -19,12 +29,17 @@ for d in sorted(glob.glob("clips/cal_*")):
     seps = [8, 16, 32, 64]
     nd, pd_, ser = M.lag_sums(flows, mask, seps)
     nt, pt, _ = M.lag_sums(true, mask, seps)
-    gain = {}
-    for r in seps:
-        js = [j for j, s in enumerate(ser) if s[0] == r]
-        gain[r] = float(
-            sum(nd[:, j, 1:].sum() / pd_[:, j].sum() for j in js) / sum(nt[:, j, 1:].sum() / pt[:, j].sum() for j in js)
-        )
-    rows.append({"clip": d, "dr0": meta["dr0"], "gain": gain, "valid": diag["valid_fraction"]})
-    print(json.dumps(rows[-1]), flush=True)
-json.dump(rows, open("gain.json", "w"), indent=1)
+    info = {
+        "clip": name,
+        "image": meta["input"],
+        "dr0": meta["dr0"],
+        "aperture_m": meta["aperture_m"],
+        "wavelength_m": meta["reference_wavelength_m"],
+        "ifov_rad": meta["ifov_rad"],
+        "path_length_m": meta["path_length_m"],
+        "fps": meta["fps"],
+        "wind_m_s": meta["wind_m_s"],
+        **diag,
+    }
+    np.savez(out, num_dis=nd, pairs_dis=pd_, num_true=nt, pairs_true=pt, series=np.array(ser), info=json.dumps(info))
+    print(json.dumps(info), flush=True)

@@ -12,10 +12,12 @@ its expectation under Kolmogorov theory with frozen flow and boiling is
 
 with G the path-integrated differential-tilt covariance of ``d2turb.sim.tilt.differential_tilt_covariance``
 (I0 ± I2 layer correlations, (1 − z/L)^(5/3) weights) and ε_j the registration's loss of differential-tilt power
-at separation j, measured on simulated clips (``GAIN_TABLE``). The wind (speed per frame, direction) and
-the boiling are nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is then a ratio of sums.
-The 90 % interval is a bootstrap over spatial tiles (the fit redone per resample) widened by the scatter of the
-registration calibration.
+at separation j, measured on simulated calibration clips as a function of the separation, the strength and the
+tilt's correlation scale D/(ifov·L) (``GAIN_TABLE``). The wind (speed per frame, direction) and the boiling are
+nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is then a ratio of sums. The 90 %
+interval is log-normal: the spread of a bootstrap over spatial tiles (the fit redone per resample) and the
+clip-to-clip scatter measured on the calibration clips (``CLIP_LOG_SD``: the registration gain's dependence on
+the scene, the turbulence at scales larger than a tile), in quadrature.
 """
 
 from __future__ import annotations
@@ -43,20 +45,29 @@ HOMOGENEITY_MAX = 1.6
 RESIDUAL_REFUSE = 15.0  # median registration residual (grey levels) above which the frames are not one static scene
 MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
-# registration gain ε(r, D/r0): DIS-measured / true differential-tilt power at separation r px, measured on four
-# simulated calibration clips (bsds500 crops, not the validation images; 256², 64 frames, default optics, wind
-# 1.4–3 m/s; docs/measure.md). Rows: D/r0 of the clip; columns: separations. Linear in D/r0 between rows, in log r
-# between columns, clamped outside. REGISTRATION_LOG_SD: the uncertainty of ln ε added to the interval (twice the
-# 0.021 rms residual of a log-linear fit of the table, given only four clips).
+# registration gain ε(r, D/r0, footprint): DIS-measured / true differential-tilt power at separation r px, from
+# simulated calibration clips (bsds500 crops, not the validation images; 256², 64 frames, wind 1–3 m/s, the default
+# optics and nine geometries of the "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
+# least-squares model of ln ε in ln r, ln footprint and D/r0 tabulated here. Index [footprint][D/r0][separation];
+# linear in ln footprint, D/r0 and ln r between the nodes, clamped outside. The footprint is the tilt's correlation
+# scale D/(ifov·L) in px (38 px for the default optics).
+GAIN_FOOTPRINT_PX = (4.0, 8.0, 16.0, 38.1)
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
-GAIN_SEPARATIONS_PX = (8, 16, 32, 64)
+GAIN_SEPARATIONS_PX = (16, 32, 64)
 GAIN_TABLE = (
-    (0.571, 0.720, 0.833, 0.902),
-    (0.582, 0.711, 0.826, 0.894),
-    (0.694, 0.799, 0.872, 0.911),
-    (0.849, 0.860, 0.914, 0.933),
+    ((0.441, 0.560, 0.668), (0.452, 0.560, 0.650), (0.463, 0.559, 0.632), (0.475, 0.558, 0.614)),
+    ((0.548, 0.675, 0.780), (0.570, 0.684, 0.770), (0.593, 0.693, 0.760), (0.617, 0.703, 0.750)),
+    ((0.642, 0.767, 0.859), (0.679, 0.789, 0.861), (0.717, 0.812, 0.862), (0.757, 0.836, 0.864)),
+    ((0.723, 0.830, 0.894), (0.778, 0.870, 0.912), (0.838, 0.912, 0.932), (0.902, 0.956, 0.951)),
 )
-REGISTRATION_LOG_SD = 0.04
+# the interval: ln D̂ ± z·sqrt(s_tiles² + s_clip²), s_tiles the sd of ln D̂ over the tile bootstrap and s_clip the
+# clip-to-clip scatter of ln(D̂/D) that the tiles do not see: the registration gain varies with the scene's texture,
+# and the tiles of one clip share its turbulence at scales larger than a tile. s_clip from the calibration clips,
+# the gain model refitted without each clip: per clip ln(D̂/D)² minus its bootstrap variance, least squares against
+# D/r0 (the scatter grows with the strength); per D/r0 of GAIN_DR0, linear between, clamped outside
+# (benchmarks/measure/fitgain.py)
+CLIP_LOG_SD = (0.024, 0.032, 0.038, 0.043)
+Z90 = 1.6448536269514722  # two-sided 90 %: Φ⁻¹(0.95)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
 BOIL_GRID = (0.0, 0.03, 0.1, 0.3)
@@ -194,6 +205,33 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
     return flows, mask, diag
 
 
+def register_measurable(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray, np.ndarray, dict]:
+    """:func:`register_clip` with the refusals of :func:`measure_clip` (frames that are not one static scene, too
+    little usable area) as one-line ``D2TurbError``."""
+    flows, mask, diag = register_clip(gray, preset)
+    if diag["median_residual_grey"] > RESIDUAL_REFUSE:
+        raise D2TurbError(
+            f"cannot measure this clip: the frames do not register onto one static scene (median residual "
+            f"{diag['median_residual_grey']:.1f} grey levels, limit {RESIDUAL_REFUSE:g}): a moving camera or scene, a "
+            "cut, or frames of different scenes"
+        )
+    if diag["valid_fraction"] < MIN_VALID_FRACTION:
+        raise D2TurbError(
+            f"cannot measure this clip: only {100 * diag['valid_fraction']:.1f} % of the analysed area has the texture "
+            f"and registration quality needed (need {100 * MIN_VALID_FRACTION:.0f} %; textured "
+            f"{100 * diag['textured_fraction']:.0f} %, median registration residual {diag['median_residual_grey']:.1f} "
+            "grey levels)"
+        )
+    return flows, mask, diag
+
+
+def footprint_grid(optics: Optics) -> list[float]:
+    """ifov·L/D: the one value of the optics with a path length, else the grid the fit chooses from."""
+    if optics.path_length_m is not None:
+        return [optics.ifov_rad * optics.path_length_m / optics.aperture_m]
+    return list(FOOTPRINT_GRID)
+
+
 def separations_for(h: int, w: int) -> list[int]:
     usable = min(h, w) - 2 * MARGIN_PX
     return [r for r in SEPARATIONS_PX if r <= usable // 3]
@@ -235,11 +273,31 @@ def lag_sums(flows: np.ndarray, mask: np.ndarray, seps, tiles: int = 4, stride: 
     return np.stack(nums, 1), np.stack(counts, 1), series
 
 
-def registration_gain(sep_px, dr0: float) -> np.ndarray:
-    """ε for separations ``sep_px`` at strength ``dr0`` from ``GAIN_TABLE``."""
-    table = np.asarray(GAIN_TABLE)
-    at_dr0 = np.array([np.interp(dr0, GAIN_DR0, table[:, k]) for k in range(table.shape[1])])
+def registration_gain(sep_px, dr0: float, footprint_px: float = 38.1) -> np.ndarray:
+    """ε for separations ``sep_px`` at strength ``dr0`` and tilt correlation scale ``footprint_px`` = D/(ifov·L)
+    from ``GAIN_TABLE`` (linear in ln footprint, D/r0 and ln r; clamped outside the table)."""
+    table = np.asarray(GAIN_TABLE)  # (F, X, R)
+    lf = np.clip(math.log(footprint_px), math.log(GAIN_FOOTPRINT_PX[0]), math.log(GAIN_FOOTPRINT_PX[-1]))
+    at_f = np.array(
+        [
+            [np.interp(lf, np.log(GAIN_FOOTPRINT_PX), table[:, i, k]) for k in range(table.shape[2])]
+            for i in range(table.shape[1])
+        ]
+    )  # (X, R)
+    at_dr0 = np.array([np.interp(dr0, GAIN_DR0, at_f[:, k]) for k in range(at_f.shape[1])])
     return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
+
+
+def clip_log_sd(dr0: float) -> float:
+    """The interval's clip-to-clip term (sd of ln D/r0) at strength ``dr0`` from ``CLIP_LOG_SD``."""
+    return float(np.interp(dr0, GAIN_DR0, CLIP_LOG_SD))
+
+
+def log_normal_interval(estimate: float, log_sds, z: float = Z90) -> tuple[float, float]:
+    """``estimate``·exp(∓z·s) with s the quadrature sum of the independent log-sds ``log_sds`` (a 90 % interval
+    with the default z when ln of the estimate is normal about ln of the truth)."""
+    s = math.sqrt(sum(float(v) ** 2 for v in log_sds))
+    return estimate * math.exp(-z * s), estimate * math.exp(z * s)
 
 
 # ---- the fit ----------------------------------------------------------------------------------------------------
@@ -261,13 +319,14 @@ def _models(series, t_len: int, footprints, geometry="path"):
 
 
 def _fit(num, pairs, t_len, models, gains):
-    """(σ², index of the best nuisance point) from summed num (J, T) and pairs (J,)."""
+    """(σ², index of the best nuisance point) from summed num (J, T) and pairs (J,); ``gains`` (F, J): the
+    registration gain per footprint of the grid and series."""
     lags = np.arange(t_len)
     w = pairs[:, None] * (t_len - lags)[None]  # pair-lags per (j, τ)
     w[:, 0] = 0
     with np.errstate(invalid="ignore", divide="ignore"):
         data = np.where(w > 0, num / np.maximum(w, 1), 0.0)  # D̂_j(τ)
-    m = models * gains[:, None]
+    m = models * np.asarray(gains, np.float64)[:, None, None, None, :, None]
     sig2 = (w * data).sum((-1, -2)) / np.maximum((w * m).sum((-1, -2)), 1e-300)  # ratio of sums per grid point
     fit = sig2[..., None, None] * m
     resid = (w * (data - fit) ** 2 / np.maximum(fit, 1e-12) ** 2).sum((-1, -2))
@@ -299,27 +358,10 @@ def measure_clip(
     if window is not None and (int(window) < MIN_FRAMES or int(window) > len(gray)):
         raise D2TurbError(f"window must be between {MIN_FRAMES} and the {len(gray)} frames of the clip, got {window}")
     gray, crop = _crop(gray, max_size)
-    flows, mask, diag = register_clip(gray, preset)
-    if diag["median_residual_grey"] > RESIDUAL_REFUSE:
-        raise D2TurbError(
-            f"cannot measure this clip: the frames do not register onto one static scene (median residual "
-            f"{diag['median_residual_grey']:.1f} grey levels, limit {RESIDUAL_REFUSE:g}): a moving camera or scene, a "
-            "cut, or frames of different scenes"
-        )
-    if diag["valid_fraction"] < MIN_VALID_FRACTION:
-        raise D2TurbError(
-            f"cannot measure this clip: only {100 * diag['valid_fraction']:.1f} % of the analysed area has the texture "
-            f"and registration quality needed (need {100 * MIN_VALID_FRACTION:.0f} %; textured "
-            f"{100 * diag['textured_fraction']:.0f} %, median registration residual {diag['median_residual_grey']:.1f} "
-            "grey levels)"
-        )
+    flows, mask, diag = register_measurable(gray, preset)
     h, w = mask.shape
     seps = separations_for(h, w)
-    footprints = (
-        [optics.ifov_rad * optics.path_length_m / optics.aperture_m]
-        if optics.path_length_m is not None
-        else list(FOOTPRINT_GRID)
-    )
+    footprints = footprint_grid(optics)
     models: dict = {}  # unit models per window length, shared by the windows
     result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed, models)
     result.update(diag)
@@ -346,15 +388,22 @@ def measure_clip(
 
 
 def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, seed: int, cache: dict) -> dict:
-    t_len = flows.shape[0]
-    num, pairs, series = lag_sums(flows, mask, seps)
+    return estimate_from_sums(*lag_sums(flows, mask, seps), optics, footprints, bootstrap, seed, cache)
+
+
+def estimate_from_sums(num, pairs, series, optics: Optics, footprints, bootstrap=200, seed=0, cache=None) -> dict:
+    """The fit and the interval from the structure sums of :func:`lag_sums` (what :func:`measure_clip` does after
+    the registration); ``footprints``: the grid of ifov·L/D (one value when the path length is known)."""
+    cache = {} if cache is None else cache
+    t_len = num.shape[-1]
     if t_len not in cache:
         cache[t_len] = _models(series, t_len, footprints)
     models = cache[t_len]
     unit = (optics.aperture_m, optics.wavelength_m, optics.ifov_rad)
+    seps = [r for r, _, _ in series]
     dr0 = 2.5
     for _ in range(3):  # the gain depends on the strength: a fixed point (converges in 2–3 steps, ε varies slowly)
-        gains = registration_gain([r for r, _, _ in series], dr0)
+        gains = np.stack([registration_gain(seps, dr0, 1.0 / a) for a in footprints])  # (F, J)
         sig2, best = _fit(num.sum(0), pairs.sum(0), t_len, models, gains)
         dr0 = float(dr0_from_tilt_variance(sig2, *unit))
     rng = np.random.default_rng(seed)
@@ -362,13 +411,16 @@ def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, see
     boot = []
     for _ in range(bootstrap):
         pick = rng.integers(0, n_tiles, n_tiles)
-        s2, _ = _fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)
-        boot.append(s2 * math.exp(rng.normal(0.0, REGISTRATION_LOG_SD)))
-    lo, hi = np.quantile(dr0_from_tilt_variance(np.array(boot), *unit), [0.05, 0.95]) if boot else (dr0, dr0)
+        boot.append(_fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)[0])
+    boot_dr0 = dr0_from_tilt_variance(np.array(boot, np.float64), *unit) if boot else np.array([dr0])
+    tiles_sd = float(np.std(np.log(boot_dr0))) if dr0 > 0 and np.all(boot_dr0 > 0) else 0.0
+    clip_sd = clip_log_sd(dr0)
+    lo, hi = log_normal_interval(dr0, (tiles_sd, clip_sd))
     fi, vi, di, bi = best
     out = {
         "dr0": dr0,
-        "dr0_ci": [float(min(lo, dr0)), float(max(hi, dr0))],
+        "dr0_ci": [float(lo), float(hi)],
+        "dr0_log_sd": {"tiles": tiles_sd, "clip": clip_sd},
         "tilt_var_px2": sig2,
         "fit": {
             "footprint_per_px": float(footprints[fi]),
@@ -385,4 +437,16 @@ def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, see
     return out
 
 
-__all__ = ["Optics", "as_optics", "measure_clip", "r0_cn2_theta0", "register_clip", "lag_sums"]
+__all__ = [
+    "Optics",
+    "as_optics",
+    "estimate_from_sums",
+    "lag_sums",
+    "log_normal_interval",
+    "measure_clip",
+    "r0_cn2_theta0",
+    "register_clip",
+    "register_measurable",
+    "registration_gain",
+    "clip_log_sd",
+]
