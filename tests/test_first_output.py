@@ -65,11 +65,11 @@ def test_make_dataset_says_what_the_first_chunk_waits_for_and_counts_chunks(tmp_
 
 def test_simulate_video_says_what_it_does_before_the_first_frame(tmp_path, monkeypatch, capsys):
     """The line naming the frames, size, D/r0 and depth comes before the first frame file is written."""
-    import d2turb.io
+    import d2turb.data.simulate as job  # the simulate-video job writes the frames (the command parses, then calls it)
 
     image = tmp_path / "photo.png"
     Image.fromarray(np.random.default_rng(1).integers(0, 256, (24, 32, 3), dtype=np.uint8)).save(image)
-    write_image = d2turb.io.write_image
+    write_image = job.write_image
     seen = []
 
     def marked(path, *args, **kwargs):
@@ -78,7 +78,7 @@ def test_simulate_video_says_what_it_does_before_the_first_frame(tmp_path, monke
             print("<first frame written>", file=sys.stderr)
         return write_image(path, *args, **kwargs)
 
-    monkeypatch.setattr(d2turb.io, "write_image", marked)
+    monkeypatch.setattr(job, "write_image", marked)
     argv = ["simulate-video", str(image), "--out", str(tmp_path / "out"), "--frames", "2", "--no-mp4"]
     assert main([*argv, "--device", "cpu"]) == 0
     err = capsys.readouterr().err
