@@ -6,6 +6,7 @@ import os
 import sys
 
 from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError, print_error, summary
 
 
@@ -30,9 +31,7 @@ def register(sub):
     p.add_argument(
         "--preset", default="fast", choices=["fast", "medium", "fine"], help="with --clips: registration (default fast)"
     )
-    p.add_argument(
-        "--fusion", default="mean", choices=["mean", "robust", "fba"], help="with --clips: fusion (default mean)"
-    )
+    p.add_argument("--fusion", default=DEFAULT_FUSION, choices=CLIP_FUSIONS, help="with --clips: fusion (default mean)")
     p.add_argument(
         "--deblur",
         nargs="+",

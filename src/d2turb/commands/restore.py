@@ -10,6 +10,7 @@ from d2turb.commands.common import (
     add_png_level_arg,
     parse_params,
 )
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 
 
@@ -60,8 +61,8 @@ def register(sub):
     )
     clip.add_argument(
         "--fusion",
-        default="mean",
-        choices=["mean", "robust", "fba"],
+        default=DEFAULT_FUSION,
+        choices=CLIP_FUSIONS,
         help="fusion of the registered frames: mean (default), robust, fba (Fourier burst accumulation: sharper)",
     )
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")

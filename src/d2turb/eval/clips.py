@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from d2turb.data.sequence import SequenceDataset
+from d2turb.defaults import DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.io import write_json, write_text
@@ -72,7 +73,7 @@ def evaluate_clips(
     deblur: list[str] = ("physics",),
     temporal: int = 32,
     preset: str = "fast",
-    fusion: str = "mean",
+    fusion: str = DEFAULT_FUSION,
     passes: int = 2,
     stride: int = 4,
     max_samples: int | None = None,

@@ -27,13 +27,14 @@ import cv2
 import numpy as np
 import torch
 
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
 from d2turb.restore.fusion import fourier_burst_accumulation
 from d2turb.sim.otf import image_otf
 from d2turb.sim.params import MAX_DR0
 
-FUSIONS = ("mean", "robust", "fba")
+FUSIONS = CLIP_FUSIONS
 DEFAULT_TEMPORAL = 24
 # Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
 # fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
@@ -195,7 +196,7 @@ class ClipRestorer:
         self,
         temporal: int = DEFAULT_TEMPORAL,
         passes: int = 2,
-        fusion: str = "mean",
+        fusion: str = DEFAULT_FUSION,
         deblur="none",
         preset: str = "fast",
         stabilise: bool = True,

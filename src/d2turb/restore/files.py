@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 from tqdm import tqdm
 
-from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_PNG_LEVEL
+from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
@@ -222,7 +222,7 @@ def restore_clip_files(
     params: dict | None = None,
     passes: int = 2,
     preset: str = "fast",
-    fusion: str = "mean",
+    fusion: str = DEFAULT_FUSION,
     fps: float | None = None,
     tile: int = 512,
     overlap: int = 64,
