@@ -336,5 +336,7 @@ class Trainer:
         }
 
     def close(self) -> None:
-        """Leave the process group (after every rank got here)."""
+        """Leave the process group (after every rank got here); the DDP wrapper, whose reducer holds the group,
+        goes first."""
+        self.ddp = self.model
         shutdown(self.world)
