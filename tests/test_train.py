@@ -140,6 +140,32 @@ def test_psnr_native_loss_is_minus_psnr():
     assert loss(out, batch)[0].item() == pytest.approx(-psnr(out["deblurred"], batch["tilt"]).mean().item(), rel=1e-5)
 
 
+def test_spectral_amplitude_loss_numpy_and_shift_invariance():
+    from d2turb.train.losses import spectral_amplitude_loss
+
+    out, batch = fake_batch(b=2)
+    pred, gt = out["restored"], batch["gt"]
+    amp = lambda t: np.abs(np.fft.rfft2(t.double().numpy(), norm="ortho"))  # noqa: E731  numpy's FFT as the oracle
+    expected = np.abs(amp(pred) - amp(gt)).mean()
+    assert spectral_amplitude_loss(pred, gt).item() == pytest.approx(expected, rel=1e-5)
+    # Fourier shift theorem: a circular shift changes the phase only, so the amplitude loss ignores it ...
+    shifted = torch.roll(gt, shifts=(3, -5), dims=(2, 3))
+    assert spectral_amplitude_loss(shifted, gt).item() == pytest.approx(0.0, abs=1e-6)
+    assert np.abs(shifted.numpy() - gt.numpy()).mean() > 0.05  # ... which the pixel loss does not
+    # a blur lowers the amplitudes and costs; the term enters the total with its weight
+    blurred = (gt + torch.roll(gt, 1, 3) + torch.roll(gt, -1, 3)) / 3
+    assert spectral_amplitude_loss(blurred, gt).item() > 0.01
+    out["bwd_flow_px"] = None
+    plain, _ = MultiStageLoss()(out, batch)
+    total, terms = MultiStageLoss(spectral=7.0)(out, batch)
+    assert terms["spectral"] == pytest.approx(expected, rel=1e-5)
+    assert total.item() == pytest.approx(plain.item() + 7.0 * expected, rel=1e-5)
+    good = {"model": {"name": "nafnet"}, "data": {"pack": "p"}, "train": {"iterations": 3}}
+    assert load_config(base=good, overrides=["loss.spectral=20"]).loss.spectral == 20.0
+    with pytest.raises(D2TurbError, match="loss.spectral"):
+        load_config(base=good, overrides=["loss.spectral=-1"])
+
+
 def test_native_loss_registry():
     from d2turb.models import create_model
 

@@ -82,6 +82,7 @@ class LossConfig:
     photo: float = 1.0  # λ_photo (Eq. 13)
     vgg: float = 0.02  # λ_vgg (Eq. 13)
     vgg_weights: str | None = None  # local torchvision vgg16 weights; null → perceptual term disabled (one warning)
+    spectral: float = 0.0  # λ_spec: L1 of the Fourier amplitudes against I_gt (beyond the paper; losses.py)
 
 
 @dataclass
@@ -131,7 +132,7 @@ class Config:
             model=merged["model"],
             data=_data_config(merged["data"]),
             train=TrainConfig(**_numbers(merged["train"], ("lr", "lr_min", "grad_clip", "weight_decay"))),
-            loss=LossConfig(**_numbers(merged["loss"], ("deblur", "flow", "photo", "vgg"))),
+            loss=LossConfig(**_numbers(merged["loss"], ("deblur", "flow", "photo", "vgg", "spectral"))),
             val=ValConfig(**merged["val"]),
             log=LogConfig(**merged["log"]),
             checkpoint=CheckpointConfig(**merged["checkpoint"]),
@@ -325,7 +326,7 @@ def validate(cfg: Config) -> None:
         raise D2TurbError(f"config: train.max_minutes must be a positive number or null, got {train.max_minutes!r}")
     if train.init_from is not None and not isinstance(train.init_from, str):
         raise D2TurbError(f"config: train.init_from must be a weights name or file, got {train.init_from!r}")
-    for key in ("deblur", "flow", "photo", "vgg"):
+    for key in ("deblur", "flow", "photo", "vgg", "spectral"):
         if not _number_at_least(getattr(loss, key)):
             raise D2TurbError(f"config: loss.{key} must be a non-negative number, got {getattr(loss, key)!r}")
     if val.pairs is not None and val.pack is not None:

@@ -7,6 +7,10 @@
   ImageNet-normalised input, the squared norm taken as the mean squared difference per layer, summed over layers.
 * Plain backbones (flow None, Table 1 baselines): λ_photo·L1(restored, I_gt) (+ λ_vgg·VGG term); with an explicit
   ``loss.native`` (e.g. ``psnr``), λ_photo·that loss against I_gt instead of L1 (``plain=`` of MultiStageLoss).
+* Optional, beyond the paper: λ_spec·‖|F(Î_clean)| − |F(I_gt)|‖₁ (``loss.spectral``), the L1 distance of the 2-D
+  Fourier amplitudes (orthonormal FFT, per channel). A shift changes only the phase of a spectrum, so this term
+  asks for the clean image's sharpness while hardly caring where the unknown tilt put each edge; the PSNR or L1
+  term alone aims at the conditional mean, which the tilt blurs (MODEL_CARD.md).
 * A method's own extra terms (e.g. TurbNet's re-degradation), already weighted: ``model.extra_loss(out, batch)`` or,
   failing that, its backbone's (see :func:`extra_loss_of`).
 All norms are means over elements, so a batch split across processes averages to the full-batch loss.
@@ -35,6 +39,14 @@ def psnr_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-8) -> to
     """NAFNet's PSNR loss: mean over images of 10·log10(MSE + eps), i.e. −PSNR in dB for data range 1."""
     mse = (pred - target).pow(2).flatten(1).mean(1)
     return (10.0 / math.log(10.0)) * torch.log(mse + eps).mean()
+
+
+def spectral_amplitude_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean |(|F pred| − |F target|)| over channels and frequencies; F = orthonormal 2-D real FFT (Parseval: the
+    same scale as a per-pixel difference). Shape: (B, C, H, W) each."""
+    amp_pred = torch.fft.rfft2(pred.float(), norm="ortho").abs()
+    amp_target = torch.fft.rfft2(target.float(), norm="ortho").abs()
+    return (amp_pred - amp_target).abs().mean()
 
 
 NATIVE_LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {"l1": l1_loss, "psnr": psnr_loss}
@@ -89,6 +101,7 @@ class MultiStageLoss(nn.Module):
         native: str = "l1",
         extra: Callable[[dict, dict], dict] | None = None,
         plain: str = "l1",
+        spectral: float = 0.0,
     ):
         super().__init__()
         for name in (native, plain):
@@ -97,6 +110,7 @@ class MultiStageLoss(nn.Module):
         self.plain = plain  # the photometric loss of a plain backbone (flow None) against I_gt
         self.w_deblur, self.w_flow, self.w_photo = float(deblur), float(flow), float(photo)
         self.w_vgg = float(vgg) if perceptual is not None else 0.0
+        self.w_spectral = float(spectral)
         self.perceptual, self.native, self.extra = perceptual, native, extra
 
     def forward(self, out: dict, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
@@ -108,6 +122,9 @@ class MultiStageLoss(nn.Module):
         if self.w_vgg > 0:
             terms["vgg"] = self.perceptual(restored, gt)  # Eq. 13, second term
             total = total + self.w_vgg * terms["vgg"]
+        if self.w_spectral > 0:
+            terms["spectral"] = spectral_amplitude_loss(restored, gt)
+            total = total + self.w_spectral * terms["spectral"]
         if two_stage:  # two-stage model; plain baselines train on the clean target only
             terms["deblur"] = NATIVE_LOSSES[self.native](out["deblurred"].float(), batch["tilt"])  # Eq. 11
             terms["flow"] = l1_loss(out["bwd_flow_px"].float(), batch["bwd_flow_px"])  # Eq. 12
@@ -144,4 +161,5 @@ def build_loss(loss_cfg: dict, model: nn.Module, device="cpu", warn: bool = True
         native=native_loss_name(model, loss_cfg.get("native")),
         extra=extra_loss_of(model),
         plain=native_loss_name(model, loss_cfg["native"]) if loss_cfg.get("native") else "l1",
+        spectral=loss_cfg.get("spectral", 0.0),
     )
