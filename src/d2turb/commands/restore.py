@@ -45,8 +45,8 @@ def register(sub):
         default="auto",
         metavar="none|physics|MODEL",
         help="after fusion: none, physics (Wiener with the turbulence OTF at --dr0, or at the D/r0 measured on the "
-        "clip's first 64 frames) or a weights name/path; default auto: physics, or none when D/r0 can be neither "
-        "given nor measured",
+        "clip's first 64 frames) or a weights name/path; default auto: physics, at the D/r0 given or measured, or "
+        "else roughly estimated from the clip's registered displacement (with a note)",
     )
     clip.add_argument(
         "--dr0", type=float, default=None, metavar="X", help="D/r0 of the path for --deblur physics (default: measured)"

@@ -31,8 +31,9 @@ from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
 from d2turb.restore.fusion import fourier_burst_accumulation
-from d2turb.sim.otf import image_otf
+from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
+from d2turb.sim.tilt import dr0_from_tilt_variance
 
 FUSIONS = CLIP_FUSIONS
 DEFAULT_TEMPORAL = 24
@@ -124,12 +125,16 @@ class PhysicsDeblur:
     """Wiener deconvolution with the short-exposure (tilt-removed) turbulence OTF at ``dr0`` (docs/physics.md §4).
 
     With depth modulation M (paper Eq. 4: blurred = M·(I ⊛ PSF) + (1 − M)·I), the effective OTF is
-    M·T·H + (1 − M); ``modulation`` is the image's mean M (1: the whole path at ``dr0``).
+    M·T·H + (1 − M); ``modulation`` is the image's mean M (1: the whole path at ``dr0``). A fused frame is also
+    blurred by what the registration left: each frame of the window is off by a random residual shift, so their mean
+    is the frame convolved with the shifts' distribution, a Gaussian of ``jitter_px`` (σ per axis, px), whose OTF
+    exp(−2π²σ²|f|²) multiplies the short-exposure one.
 
     Args:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
         balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
         modulation: mean depth modulation M in (0, 1].
+        jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
     """
 
     def __init__(
@@ -139,6 +144,7 @@ class PhysicsDeblur:
         balance: float | None = None,
         modulation: float = 1.0,
         alpha: float = 1.0,
+        jitter_px: float = 0.0,
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
             raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
@@ -149,15 +155,20 @@ class PhysicsDeblur:
             raise D2TurbError(f"λ/(D·ifov) = {lambda_over_d_px:.3g} px is outside [0.05, 50] (check the optics)")
         if not 0 < modulation <= 1:
             raise D2TurbError(f"modulation must be in (0, 1], got {modulation!r}")
+        if not math.isfinite(jitter_px) or not 0 <= jitter_px <= 20:
+            raise D2TurbError(f"the residual registration jitter must be in [0, 20] px, got {jitter_px!r}")
         self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
-        self.modulation, self.alpha = float(modulation), float(alpha)
+        self.modulation, self.alpha, self.jitter_px = float(modulation), float(alpha), float(jitter_px)
         self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
 
     def otf(self, height: int, width: int) -> torch.Tensor:
         """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding`` (float64)."""
         top, bottom, left, right = wiener_padding(height, width)
         shape = (height + top + bottom, width + left + right)
-        return self.modulation * image_otf(*shape, self.dr0, self.lambda_over_d_px, self.alpha) + (1 - self.modulation)
+        otf = self.modulation * image_otf(*shape, self.dr0, self.lambda_over_d_px, self.alpha) + (1 - self.modulation)
+        if self.jitter_px > 0:
+            otf = otf * torch.exp(-2 * math.pi**2 * self.jitter_px**2 * pixel_frequency_grid(*shape) ** 2)
+        return otf
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
         """Shape: (C, H, W) → (C, H, W), float32 in [0, 1]."""
@@ -380,9 +391,47 @@ class ClipRestorer:
         return cv2.dilate(share, np.ones((_FALLBACK_BOX, _FALLBACK_BOX), np.uint8)) if share.any() else share
 
 
+# Share of the tilt variance (Z-tilt per axis, docs/physics.md §2) that the registered flows of a window of
+# REGISTRATION_WINDOW frames carry (each frame's mean shift removed): the registration sees only the part that
+# changes within the window, and DIS smooths it. Median over the 24 validation clips (docs/clips.md).
+OBSERVED_TILT_SHARE = 0.13
+REGISTRATION_WINDOW = 32
+
+
+def registration_tilt_variance(frames: Iterable, temporal: int = REGISTRATION_WINDOW, preset: str = "fast") -> float:
+    """Per-axis variance (px²) of the backward flows that register each frame of ``frames`` onto its window's
+    fusion (:class:`ClipRestorer`, no deblur), each frame's mean shift (camera shake) removed, averaged over the
+    frames."""
+    total, count = 0.0, 0
+    for out in ClipRestorer(temporal=temporal, preset=preset, fallback=False).restore(frames):
+        f = out.bwd_flow_px.double()
+        total += float(((f - f.mean((1, 2), keepdim=True)) ** 2).mean()) / 2
+        count += 1
+    return total / max(count, 1)
+
+
+def registration_dr0(frames: Iterable, lambda_over_d_px: float = 2.0, preset: str = "fast") -> float:
+    """D/r0 from the clip's own registration, for a clip that ``d2turb measure`` cannot measure: the tilt variance
+    is the registered flows' variance over ``OBSERVED_TILT_SHARE`` (calibrated on the simulated validation clips at a
+    window of ``REGISTRATION_WINDOW`` frames; a rough estimate: 0.10–0.15 there, unknown on real footage), inverted by
+    the Z-tilt law σ² = 0.1816 (λ/D)² (D/r0)^(5/3) with λ/D in pixels. Clipped to [0.05, MAX_DR0]."""
+    var = registration_tilt_variance(frames, REGISTRATION_WINDOW, preset) / OBSERVED_TILT_SHARE
+    dr0 = float(dr0_from_tilt_variance(var, 1.0, lambda_over_d_px, 1.0))  # only λ/(D·ifov) matters
+    return min(max(dr0, 0.05), MAX_DR0)
+
+
 def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:
     """``ClipRestorer(**kwargs).restore(frames)``: see :class:`ClipRestorer`."""
     return ClipRestorer(**kwargs).restore(frames)
 
 
-__all__ = ["ClipRestorer", "ClipFrame", "PhysicsDeblur", "restore_clip", "window_start", "wiener_deconvolve"]
+__all__ = [
+    "ClipRestorer",
+    "ClipFrame",
+    "PhysicsDeblur",
+    "registration_dr0",
+    "registration_tilt_variance",
+    "restore_clip",
+    "window_start",
+    "wiener_deconvolve",
+]

@@ -28,7 +28,7 @@ from d2turb.io import (
 )
 from d2turb.measure import measure_clip
 from d2turb.ops.splat import backward_flow
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, registration_dr0
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams
 from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps
@@ -179,13 +179,29 @@ def _measured_dr0(src: Path, params: dict) -> float:
     return float(measure_clip(head, optics, bootstrap=50)["dr0"])
 
 
+def _registration_dr0(src: Path, params: dict) -> float:
+    """D/r0 from the registered displacement of the clip's first MEASURE_FRAMES frames (restore.clip.registration_dr0),
+    for a clip that d2turb.measure refuses; D2TurbError if it cannot be registered either."""
+    quiet = SimpleNamespace(record=lambda exc: None)
+    _, frames = clip_frames(src, quiet)
+    head = list(itertools.islice(frames, MEASURE_FRAMES))
+    if len(head) < 2:
+        raise D2TurbError(f"a clip needs at least 2 frames, got {len(head)}")
+    try:
+        p = TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"})
+    except TypeError as exc:
+        raise D2TurbError(f"--param: {exc}") from exc
+    return registration_dr0(head, p.reference_wavelength / (p.aperture_m * p.ifov_rad))
+
+
 def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64):
     """The deblur step of a clip: (None, a PhysicsDeblur or a model's restore; its description).
 
     Args:
         choice: ``none``, ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 measured on the
-            clip's first MEASURE_FRAMES frames), ``auto`` (physics, or none when D/r0 can be neither given nor
-            measured) or a weights name/path.
+            clip's first MEASURE_FRAMES frames), ``auto`` (physics; when D/r0 is neither given nor measurable, at
+            the rough D/r0 of :func:`~d2turb.restore.clip.registration_dr0`, or none if the clip cannot be
+            registered either) or a weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
     """
     if choice == "none":
@@ -199,8 +215,16 @@ def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", 
             except D2TurbError as exc:
                 if choice == "physics":
                     raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
-                print(f"note: no deblurring: {exc}", file=sys.stderr)
-                return None, "none (D/r0 could not be measured)"
+                try:
+                    dr0, source = _registration_dr0(src, params), "estimated from the registration"
+                except D2TurbError as exc2:
+                    print(f"note: no deblurring: {exc}; {exc2}", file=sys.stderr)
+                    return None, "none (D/r0 could not be measured)"
+                print(
+                    f"note: {exc}; deblurring at D/r0 {dr0:.3g} estimated from the clip's registered displacement "
+                    "(a rough estimate, docs/clips.md; give --dr0 to override)",
+                    file=sys.stderr,
+                )
         try:
             p = TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, dr0=min(dr0, 10.0))
         except TypeError as exc:
