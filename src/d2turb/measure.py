@@ -300,7 +300,8 @@ def clip_log_sd(dr0: float) -> float:
 
 def log_normal_interval(estimate: float, log_sds, z: float = Z90) -> tuple[float, float]:
     """``estimate``·exp(∓z·s) with s the quadrature sum of the independent log-sds ``log_sds`` (a 90 % interval
-    with the default z when ln of the estimate is normal about ln of the truth)."""
+    with the default z, the t quantile of the calibrated clip term, when ln of the estimate is normal about ln of
+    the truth)."""
     s = math.sqrt(sum(float(v) ** 2 for v in log_sds))
     return estimate * math.exp(-z * s), estimate * math.exp(z * s)
 
