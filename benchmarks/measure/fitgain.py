@@ -10,6 +10,7 @@ import json
 import sys
 
 import numpy as np
+from scipy import stats
 
 from d2turb import measure as M
 from d2turb.sim.tilt import dr0_from_tilt_variance
@@ -134,4 +135,6 @@ x = np.array([r[0]["dr0"] for r in rows])
 coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), e**2 - s**2, rcond=None)
 print("CLIP_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0))), 3) for v in DR0), "(at GAIN_DR0)")
 print(f"  variance = {coef[0]:.5f} + {coef[1]:.5f}·D/r0")
+dof = len(rows) - 2  # two coefficients fitted on the clips: the interval's quantile is Student-t (Z90, CLIP_DOF)
+print(f"CLIP_DOF = {dof}, Z90 = t_0.95({dof}) = {stats.t.ppf(0.95, dof)!r}")
 json.dump(loo, open("loo.json", "w"), indent=0)  # per clip: truth, leave-one-out estimate, sub-estimates (loo.py)
