@@ -136,5 +136,5 @@ coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), e**2 - s**2, rcond
 print("CLIP_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0))), 3) for v in DR0), "(at GAIN_DR0)")
 print(f"  variance = {coef[0]:.5f} + {coef[1]:.5f}·D/r0")
 dof = len(rows) - 2  # two coefficients fitted on the clips: the interval's quantile is Student-t (Z90, CLIP_DOF)
-print(f"CLIP_DOF = {dof}, Z90 = t_0.95({dof}) = {stats.t.ppf(0.95, dof)!r}")
+print(f"CLIP_DOF = {dof}, Z90 = t_0.95({dof}) = {float(stats.t.ppf(0.95, dof))!r}")
 json.dump(loo, open("loo.json", "w"), indent=0)  # per clip: truth, leave-one-out estimate, sub-estimates (loo.py)
