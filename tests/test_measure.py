@@ -148,20 +148,38 @@ def test_pure_global_translation_measures_no_turbulence():
 
 
 def test_interval_is_the_quadrature_sum_against_hand_computed_values():
-    # s = sqrt(0.03² + 0.04²) = 0.05, z·s = 1.6448536·0.05 = 0.0822427, e^0.0822427 = 1.0857195
-    lo, hi = M.log_normal_interval(2.0, (0.03, 0.04))
+    # s = sqrt(0.03² + 0.04²) = 0.05; normal quantile: z·s = 1.6448536·0.05 = 0.0822427, e^0.0822427 = 1.0857195
+    lo, hi = M.log_normal_interval(2.0, (0.03, 0.04), z=1.6448536)
     assert lo == pytest.approx(2.0 / 1.0857195, rel=1e-6) and hi == pytest.approx(2.0 * 1.0857195, rel=1e-6)
+    # the default quantile, t_0.95 with 88 degrees of freedom = 1.6623540: z·s = 0.0831177, e^0.0831177 = 1.0866697
+    lo, hi = M.log_normal_interval(2.0, (0.03, 0.04))
+    assert lo == pytest.approx(2.0 / 1.0866697, rel=1e-6) and hi == pytest.approx(2.0 * 1.0866697, rel=1e-6)
     assert M.log_normal_interval(3.0, (0.0, 0.0)) == (3.0, 3.0)
+
+
+def test_default_quantile_is_the_student_t_95th_percentile():
+    # the Student-t density f(t) = Γ((ν+1)/2) / (sqrt(νπ) Γ(ν/2)) (1 + t²/ν)^(−(ν+1)/2), integrated from 0 to Z90 by
+    # Simpson's rule, holds 0.45 of the probability (two-sided 90 %); tables: t_0.95(80) = 1.664, t_0.95(100) = 1.660
+    nu = M.CLIP_DOF
+    c = math.exp(math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2)) / math.sqrt(nu * math.pi)
+    t = np.linspace(0.0, M.Z90, 2001)
+    f = c * (1 + t**2 / nu) ** (-(nu + 1) / 2)
+    h = t[1] - t[0]
+    mass = h / 3 * (f[0] + f[-1] + 4 * f[1:-1:2].sum() + 2 * f[2:-1:2].sum())
+    assert mass == pytest.approx(0.45, abs=1e-7)
+    assert 1.660 < M.Z90 < 1.664
 
 
 def test_interval_covers_a_known_log_normal_90_percent_of_the_time():
     # an oracle independent of the estimator: ln D̂ = ln D + e_tiles + e_clip, both normal with known sds; the
-    # interval from the two sds covers D in 90 % of draws, the tiles' sd alone (the old interval) in far fewer
+    # interval from the two sds with the normal quantile covers D in 90 % of draws, the tiles' sd alone (the old
+    # interval) in far fewer
     rng = np.random.default_rng(0)
     truth, s_tiles, s_clip, n = 3.0, 0.02, 0.04, 20000
     est = truth * np.exp(rng.normal(0, s_tiles, n) + rng.normal(0, s_clip, n))
-    both = [M.log_normal_interval(e, (s_tiles, s_clip)) for e in est]
-    alone = [M.log_normal_interval(e, (s_tiles,)) for e in est]
+    z = 1.6448536269514722
+    both = [M.log_normal_interval(e, (s_tiles, s_clip), z=z) for e in est]
+    alone = [M.log_normal_interval(e, (s_tiles,), z=z) for e in est]
     cover_both = np.mean([lo <= truth <= hi for lo, hi in both])
     cover_alone = np.mean([lo <= truth <= hi for lo, hi in alone])
     assert abs(cover_both - 0.90) < 0.01  # binomial sd 0.002

@@ -10,6 +10,7 @@ import json
 import sys
 
 import numpy as np
+from scipy import stats
 
 from d2turb import measure as M
 from d2turb.sim.tilt import dr0_from_tilt_variance
@@ -64,7 +65,9 @@ print(")")
 
 
 def measure(c, gains_fn, n_boot=200, seed=0):
-    """D̂ and the bootstrap sd of ln D̂ with the gains of gains_fn(dr0) (the estimator of measure._estimate)."""
+    """D̂, the bootstrap sd of ln D̂ with the gains of gains_fn(dr0) (the estimator of measure._estimate), and the
+    sub-estimates of the same clip from parts of its series with the same gains: x / y displacement component,
+    separation along x / along y, each separation alone."""
     t_len = c["num"].shape[-1]
     unit = (c["aperture_m"], c["wavelength_m"], c["ifov_rad"])
     models = M._models(c["series"], t_len, [c["ifov_rad"] * c["path_length_m"] / c["aperture_m"]])
@@ -73,6 +76,14 @@ def measure(c, gains_fn, n_boot=200, seed=0):
         gains = gains_fn(dr0)[None]
         sig2, _ = M._fit(c["num"].sum(0), c["pairs"].sum(0), t_len, models, gains)
         dr0 = float(dr0_from_tilt_variance(sig2, *unit))
+    sub = {}
+    for key, idx in (("comp", 2), ("orient", 1), ("sep", 0)):
+        for v in sorted({s[idx] for s in c["series"]}):
+            sel = [j for j, s in enumerate(c["series"]) if s[idx] == v]
+            s2, _ = M._fit(
+                c["num"][:, sel].sum(0), c["pairs"][:, sel].sum(0), t_len, models[..., sel, :], gains[:, sel]
+            )
+            sub[f"{key}{v}"] = float(dr0_from_tilt_variance(s2, *unit))
     rng = np.random.default_rng(seed)
     n = c["num"].shape[0]
     boot = []
@@ -80,8 +91,8 @@ def measure(c, gains_fn, n_boot=200, seed=0):
         pick = rng.integers(0, n, n)
         boot.append(M._fit(c["num"][pick].sum(0), c["pairs"][pick].sum(0), t_len, models, gains)[0])
     if not boot:
-        return dr0, 0.0
-    return dr0, float(np.std(np.log(dr0_from_tilt_variance(np.array(boot), *unit))))
+        return dr0, 0.0, sub
+    return dr0, float(np.std(np.log(dr0_from_tilt_variance(np.array(boot), *unit)))), sub
 
 
 # the estimator on the simulator's true flow (no registration, ε = 1): the theory and the unseen-mean handling
@@ -94,12 +105,14 @@ for x in DR0:
     v = np.array([r for d, r in true_err if d == x])
     print(f"true flow, D/r0 {x}: D̂/D mean {v.mean():.3f}, min {v.min():.3f}, max {v.max():.3f} ({len(v)} clips)")
 
-rows = []
+rows, loo = [], []
 for k, c in enumerate(used):
     b, _ = fit(used[:k] + used[k + 1 :])
     seps = np.array([s[0] for s in c["series"]])
-    dr0, sd = measure(c, lambda x, b=b, seps=seps, f=c["footprint_px"]: np.exp(features(seps, f, x) @ b))
+    dr0, sd, sub = measure(c, lambda x, b=b, seps=seps, f=c["footprint_px"]: np.exp(features(seps, f, x) @ b))
     rows.append((c, np.log(dr0 / c["dr0"]), sd))
+    loo.append({k: c[k] for k in ("clip", "image", "dr0", "footprint_px", "valid_fraction", "textured_fraction",
+                                  "median_residual_grey")} | {"dr0_hat": dr0, "boot_sd": sd, "sub": sub})  # fmt: skip
     print(
         f"{c['clip']:14s} fp {c['footprint_px']:5.1f} valid {c['valid_fraction']:.2f} "
         f"res {c['median_residual_grey']:.2f}  D̂/D {dr0 / c['dr0']:.3f}  boot sd {sd:.3f}",
@@ -122,3 +135,6 @@ x = np.array([r[0]["dr0"] for r in rows])
 coef, *_ = np.linalg.lstsq(np.stack([np.ones_like(x), x], 1), e**2 - s**2, rcond=None)
 print("CLIP_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0))), 3) for v in DR0), "(at GAIN_DR0)")
 print(f"  variance = {coef[0]:.5f} + {coef[1]:.5f}·D/r0")
+dof = len(rows) - 2  # two coefficients fitted on the clips: the interval's quantile is Student-t (Z90, CLIP_DOF)
+print(f"CLIP_DOF = {dof}, Z90 = t_0.95({dof}) = {float(stats.t.ppf(0.95, dof))!r}")
+json.dump(loo, open("loo.json", "w"), indent=0)  # per clip: truth, leave-one-out estimate, sub-estimates (loo.py)

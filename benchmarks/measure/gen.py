@@ -4,6 +4,9 @@
 #   cal_X_i   calibration, default optics, bsds500 crops (cal/), i = 0…7: the registration gain and the interval's
 #             scene term (fitgain.py)
 #   calf_X_g  calibration, "field" geometry g of the bank (nine of its 16, footprints 4–31 px), bsds500 crops
+#   calo_X_i, calof_X_g  calibration on outdoor photographs (calo/: camvid, strecha_mvs, sfm_landmarks crops, train
+#             folders), default optics (i = 0…3) and four of the nine field geometries of calf_* per strength: the
+#             scenes of use (low-texture outdoor views) in the clip-to-clip term (issue 28, third calibration)
 #   val_X_i   validation, default optics (i ≤ 8: the first round, images alternating by strength; i ≥ 9: the other
 #             scene type per strength, so that every strength has bsd100 and sunhays_outdoor crops)
 #   valf_X_i  validation, "field" geometry bank (geometry (i + 4·cell) mod 16), scene types alternating; i = 0…15
@@ -21,6 +24,8 @@ from d2turb.sim.geometry import geometry_bank
 STRENGTHS = (1.5, 2.5, 3.5, 4.5)
 BANK = geometry_bank("field")
 CAL = sorted(glob.glob("cal/*.png"))
+CALO = sorted(glob.glob("calo/*.png"))  # prep.py numbers them round robin over the three folders
+CAL_FIELD = (8, 0, 13, 2, 14, 5, 15, 7, 9)  # the field geometries of calf_*
 BSD = sorted(glob.glob("img/*_SRF_2_HR.png"))
 SUN = sorted(glob.glob("img/*_SRF_8_HR.png"))
 OLD_VAL = sorted(BSD[:12] + SUN[:12])  # the first round's image list (indices below refer to it)
@@ -59,6 +64,13 @@ def plan():
             jobs.append((f"cal_{x}_{i}", next(cal_new), x, wind(i, x), 2000 + 10 * (i - 1) + int(x), []))
         else:
             jobs.append((f"calf_{x}_{i}", next(cal_new), x, wind(i, x), 3000 + 10 * i + int(x), field_args(i)))
+    # a third batch: outdoor scenes of the train folders, default optics and field geometries alternating
+    calo = iter(CALO)
+    for i in range(4):
+        for c, x in enumerate(STRENGTHS):
+            jobs.append((f"calo_{x}_{i}", next(calo), x, wind(i, x), 8000 + 10 * i + int(x), []))
+            g = CAL_FIELD[(i + 4 * c) % len(CAL_FIELD)]
+            jobs.append((f"calof_{x}_{g}", next(calo), x, wind(i + 5, x), 9000 + 10 * g + int(x), field_args(g)))
     bsd_new, sun_new = iter(BSD[12:]), iter(SUN[12:])
     rounds = []
     for i in range(9):

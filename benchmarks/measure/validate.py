@@ -1,5 +1,7 @@
 # validation of d2turb.measure on simulated clips, with and without a ±3 px camera shake (docs/measure.md):
 #   python3 validate.py OUT.jsonl "PATTERN" ["PATTERN" ...]   (default: val.jsonl "clips/val*")
+#   python3 validate.py --stats-only "PATTERN" ...   registers the clips into stats/ only (no estimate, no output):
+#   the slow part can run while the calibration is chosen, without looking at the validation clips' results
 # appends one JSON line per clip (skipping clips already in OUT.jsonl): truth, optics, scene folder, depth mode and
 # the plain and shaken results (or the refusal). The registered structure sums are kept in stats/: a new OUT.jsonl
 # after a change of the estimator (not of the registration) refits them in seconds.
@@ -17,10 +19,12 @@ from d2turb import measure as M
 from d2turb.errors import D2TurbError
 from d2turb.io import list_images, read_image
 
-out_path = sys.argv[1] if len(sys.argv) > 1 else "val.jsonl"
-patterns = sys.argv[2:] or ["clips/val*"]
+STATS_ONLY = "--stats-only" in sys.argv
+args = [a for a in sys.argv[1:] if a != "--stats-only"]
+out_path = None if STATS_ONLY else (args[0] if args else "val.jsonl")
+patterns = (args if STATS_ONLY else args[1:]) or ["clips/val*"]
 done = set()
-if os.path.exists(out_path):
+if out_path and os.path.exists(out_path):
     done = {json.loads(line)["clip"] for line in open(out_path)}
 os.makedirs("stats", exist_ok=True)
 
@@ -51,6 +55,8 @@ def measure(frames, optics, cache):
                 raise
             num, pairs, series = M.lag_sums(flows, mask, M.separations_for(*mask.shape))
             np.savez(cache, num=num, pairs=pairs, series=np.array(series), diag=json.dumps(diag))
+        if STATS_ONLY:
+            return {}
         r = M.estimate_from_sums(num, pairs, series, optics, M.footprint_grid(optics), bootstrap=200)
     except D2TurbError as exc:  # a refusal is a result too
         return {"error": str(exc)}
@@ -69,6 +75,9 @@ for d in clips:  # round-robin over D/r0
         or d in done
         or d.endswith((".err", ".lock"))
     ):
+        continue
+    base = os.path.basename(d)
+    if STATS_ONLY and all(os.path.exists(f"stats/{base}_{n}.npz") for n in ("plain", "shake")):
         continue
     meta = json.load(open(f"{d}/meta.json"))
     optics = dict(
@@ -108,6 +117,8 @@ for d in clips:  # round-robin over D/r0
     }
     for name, fr in (("plain", frames), ("shake", shaken)):
         rec[name] = measure(fr, optics, f"stats/{os.path.basename(d)}_{name}.npz")
+    if STATS_ONLY:
+        continue
     with open(out_path, "a") as fh:
         fh.write(json.dumps(rec) + "\n")
     print(json.dumps(rec), flush=True)
