@@ -33,6 +33,7 @@ from d2turb.eval.niqe import niqe
 from d2turb.measure import measure_clip
 from d2turb.restore.clip import ClipFrame, ClipRestorer, PhysicsDeblur, registration_dr0
 from d2turb.restore.files import MEASURE_FRAMES, clip_frames
+from d2turb.restore.single import Restorer
 
 CLIPS = {
     "airport_heat_shimmer": "airport_heat_shimmer",
@@ -54,7 +55,11 @@ def physics_variants(name: str, dr0, flows: list, lambda_over_d_px: float = 2.0)
 
     physics: the default (``PhysicsDeblur(dr0)``) on both; jitter: the fused frame's OTF also carries the residual
     registration jitter, σ = RESIDUAL_TO_OBSERVED × the rms of the clip's registered flows (the single frame has
-    none)."""
+    none); ``model:NAME``: the restoration model NAME (a weights name or file) on both, as ``--deblur NAME``
+    and single-frame ``restore --weights NAME`` do (no D/r0 needed)."""
+    if name.startswith("model:"):
+        restore = Restorer(name.split(":", 1)[1]).restore
+        return restore, restore, name.split(":", 1)[1]
     if dr0 is None:
         return None
     desc = f"D/r0 {dr0:.3g}"
