@@ -31,7 +31,7 @@ import torch
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.measure import measure_clip
-from d2turb.restore.clip import ClipFrame, ClipRestorer, PhysicsDeblur, registration_dr0
+from d2turb.restore.clip import ClipFrame, ClipRestorer, PhysicsDeblur, flow_variance_px2, registration_dr0
 from d2turb.restore.files import MEASURE_FRAMES, clip_frames
 from d2turb.restore.single import Restorer
 
@@ -43,11 +43,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 RESIDUAL_TO_OBSERVED = 0.6  # validation clips: σ of the residual misregistration / σ of the registered flow
-
-
-def flow_variance(flows: list) -> float:
-    """Per-axis variance (px²) of the registration's flows, each frame's mean (camera shake) removed."""
-    return float(np.mean([float(((f - f.mean((1, 2), keepdim=True)) ** 2).mean()) / 2 for f in flows]))
 
 
 def physics_variants(name: str, dr0, flows: list, lambda_over_d_px: float = 2.0):
@@ -66,7 +61,7 @@ def physics_variants(name: str, dr0, flows: list, lambda_over_d_px: float = 2.0)
     if name == "physics":
         return PhysicsDeblur(dr0, lambda_over_d_px), PhysicsDeblur(dr0, lambda_over_d_px), desc
     if name == "jitter":
-        jit = RESIDUAL_TO_OBSERVED * flow_variance(flows) ** 0.5
+        jit = RESIDUAL_TO_OBSERVED * float(np.mean([flow_variance_px2(f) for f in flows])) ** 0.5
         return (
             PhysicsDeblur(dr0, lambda_over_d_px, jitter_px=jit),
             PhysicsDeblur(dr0, lambda_over_d_px),

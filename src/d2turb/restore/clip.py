@@ -398,14 +398,19 @@ OBSERVED_TILT_SHARE = 0.13
 REGISTRATION_WINDOW = 32
 
 
+def flow_variance_px2(bwd_flow_px: torch.Tensor) -> float:
+    """Per-axis variance (px²) of one (2, H, W) flow about its own mean (the frame's global shift, camera shake)."""
+    f = bwd_flow_px.double()
+    return float(((f - f.mean((1, 2), keepdim=True)) ** 2).mean()) / 2
+
+
 def registration_tilt_variance(frames: Iterable, temporal: int = REGISTRATION_WINDOW, preset: str = "fast") -> float:
     """Per-axis variance (px²) of the backward flows that register each frame of ``frames`` onto its window's
     fusion (:class:`ClipRestorer`, no deblur), each frame's mean shift (camera shake) removed, averaged over the
     frames."""
     total, count = 0.0, 0
     for out in ClipRestorer(temporal=temporal, preset=preset, fallback=False).restore(frames):
-        f = out.bwd_flow_px.double()
-        total += float(((f - f.mean((1, 2), keepdim=True)) ** 2).mean()) / 2
+        total += flow_variance_px2(out.bwd_flow_px)
         count += 1
     return total / max(count, 1)
 
@@ -429,6 +434,7 @@ __all__ = [
     "ClipRestorer",
     "ClipFrame",
     "PhysicsDeblur",
+    "flow_variance_px2",
     "registration_dr0",
     "registration_tilt_variance",
     "restore_clip",

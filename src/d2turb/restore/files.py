@@ -170,28 +170,36 @@ def clip_frames(src: Path, errors) -> tuple[list[str], object]:
 MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when it is not given
 
 
-def _measured_dr0(src: Path, params: dict) -> float:
-    """D/r0 measured on the clip's first MEASURE_FRAMES frames (d2turb.measure); D2TurbError if it cannot be."""
-    quiet = SimpleNamespace(record=lambda exc: None)  # bad frames are reported once, by the restoring pass
-    _, frames = clip_frames(src, quiet)
-    head = list(itertools.islice(frames, MEASURE_FRAMES))
+def _clip_head(src: Path) -> list:
+    """The clip's first MEASURE_FRAMES readable frames (bad frames are reported once, by the restoring pass)."""
+    _, frames = clip_frames(src, SimpleNamespace(record=lambda exc: None))
+    return list(itertools.islice(frames, MEASURE_FRAMES))
+
+
+def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
+    """TurbulenceParams from the ``--param`` optics (the path length is the measurement's only); one-line error."""
+    try:
+        return TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, **extra)
+    except TypeError as exc:
+        raise D2TurbError(f"--param: {exc}") from exc
+
+
+def _lambda_over_d_px(p: TurbulenceParams) -> float:
+    return p.reference_wavelength / (p.aperture_m * p.ifov_rad)
+
+
+def _measured_dr0(head: list, params: dict) -> float:
+    """D/r0 measured on the clip's first frames ``head`` (d2turb.measure); D2TurbError if it cannot be."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
     return float(measure_clip(head, optics, bootstrap=50)["dr0"])
 
 
-def _registration_dr0(src: Path, params: dict) -> float:
-    """D/r0 from the registered displacement of the clip's first MEASURE_FRAMES frames (restore.clip.registration_dr0),
+def _registration_dr0(head: list, params: dict) -> float:
+    """D/r0 from the registered displacement of the clip's first frames ``head`` (restore.clip.registration_dr0),
     for a clip that d2turb.measure refuses; D2TurbError if it cannot be registered either."""
-    quiet = SimpleNamespace(record=lambda exc: None)
-    _, frames = clip_frames(src, quiet)
-    head = list(itertools.islice(frames, MEASURE_FRAMES))
     if len(head) < 2:
         raise D2TurbError(f"a clip needs at least 2 frames, got {len(head)}")
-    try:
-        p = TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"})
-    except TypeError as exc:
-        raise D2TurbError(f"--param: {exc}") from exc
-    return registration_dr0(head, p.reference_wavelength / (p.aperture_m * p.ifov_rad))
+    return registration_dr0(head, _lambda_over_d_px(_turbulence_params(params)))
 
 
 def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64):
@@ -210,13 +218,16 @@ def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", 
         params = dict(params or {})
         source = "given"
         if dr0 is None:
+            head = None
             try:
-                dr0, source = _measured_dr0(src, params), "measured on the clip"
+                head = _clip_head(src)
+                dr0, source = _measured_dr0(head, params), "measured on the clip"
             except D2TurbError as exc:
                 if choice == "physics":
                     raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
                 try:
-                    dr0, source = _registration_dr0(src, params), "estimated from the registration"
+                    head = _clip_head(src) if head is None else head  # read again only if reading failed
+                    dr0, source = _registration_dr0(head, params), "estimated from the registration"
                 except D2TurbError as exc2:
                     print(f"note: no deblurring: {exc}; {exc2}", file=sys.stderr)
                     return None, "none (D/r0 could not be measured)"
@@ -225,11 +236,8 @@ def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", 
                     "(a rough estimate, docs/clips.md; give --dr0 to override)",
                     file=sys.stderr,
                 )
-        try:
-            p = TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, dr0=min(dr0, 10.0))
-        except TypeError as exc:
-            raise D2TurbError(f"--param: {exc}") from exc
-        lambda_over_d_px = p.reference_wavelength / (p.aperture_m * p.ifov_rad)
+        p = _turbulence_params(params, dr0=min(dr0, 10.0))
+        lambda_over_d_px = _lambda_over_d_px(p)
         deblur = PhysicsDeblur(p.dr0, lambda_over_d_px)
         return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {lambda_over_d_px:.3g} px)"
     restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
