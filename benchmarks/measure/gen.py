@@ -12,6 +12,12 @@
 #   valf_X_i  validation, "field" geometry bank (geometry (i + 4·cell) mod 16), scene types alternating; i = 0…15
 #   (val_X_15, _16 and valf_X_13…15 came in a second batch, after vald_*, to reach ten measured clips per cell)
 #   vald_X_i  validation, default optics with the depth prior (--depth prior), reported without a bar
+#   calt_X_i  fourth calibration (issue 28): the 32 least textured train crops (calt/, prep.py), i = 0…7 per
+#             strength, default optics for even i, a field geometry of calf_* for odd i; strength c gets crops
+#             4·i + c of the texture ranking, so every strength sees the whole texture range
+#   val_X_17…39, valf_X_16…39  a fourth validation batch, fixed before any of its clips was simulated: every cell
+#             brought to 40 clips, scene types alternating, images of bsd100 (img/ and img2/) and sunhays_outdoor
+#             never repeated within a cell (first unused in a per-cell rotation of each list)
 # All: 64 frames at 30 fps, boiling 0.1, wind 1–3 m/s, --save-flow, --no-mp4; --depth none except vald_*.
 import glob
 import json
@@ -26,6 +32,7 @@ BANK = geometry_bank("field")
 CAL = sorted(glob.glob("cal/*.png"))
 CALO = sorted(glob.glob("calo/*.png"))  # prep.py numbers them round robin over the three folders
 CAL_FIELD = (8, 0, 13, 2, 14, 5, 15, 7, 9)  # the field geometries of calf_*
+CALT = sorted(glob.glob("calt/*.png"))  # least textured first
 BSD = sorted(glob.glob("img/*_SRF_2_HR.png"))
 SUN = sorted(glob.glob("img/*_SRF_8_HR.png"))
 OLD_VAL = sorted(BSD[:12] + SUN[:12])  # the first round's image list (indices below refer to it)
@@ -100,6 +107,27 @@ def plan():
                 img = next(bsd_new) if int(x) % 2 == 1 else next(sun_new)
                 row.append((f"val_{x}_{i + 2}", img, x, wind(i + 2, x), (i + 2) * 10 + int(x), []))
         rounds.append(row)
+    # the fourth calibration batch: low-texture train crops
+    for i in range(8):
+        for c, x in enumerate(STRENGTHS):
+            extra = [] if i % 2 == 0 else field_args(CAL_FIELD[(i // 2 + 2 * c) % len(CAL_FIELD)])
+            jobs.append((f"calt_{x}_{i}", CALT[4 * i + c], x, wind(i + 3, x), 6000 + 10 * i + int(x), extra))
+    # the fourth validation batch: every cell to 40 clips
+    old = [j for r in rounds for j in r]
+    bsd_all, sun_all = BSD + sorted(glob.glob("img2/*.png")), SUN
+    for c, x in enumerate(STRENGTHS):
+        for kind, first in (("val", 17), ("valf", 16)):
+            used = {j[1] for j in old if j[0].startswith(f"{kind}_{x}_")}
+            shift = 13 * c + (7 if kind == "valf" else 0)
+            pools = [bsd_all[shift:] + bsd_all[:shift], sun_all[shift:] + sun_all[:shift]]
+            for i in range(first, 40):
+                img = next(f for f in pools[(i + c) % 2] if f not in used)
+                used.add(img)
+                if kind == "val":
+                    rounds.append([(f"val_{x}_{i}", img, x, wind(i, x), i * 10 + int(x), [])])
+                else:
+                    g = (i + 4 * c) % 16
+                    rounds.append([(f"valf_{x}_{i}", img, x, wind(i, x), 5000 + i * 10 + int(x), field_args(g))])
     return jobs + [j for r in rounds for j in r]
 
 

@@ -153,6 +153,16 @@ def _crop(gray: np.ndarray, max_size: int) -> tuple[np.ndarray, list[int]]:
     return gray[:, y0 : y0 + ch, x0 : x0 + cw], [x0, y0, cw, ch]
 
 
+def structure_min_eigenvalue(gray: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue (grey levels²/px²) of the structure tensor of a grey image (0–255) over 9×9 windows (DIS
+    patches are 8 px): the texture a pixel gives the registration (``TEXTURE_MIN``)."""
+    g = np.asarray(gray, np.float32)
+    rx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8
+    ry = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8
+    sxx, syy, sxy = (cv2.boxFilter(a, -1, (9, 9)) for a in (rx * rx, ry * ry, rx * ry))
+    return 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
+
+
 def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray, np.ndarray, dict]:
     """Flows (T, H, W, 2) of every frame onto the registered temporal mean, a validity mask (H, W) and diagnostics.
 
@@ -188,11 +198,7 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
         warped = cv2.remap(gray[i], gx + flows[i, ..., 0], gy + flows[i, ..., 1], cv2.INTER_LINEAR)
         residual += np.abs(warped - ref)
     residual /= len(gray)
-    # texture: smallest eigenvalue of the structure tensor of the reference over 9×9 (DIS patches are 8 px)
-    rx = cv2.Sobel(ref, cv2.CV_32F, 1, 0, ksize=3) / 8
-    ry = cv2.Sobel(ref, cv2.CV_32F, 0, 1, ksize=3) / 8
-    sxx, syy, sxy = (cv2.boxFilter(a, -1, (9, 9)) for a in (rx * rx, ry * ry, rx * ry))
-    lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
+    lam_min = structure_min_eigenvalue(ref)
     inner_res = residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX]
     mask = (lam_min > TEXTURE_MIN) & (residual < max(RESIDUAL_REL * float(np.median(inner_res)), RESIDUAL_FLOOR))
     mask[:MARGIN_PX], mask[-MARGIN_PX:], mask[:, :MARGIN_PX], mask[:, -MARGIN_PX:] = False, False, False, False
