@@ -143,23 +143,36 @@ def test_pure_global_translation_measures_no_turbulence():
     # no differential motion: D/r0 of ~0 (a registration noise floor of a few hundredths of a pixel)
     assert out["dr0"] < 0.15 and out["dr0_ci"][0] <= out["dr0"] <= out["dr0_ci"][1]
     sds = out["dr0_log_sd"]
-    assert sds["clip"] == M.clip_log_sd(out["dr0"]) == M.CLIP_LOG_SD[0]  # clamped below D/r0 = 1.5
+    assert sds["clip"] == M.clip_log_sd(out["dr0"], 12)  # clamped below D/r0 = 1.5, widened for 12 frames
+    assert sds["clip"] == pytest.approx(math.sqrt(M.CLIP_LOG_SD[0] ** 2 + M.CLIP_WINDOW_VAR * (64 / 12 - 1)))
     np.testing.assert_allclose(out["dr0_ci"], M.log_normal_interval(out["dr0"], (sds["tiles"], sds["clip"])))
+
+
+def test_footprint_below_the_calibrated_gain_is_refused_unless_extrapolating():
+    base = _texture(160, 2)
+    rng = np.random.default_rng(1)
+    clip = [np.roll(base, tuple(s), axis=(0, 1))[16:-16, 16:-16] for s in rng.integers(-3, 4, (12, 2))]
+    # D/(ifov·L) = 0.05 / (5e-6 · 5000) = 2.0 px: below the 4 px of the gain table
+    optics = {"aperture_m": 0.05, "wavelength_m": 5e-7, "ifov_rad": 5e-6, "path_length_m": 5000.0}
+    with pytest.raises(D2TurbError, match=r"footprint D/\(ifov·L\) of the tilt is 2\.0 px, below the 4 px"):
+        M.measure_clip(clip, optics, bootstrap=5)
+    out = M.measure_clip(clip, optics, bootstrap=5, extrapolate=True)
+    assert out["fit"]["footprint_per_px"] == pytest.approx(0.5)
 
 
 def test_interval_is_the_quadrature_sum_against_hand_computed_values():
     # s = sqrt(0.03² + 0.04²) = 0.05; normal quantile: z·s = 1.6448536·0.05 = 0.0822427, e^0.0822427 = 1.0857195
     lo, hi = M.log_normal_interval(2.0, (0.03, 0.04), z=1.6448536)
     assert lo == pytest.approx(2.0 / 1.0857195, rel=1e-6) and hi == pytest.approx(2.0 * 1.0857195, rel=1e-6)
-    # the default quantile, t_0.95 with 88 degrees of freedom = 1.6623540: z·s = 0.0831177, e^0.0831177 = 1.0866697
+    # the default quantile, t_0.95 with 106 degrees of freedom = 1.6593560: z·s = 0.0829678, e^0.0829678 = 1.0865068
     lo, hi = M.log_normal_interval(2.0, (0.03, 0.04))
-    assert lo == pytest.approx(2.0 / 1.0866697, rel=1e-6) and hi == pytest.approx(2.0 * 1.0866697, rel=1e-6)
+    assert lo == pytest.approx(2.0 / 1.0865068, rel=1e-6) and hi == pytest.approx(2.0 * 1.0865068, rel=1e-6)
     assert M.log_normal_interval(3.0, (0.0, 0.0)) == (3.0, 3.0)
 
 
 def test_default_quantile_is_the_student_t_95th_percentile():
     # the Student-t density f(t) = Γ((ν+1)/2) / (sqrt(νπ) Γ(ν/2)) (1 + t²/ν)^(−(ν+1)/2), integrated from 0 to Z90 by
-    # Simpson's rule, holds 0.45 of the probability (two-sided 90 %); tables: t_0.95(80) = 1.664, t_0.95(100) = 1.660
+    # Simpson's rule, holds 0.45 of the probability (two-sided 90 %); tables: t_0.95(100) = 1.660, t_0.95(120) = 1.658
     nu = M.CLIP_DOF
     c = math.exp(math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2)) / math.sqrt(nu * math.pi)
     t = np.linspace(0.0, M.Z90, 2001)
@@ -167,7 +180,7 @@ def test_default_quantile_is_the_student_t_95th_percentile():
     h = t[1] - t[0]
     mass = h / 3 * (f[0] + f[-1] + 4 * f[1:-1:2].sum() + 2 * f[2:-1:2].sum())
     assert mass == pytest.approx(0.45, abs=1e-7)
-    assert 1.660 < M.Z90 < 1.664
+    assert 1.658 < M.Z90 < 1.660
 
 
 def test_interval_covers_a_known_log_normal_90_percent_of_the_time():
@@ -191,6 +204,11 @@ def test_clip_term_interpolates_in_the_strength():
     mid = (M.GAIN_DR0[1] + M.GAIN_DR0[2]) / 2
     assert M.clip_log_sd(mid) == pytest.approx((M.CLIP_LOG_SD[1] + M.CLIP_LOG_SD[2]) / 2, rel=1e-12)
     assert M.clip_log_sd(0.3) == M.CLIP_LOG_SD[0] and M.clip_log_sd(9.0) == M.CLIP_LOG_SD[-1]
+    # a window of 32 frames: variance s² + CLIP_WINDOW_VAR·(64/32 − 1); longer clips keep the 64-frame term
+    s, c = M.CLIP_LOG_SD[1], M.CLIP_WINDOW_VAR
+    assert M.clip_log_sd(M.GAIN_DR0[1], 32) == pytest.approx(math.sqrt(s * s + c), rel=1e-12)
+    assert M.clip_log_sd(M.GAIN_DR0[1], 16) == pytest.approx(math.sqrt(s * s + 3 * c), rel=1e-12)
+    assert M.clip_log_sd(M.GAIN_DR0[1], 300) == M.clip_log_sd(M.GAIN_DR0[1], 64) == s
 
 
 def test_registration_gain_interpolates_the_table():

@@ -1,7 +1,10 @@
 # Calibration statistics of the clips matching a pattern (default "clips/cal*"): for each clip, the differential
 # structure sums (d2turb.measure.lag_sums) of the DIS flows and of the simulator's true flow (--save-flow) on the
 # same pairs, separations 8–64 px, saved to calib/NAME.npz with the clip's truth, optics and registration
-# diagnostics. fitgain.py turns them into the registration gain and the interval's scene term.
+# diagnostics; and the same sums over windows of 16 and 32 frames of the clip's registration (keys num_dis_w32, …:
+# (windows, tiles, J, T); what measure_clip(window=N) fits), for the clip term's dependence on the window length.
+# A calib/NAME.npz without the window sums is redone. fitgain.py turns them into the registration gain and the
+# interval's clip term.
 import glob
 import json
 import os
@@ -12,6 +15,7 @@ import numpy as np
 from d2turb import measure as M
 from d2turb.io import list_images, read_image
 
+WINDOWS = (16, 32)
 pattern = sys.argv[1] if len(sys.argv) > 1 else "clips/cal*"
 os.makedirs("calib", exist_ok=True)
 for d in sorted(glob.glob(pattern)):
@@ -19,7 +23,7 @@ for d in sorted(glob.glob(pattern)):
     out = f"calib/{name}.npz"
     if d.endswith((".err", ".lock")) or not os.path.exists(f"{d}/meta.json") or os.path.exists(f"{d}.lock"):
         continue  # not a clip, or still being simulated
-    if os.path.exists(out):
+    if os.path.exists(out) and "num_dis_w16" in np.load(out).files:
         continue
     meta = json.load(open(f"{d}/meta.json"))
     frames = [read_image(f) for f in list_images(f"{d}/turb")]
@@ -41,5 +45,12 @@ for d in sorted(glob.glob(pattern)):
         "wind_m_s": meta["wind_m_s"],
         **diag,
     }
-    np.savez(out, num_dis=nd, pairs_dis=pd_, num_true=nt, pairs_true=pt, series=np.array(ser), info=json.dumps(info))
+    windows = {}
+    for w in WINDOWS:
+        for src, fl in (("dis", flows), ("true", true)):
+            sums = [M.lag_sums(fl[s : s + w], mask, seps) for s in range(0, len(fl) - w + 1, w)]
+            windows[f"num_{src}_w{w}"] = np.stack([a for a, _, _ in sums])
+            windows[f"pairs_{src}_w{w}"] = np.stack([b for _, b, _ in sums])
+    np.savez(out, num_dis=nd, pairs_dis=pd_, num_true=nt, pairs_true=pt, series=np.array(ser), info=json.dumps(info),
+             **windows)  # fmt: skip
     print(json.dumps(info), flush=True)

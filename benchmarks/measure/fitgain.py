@@ -5,6 +5,8 @@
 # 3. Leave one clip out: refit the model without it, measure the clip with the predicted gains (the estimator of
 #    d2turb.measure on its DIS sums), compare ln(D̂/D) with the tile bootstrap's own spread. The clip term
 #    CLIP_LOG_SD is the rms of ln(D̂/D) in quadrature minus the mean bootstrap variance.
+# 4. The same leave-one-out estimate on windows of 16 and 32 frames of each clip (calibrate.py's window sums): the
+#    clip term's growth for shorter windows, variance = a + b·D/r0 + c·(64/T − 1) (CLIP_WINDOW_VAR = c).
 import glob
 import json
 import sys
@@ -43,6 +45,11 @@ for path in sorted(glob.glob(sys.argv[1] if len(sys.argv) > 1 else "calib/*.npz"
         dict(info, gain=gain, num=z["num_dis"][:, keep], pairs=z["pairs_dis"][:, keep], series=[ser[j] for j in keep])
     )
     clips[-1]["true"] = (z["num_true"][:, keep], z["pairs_true"][:, keep])
+    clips[-1]["windows"] = {
+        int(k[len("num_dis_w") :]): [(n[:, keep], p[:, keep]) for n, p in zip(z[k], z["pairs" + k[3:]])]
+        for k in z.files
+        if k.startswith("num_dis_w")
+    }
 used = [c for c in clips if c["valid_fraction"] >= M.MIN_VALID_FRACTION]
 print(f"{len(clips)} calibration clips, {len(used)} with valid area ≥ {M.MIN_VALID_FRACTION:.0%}")
 
@@ -105,12 +112,18 @@ for x in DR0:
     v = np.array([r for d, r in true_err if d == x])
     print(f"true flow, D/r0 {x}: D̂/D mean {v.mean():.3f}, min {v.min():.3f}, max {v.max():.3f} ({len(v)} clips)")
 
-rows, loo = [], []
+rows, loo, win_rows = [], [], []
 for k, c in enumerate(used):
     b, _ = fit(used[:k] + used[k + 1 :])
     seps = np.array([s[0] for s in c["series"]])
-    dr0, sd, sub = measure(c, lambda x, b=b, seps=seps, f=c["footprint_px"]: np.exp(features(seps, f, x) @ b))
+    gains_fn = lambda x, b=b, seps=seps, f=c["footprint_px"]: np.exp(features(seps, f, x) @ b)  # noqa: E731
+    dr0, sd, sub = measure(c, gains_fn)
     rows.append((c, np.log(dr0 / c["dr0"]), sd))
+    win_rows.append((c["dr0"], 64, dr0, sd))
+    for t_len, sums in sorted(c.get("windows", {}).items()):
+        for num, pairs in sums:
+            wd, wsd, _ = measure(dict(c, num=num, pairs=pairs), gains_fn)
+            win_rows.append((c["dr0"], t_len, wd, wsd))
     loo.append({k: c[k] for k in ("clip", "image", "dr0", "footprint_px", "valid_fraction", "textured_fraction",
                                   "median_residual_grey")} | {"dr0_hat": dr0, "boot_sd": sd, "sub": sub})  # fmt: skip
     print(
@@ -137,4 +150,13 @@ print("CLIP_LOG_SD =", tuple(round(float(np.sqrt(max(coef[0] + coef[1] * v, 0)))
 print(f"  variance = {coef[0]:.5f} + {coef[1]:.5f}·D/r0")
 dof = len(rows) - 2  # two coefficients fitted on the clips: the interval's quantile is Student-t (Z90, CLIP_DOF)
 print(f"CLIP_DOF = {dof}, Z90 = t_0.95({dof}) = {float(stats.t.ppf(0.95, dof))!r}")
+# the clip term against the window length: every window of every clip, least squares of e² − s_tiles²
+W = np.array([(d, t, np.log(h / d), sd) for d, t, h, sd in win_rows])
+for t_len in sorted(set(W[:, 1])):
+    sel = W[:, 1] == t_len
+    print(f"  window {int(t_len)} frames: n {sel.sum()}, mean {W[sel, 2].mean():+.4f}, rms {rms(W[sel, 2]):.4f}, "
+          f"boot {rms(W[sel, 3]):.4f}")  # fmt: skip
+F = np.stack([np.ones(len(W)), W[:, 0], 64.0 / W[:, 1] - 1], 1)
+cw, *_ = np.linalg.lstsq(F, W[:, 2] ** 2 - W[:, 3] ** 2, rcond=None)
+print(f"window model: variance = {cw[0]:.5f} + {cw[1]:.5f}·D/r0 + {cw[2]:.5f}·(64/T − 1): CLIP_WINDOW_VAR {cw[2]:.5f}")
 json.dump(loo, open("loo.json", "w"), indent=0)  # per clip: truth, leave-one-out estimate, sub-estimates (loo.py)

@@ -17,14 +17,16 @@ s = np.array([r["boot_sd"] for r in rows])
 x = np.array([r["dr0_hat"] for r in rows])  # the estimate: what the interval is evaluated at
 truth = np.array([r["dr0"] for r in rows])
 outdoor = np.array([r["clip"].startswith("calo") for r in rows])
+lowtex = np.array([r["clip"].startswith("calt") for r in rows])  # the fourth calibration: least textured crops
 sub = {k: np.array([r["sub"][k] for r in rows]) for k in rows[0]["sub"]}
 d_comp = np.log(sub["comp0"] / sub["comp1"])
 d_orient = np.log(sub["orient0"] / sub["orient1"])
 d_sep = np.log(sub["sep16"] / sub["sep64"])
 valid = np.array([r["valid_fraction"] for r in rows])
 one = np.ones_like(x)
-print(f"{len(rows)} calibration clips ({outdoor.sum()} outdoor); ln(D̂/D) rms {np.sqrt(np.mean(e**2)):.4f}")
-for name, v in (("bsds500", ~outdoor), ("outdoor", outdoor)):
+print(f"{len(rows)} calibration clips ({outdoor.sum()} outdoor, {lowtex.sum()} low texture); ln(D̂/D) rms "
+      f"{np.sqrt(np.mean(e**2)):.4f}")  # fmt: skip
+for name, v in (("bsds500", ~outdoor & ~lowtex), ("outdoor", outdoor), ("low tex", lowtex)):
     for X in sorted(set(truth)):
         sel = v & (truth == X)
         rms_e, rms_s = np.sqrt(np.mean(e[sel] ** 2)), np.sqrt(np.mean(s[sel] ** 2))
@@ -68,16 +70,17 @@ def judge(F, z_fn):
 
 
 print()
-print("| model | z | coverage all | bsds500 | outdoor | 1.5 | 2.5 | 3.5 | 4.5 | mean NLL | median sd |")
-print("|---|---|---|---|---|---|---|---|---|---|---|")
+print("| model | z | coverage all | bsds500 | outdoor | low texture | 1.5 | 2.5 | 3.5 | 4.5 | mean NLL | median sd |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|")
 for name, feats in MODELS.items():
     F = np.stack(feats, 1)
     for zname, z_fn in (("1.645", lambda dof: stats.norm.ppf(0.95)), ("t(n−p)", lambda dof: stats.t.ppf(0.95, dof))):
         cov, nll, sd = judge(F, z_fn)
         per = [f"{100 * cov[truth == X].mean():.0f} %" for X in sorted(set(truth))]
         groups = [
-            f"{100 * cov[g].mean():.0f} %" if g.any() else "–" for g in (np.ones_like(outdoor), ~outdoor, outdoor)
+            f"{100 * cov[g].mean():.0f} %" if g.any() else "–"
+            for g in (np.ones_like(outdoor), ~outdoor & ~lowtex, outdoor, lowtex)
         ]
         print(f"| {name} | {zname} | " + " | ".join(groups + per) + f" | {nll:.3f} | {np.median(sd):.4f} |")
     beta = fit(F, np.ones(len(e), bool))
-    print(f"|   fitted on all: β = {', '.join(f'{b:.6f}' for b in beta)} | | | | | | | | | | |")
+    print(f"|   fitted on all: β = {', '.join(f'{b:.6f}' for b in beta)} | | | | | | | | | | | |")

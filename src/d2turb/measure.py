@@ -47,7 +47,7 @@ MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
 # registration gain ε(r, D/r0, footprint): DIS-measured / true differential-tilt power at separation r px, from
 # simulated calibration clips (crops of train-split images, never the validation images: bsds500 and outdoor views of
-# camvid, strecha_mvs, sfm_landmarks; 256², 64 frames, wind 1–3 m/s, the default optics and nine geometries of the
+# camvid, strecha_mvs, sfm_landmarks, and the 32 least textured train crops; 256², 64 frames, wind 1–3 m/s, the default optics and nine geometries of the
 # "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
 # least-squares model of ln ε in ln r, ln footprint and D/r0 tabulated here. Index [footprint][D/r0][separation];
 # linear in ln footprint, D/r0 and ln r between the nodes, clamped outside. The footprint is the tilt's correlation
@@ -56,23 +56,27 @@ GAIN_FOOTPRINT_PX = (4.0, 8.0, 16.0, 38.1)
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
 GAIN_SEPARATIONS_PX = (16, 32, 64)
 GAIN_TABLE = (
-    ((0.452, 0.571, 0.676), (0.463, 0.571, 0.659), (0.474, 0.570, 0.642), (0.486, 0.570, 0.626)),
-    ((0.552, 0.677, 0.777), (0.573, 0.685, 0.768), (0.594, 0.693, 0.758), (0.617, 0.702, 0.748)),
-    ((0.644, 0.766, 0.854), (0.677, 0.786, 0.854), (0.712, 0.806, 0.855), (0.748, 0.826, 0.855)),
-    ((0.732, 0.839, 0.901), (0.782, 0.875, 0.916), (0.836, 0.912, 0.932), (0.894, 0.951, 0.948)),
+    ((0.470, 0.589, 0.694), (0.478, 0.585, 0.673), (0.486, 0.581, 0.652), (0.494, 0.576, 0.632)),
+    ((0.564, 0.686, 0.786), (0.582, 0.691, 0.772), (0.600, 0.696, 0.759), (0.619, 0.701, 0.747)),
+    ((0.652, 0.771, 0.857), (0.682, 0.788, 0.855), (0.714, 0.805, 0.853), (0.747, 0.823, 0.851)),
+    ((0.743, 0.847, 0.909), (0.792, 0.882, 0.923), (0.844, 0.917, 0.937), (0.899, 0.954, 0.952)),
 )
 # the interval: ln D̂ ± z·sqrt(s_tiles² + s_clip²), s_tiles the sd of ln D̂ over the tile bootstrap and s_clip the
 # clip-to-clip scatter of ln(D̂/D) that the tiles do not see: the registration gain varies with the scene's texture,
 # and the tiles of one clip share its turbulence at scales larger than a tile. s_clip from the calibration clips,
 # the gain model refitted without each clip: per clip ln(D̂/D)² minus its bootstrap variance, least squares against
-# D/r0 (the scatter grows with the strength); per D/r0 of GAIN_DR0, linear between, clamped outside
-# (benchmarks/measure/fitgain.py; 90 accepted calibration clips, 31 of them outdoor scenes)
-CLIP_LOG_SD = (0.028, 0.030, 0.032, 0.035)
-# two-sided 90 %: the Student-t quantile t_0.95 with the degrees of freedom of the clip term's fit (90 clips, two
-# coefficients: 88), since s_clip is estimated from a finite number of clips; the normal Φ⁻¹(0.95) = 1.6449 is its
+# D/r0; per D/r0 of GAIN_DR0, linear between, clamped outside (benchmarks/measure/fitgain.py; 108 accepted
+# calibration clips, 31 of them outdoor scenes, 18 low-texture crops)
+CLIP_LOG_SD = (0.041, 0.040, 0.040, 0.040)
+# a shorter window samples less of the turbulence: the clip term's variance grows by CLIP_WINDOW_VAR·(64/T − 1),
+# fitted on the calibration clips' windows of 16 and 32 frames with their 64-frame estimates (fitgain.py)
+CLIP_FRAMES = 64
+CLIP_WINDOW_VAR = 0.00067
+# two-sided 90 %: the Student-t quantile t_0.95 with the degrees of freedom of the clip term's fit (108 clips, two
+# coefficients: 106), since s_clip is estimated from a finite number of clips; the normal Φ⁻¹(0.95) = 1.6449 is its
 # limit
-CLIP_DOF = 88
-Z90 = 1.6623540291668955  # scipy.stats.t.ppf(0.95, 88)
+CLIP_DOF = 106
+Z90 = 1.6593560339471853  # scipy.stats.t.ppf(0.95, 106)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
 BOIL_GRID = (0.0, 0.03, 0.1, 0.3)
@@ -299,9 +303,12 @@ def registration_gain(sep_px, dr0: float, footprint_px: float = 38.1) -> np.ndar
     return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
 
 
-def clip_log_sd(dr0: float) -> float:
-    """The interval's clip-to-clip term (sd of ln D/r0) at strength ``dr0`` from ``CLIP_LOG_SD``."""
-    return float(np.interp(dr0, GAIN_DR0, CLIP_LOG_SD))
+def clip_log_sd(dr0: float, frames: int = CLIP_FRAMES) -> float:
+    """The interval's clip-to-clip term (sd of ln D/r0) at strength ``dr0`` from ``CLIP_LOG_SD``, for a clip or window
+    of ``frames`` frames: variance CLIP_LOG_SD² + CLIP_WINDOW_VAR·(CLIP_FRAMES/frames − 1), not below its value at
+    CLIP_FRAMES (longer clips keep the calibrated term)."""
+    var = float(np.interp(dr0, GAIN_DR0, CLIP_LOG_SD)) ** 2
+    return math.sqrt(var + CLIP_WINDOW_VAR * max(CLIP_FRAMES / int(frames) - 1.0, 0.0))
 
 
 def log_normal_interval(estimate: float, log_sds, z: float = Z90) -> tuple[float, float]:
@@ -354,6 +361,7 @@ def measure_clip(
     max_size: int = 320,
     seed: int = 0,
     preset: str = "medium",
+    extrapolate: bool = False,
 ) -> dict:
     """Measure D/r0 (and r0, Cn², θ0 with a path length) from the frames of a static scene.
 
@@ -363,6 +371,8 @@ def measure_clip(
             a ``TurbulenceParams`` (its D/r0 is ignored).
         window: frames per window for a series of estimates over time (None: the whole clip only).
         bootstrap: resamples for the 90 % interval. max_size: the centre crop analysed (px per side).
+        extrapolate: give a number when the tilt's correlation scale lies below the calibrated footprints (clamped
+            gain, no valid interval) instead of refusing: for a rough strength (the clip deblur), not a measurement.
     Raises ``D2TurbError`` (one line) for input that cannot be measured.
     """
     optics = as_optics(optics)
@@ -374,14 +384,27 @@ def measure_clip(
     h, w = mask.shape
     seps = separations_for(h, w)
     footprints = footprint_grid(optics)
-    models: dict = {}  # unit models per window length, shared by the windows
-    result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed, models)
+    result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed, {})
     result.update(diag)
+    footprint_px = 1.0 / result["fit"]["footprint_per_px"]
+    if footprint_px < GAIN_FOOTPRINT_PX[0] and not extrapolate:
+        what = (
+            "the aperture's footprint D/(ifov·L)" if optics.path_length_m else "the fitted correlation scale D/(ifov·L)"
+        )
+        hint = "" if optics.path_length_m else "; if the path is known, give the optics with --param path_length_m=…"
+        raise D2TurbError(
+            f"cannot measure this clip: {what} of the tilt is {footprint_px:.1f} px, below the "
+            f"{GAIN_FOOTPRINT_PX[0]:g} px that the registration gain was calibrated for (DIS keeps less than half "
+            f"of the tilt power there){hint}"
+        )
     if window:
         starts = list(range(0, len(gray) - int(window) + 1, int(window)))
         series = []
-        for s in starts:
-            est = _estimate(flows[s : s + int(window)], mask, seps, optics, footprints, bootstrap, seed, models)
+        models: dict = {}  # unit models of the window length, shared by the windows
+        for s in starts:  # the clip's correlation scale (a property of the optics and the path, not of the moment)
+            est = _estimate(
+                flows[s : s + int(window)], mask, seps, optics, [1.0 / footprint_px], bootstrap, seed, models
+            )
             series.append({"start_frame": s, "frames": int(window), **{k: est[k] for k in ("dr0", "dr0_ci")}})
         result["windows"] = series
     result["inputs"] = {
@@ -426,7 +449,7 @@ def estimate_from_sums(num, pairs, series, optics: Optics, footprints, bootstrap
         boot.append(_fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)[0])
     boot_dr0 = dr0_from_tilt_variance(np.array(boot, np.float64), *unit) if boot else np.array([dr0])
     tiles_sd = float(np.std(np.log(boot_dr0))) if dr0 > 0 and np.all(boot_dr0 > 0) else 0.0
-    clip_sd = clip_log_sd(dr0)
+    clip_sd = clip_log_sd(dr0, t_len)
     lo, hi = log_normal_interval(dr0, (tiles_sd, clip_sd))
     fi, vi, di, bi = best
     out = {

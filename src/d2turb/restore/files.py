@@ -191,7 +191,7 @@ def _lambda_over_d_px(p: TurbulenceParams) -> float:
 def _measured_dr0(head: list, params: dict) -> float:
     """D/r0 measured on the clip's first frames ``head`` (d2turb.measure); D2TurbError if it cannot be."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
-    return float(measure_clip(head, optics, bootstrap=50)["dr0"])
+    return float(measure_clip(head, optics, bootstrap=50, extrapolate=True)["dr0"])  # a rough strength is enough
 
 
 def _registration_dr0(head: list, params: dict) -> float:
