@@ -17,7 +17,8 @@ tilt's correlation scale D/(ifov·L) (``GAIN_TABLE``). The wind (speed per frame
 nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is then a ratio of sums. The 90 %
 interval is log-normal: the spread of a bootstrap over spatial tiles (the fit redone per resample) and the
 clip-to-clip scatter measured on the calibration clips (``CLIP_LOG_SD``: the registration gain's dependence on
-the scene, the turbulence at scales larger than a tile), in quadrature.
+the scene, the turbulence at scales larger than a tile; larger for windows shorter than 64 frames), in quadrature.
+A correlation scale below the calibrated 4 px is refused rather than extrapolated.
 """
 
 from __future__ import annotations
@@ -46,12 +47,13 @@ RESIDUAL_REFUSE = 15.0  # median registration residual (grey levels) above which
 MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
 # registration gain ε(r, D/r0, footprint): DIS-measured / true differential-tilt power at separation r px, from
-# simulated calibration clips (crops of train-split images, never the validation images: bsds500 and outdoor views of
-# camvid, strecha_mvs, sfm_landmarks, and the 32 least textured train crops; 256², 64 frames, wind 1–3 m/s, the default optics and nine geometries of the
-# "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
+# simulated calibration clips (crops of train-split images, never the validation images: bsds500, outdoor views of
+# camvid, strecha_mvs, sfm_landmarks, and the 32 least textured train crops; 256², 64 frames, wind 1–3 m/s, the
+# default optics and nine geometries of the "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
 # least-squares model of ln ε in ln r, ln footprint and D/r0 tabulated here. Index [footprint][D/r0][separation];
-# linear in ln footprint, D/r0 and ln r between the nodes, clamped outside. The footprint is the tilt's correlation
-# scale D/(ifov·L) in px (38 px for the default optics).
+# linear in ln footprint, D/r0 and ln r between the nodes, clamped outside (a footprint below the first node is
+# refused by measure_clip). The footprint is the tilt's correlation scale D/(ifov·L) in px (38 px for the default
+# optics).
 GAIN_FOOTPRINT_PX = (4.0, 8.0, 16.0, 38.1)
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
 GAIN_SEPARATIONS_PX = (16, 32, 64)
