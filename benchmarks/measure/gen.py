@@ -15,6 +15,12 @@
 #   calt_X_i  fourth calibration (issue 28): the 32 least textured train crops (calt/, prep.py), i = 0…7 per
 #             strength, default optics for even i, a field geometry of calf_* for odd i; strength c gets crops
 #             4·i + c of the texture ranking, so every strength sees the whole texture range
+#   calg_X_g  fifth calibration (issue 28): every geometry g of the field bank at D/r0 3.5 and 4.5, two train crops
+#             each (cal5/, prep.py): the regime where the fourth validation's field 4.5 cell covered 76 % had 4
+#             accepted calibration clips of footprint < 10 px
+#   valn_X_i, valnf_X_i  a fresh validation set (after the fifth calibration), i = 0…31 per strength: new seeds, new
+#             winds, the field geometry (5·i + 3·strength index) mod 16, scene types alternating, no image twice in a
+#             cell; the 40-clip set above has informed four calibrations and is not used to judge the fifth
 #   val_X_17…39, valf_X_16…39  a fourth validation batch, fixed before any of its clips was simulated: every cell
 #             brought to 40 clips, scene types alternating, images of bsd100 (img/ and img2/) and sunhays_outdoor
 #             never repeated within a cell (first unused in a per-cell rotation of each list)
@@ -33,6 +39,7 @@ CAL = sorted(glob.glob("cal/*.png"))
 CALO = sorted(glob.glob("calo/*.png"))  # prep.py numbers them round robin over the three folders
 CAL_FIELD = (8, 0, 13, 2, 14, 5, 15, 7, 9)  # the field geometries of calf_*
 CALT = sorted(glob.glob("calt/*.png"))  # least textured first
+CAL5 = sorted(glob.glob("cal5/*.png"))
 BSD = sorted(glob.glob("img/*_SRF_2_HR.png"))
 SUN = sorted(glob.glob("img/*_SRF_8_HR.png"))
 OLD_VAL = sorted(BSD[:12] + SUN[:12])  # the first round's image list (indices below refer to it)
@@ -128,6 +135,25 @@ def plan():
                 else:
                     g = (i + 4 * c) % 16
                     rounds.append([(f"valf_{x}_{i}", img, x, wind(i, x), 5000 + i * 10 + int(x), field_args(g))])
+    # the fifth calibration batch: strong turbulence on every field geometry
+    cal5 = iter(CAL5)
+    for k in range(2):
+        for g in range(16):
+            for x in (3.5, 4.5):
+                jobs.append((f"calg_{x}_{g}_{k}", next(cal5), x, wind(g + k, x), 11000 + 1000 * k + 10 * g + int(x),
+                             field_args(g)))  # fmt: skip
+    # the fresh validation set
+    for c, x in enumerate(STRENGTHS):
+        for kind in ("valn", "valnf"):
+            shift = 29 * c + (11 if kind == "valnf" else 3)
+            pools = [bsd_all[shift:] + bsd_all[:shift], sun_all[shift:] + sun_all[:shift]]
+            used = set()
+            for i in range(32):
+                img = next(f for f in pools[(i + c + 1) % 2] if f not in used)
+                used.add(img)
+                seed = 20000 + 1000 * (kind == "valnf") + 10 * i + int(x)
+                extra = field_args((5 * i + 3 * c) % 16) if kind == "valnf" else []
+                rounds.append([(f"{kind}_{x}_{i}", img, x, wind(i + 5, x), seed, extra)])
     return jobs + [j for r in rounds for j in r]
 
 

@@ -3,7 +3,8 @@
 # only) and img/ (first 70 bsd100 and all 69 sunhays_outdoor images: the test folders of the fixed split, validation
 # only); img2/ (the other 30 bsd100 images: validation only, the fourth batch of gen.py); calt/ (fourth calibration:
 # the 32 least textured 256² centre crops of the train folders, by the textured fraction of the crop's inner area,
-# structure tensor as d2turb.measure; bsds500 only beyond the first 100, none of calo/)
+# structure tensor as d2turb.measure; bsds500 only beyond the first 100, none of calo/); cal5/ (fifth calibration: the
+# next 64 bsds500 crops, none of calt/)
 import glob
 import os
 import sys
@@ -46,13 +47,18 @@ for folder, files in (
     ("img", sorted(glob.glob(f"{C}/bsd100/*.png"))[:70] + sorted(glob.glob(f"{C}/sunhays_outdoor/*"))[:70]),
     ("img2", sorted(glob.glob(f"{C}/bsd100/*.png"))[70:]),
     ("calt", None),
+    ("cal5", None),
 ):
     if folder == "calt":
         files = least_textured(32)
+    elif folder == "cal5":  # the fifth calibration: 64 bsds500 crops beyond the first 100, none of calt/
+        taken = {os.path.basename(f).split("_", 1)[1] for f in glob.glob("calt/*.png")}
+        files = [f for f in sorted(glob.glob(f"{C}/bsds500/*"))[100:] if os.path.basename(f).rsplit(".", 1)[0] + ".png"
+                 not in taken][:64]  # fmt: skip
     os.makedirs(folder, exist_ok=True)
     for i, f in enumerate(files):
         stem = os.path.basename(f).rsplit(".", 1)[0]
-        numbered = folder in ("calo", "calt")  # in that order (calt/: least textured first)
+        numbered = folder in ("calo", "calt", "cal5")  # in that order (calt/: least textured first)
         out = f"{folder}/{i:02d}_{stem}.png" if numbered else f"{folder}/{stem}.png"
         if os.path.exists(out):
             continue

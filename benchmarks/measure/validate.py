@@ -111,7 +111,7 @@ for d in clips:  # round-robin over D/r0
         else "bsd100"
         if "_SRF_2_" in meta["input"]
         else "other",
-        "geometry": "field" if os.path.basename(d).startswith("valf_") else "default",
+        "geometry": "field" if os.path.basename(d).startswith(("valf_", "valnf_")) else "default",
         "depth": meta["depth"],
         "footprint_px": meta["aperture_m"] / (meta["ifov_rad"] * meta["path_length_m"]),
     }
