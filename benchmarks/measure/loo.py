@@ -23,6 +23,7 @@ d_comp = np.log(sub["comp0"] / sub["comp1"])
 d_orient = np.log(sub["orient0"] / sub["orient1"])
 d_sep = np.log(sub["sep16"] / sub["sep64"])
 valid = np.array([r["valid_fraction"] for r in rows])
+small = np.log(38.1 / np.array([r["footprint_px"] for r in rows]))  # 0 at the default optics, 2.2 at 4.2 px
 one = np.ones_like(x)
 print(f"{len(rows)} calibration clips ({outdoor.sum()} outdoor, {lowtex.sum()} low texture); ln(D̂/D) rms "
       f"{np.sqrt(np.mean(e**2)):.4f}")  # fmt: skip
@@ -48,6 +49,8 @@ MODELS = {
     "strength + all three disagreements²": [one, x, d_comp**2, d_orient**2, d_sep**2],
     "strength + 1/usable area": [one, x, 1 / valid],
     "strength + noise floor (D/r0)^(-10/3)": [one, x, x ** (-10 / 3)],
+    "strength + ln(38/footprint)": [one, x, small],
+    "strength + D/r0·ln(38/footprint)": [one, x, x * small],
 }
 
 
