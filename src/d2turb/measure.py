@@ -48,37 +48,37 @@ MARGIN_PX = 8
 SEPARATIONS_PX = (16, 32, 64)  # below 16 px DIS keeps only about half of the differential power
 # registration gain ε(r, D/r0, footprint): DIS-measured / true differential-tilt power at separation r px, from
 # simulated calibration clips (crops of train-split images, never the validation images: bsds500, outdoor views of
-# camvid, strecha_mvs, sfm_landmarks, and the 32 least textured train crops; 256², 64 frames, wind 1–3 m/s, the
-# default optics and nine geometries of the "field" bank; docs/measure.md, benchmarks/measure/fitgain.py): a smooth
-# least-squares model of ln ε in ln r, ln footprint and D/r0 tabulated here. Index [footprint][D/r0][separation];
-# linear in ln footprint, D/r0 and ln r between the nodes, clamped outside (a footprint below the first node is
-# refused by measure_clip). The footprint is the tilt's correlation scale D/(ifov·L) in px (38 px for the default
-# optics).
+# camvid, strecha_mvs, sfm_landmarks, the 32 least textured train crops, and every "field" geometry at D/r0 3.5 and
+# 4.5; 256², 64 frames, wind 1–3 m/s, the default optics and the "field" bank; docs/measure.md,
+# benchmarks/measure/fitgain.py): a smooth least-squares model of ln ε in ln r, ln footprint and D/r0 tabulated here.
+# Index [footprint][D/r0][separation]; linear in ln footprint, D/r0 and ln r between the nodes, clamped outside (a
+# footprint below the first node is refused by measure_clip). The footprint is the tilt's correlation scale
+# D/(ifov·L) in px (38 px for the default optics).
 GAIN_FOOTPRINT_PX = (4.0, 8.0, 16.0, 38.1)
 GAIN_DR0 = (1.5, 2.5, 3.5, 4.5)
 GAIN_SEPARATIONS_PX = (16, 32, 64)
 GAIN_TABLE = (
-    ((0.470, 0.589, 0.694), (0.478, 0.585, 0.673), (0.486, 0.581, 0.652), (0.494, 0.576, 0.632)),
-    ((0.564, 0.686, 0.786), (0.582, 0.691, 0.772), (0.600, 0.696, 0.759), (0.619, 0.701, 0.747)),
-    ((0.652, 0.771, 0.857), (0.682, 0.788, 0.855), (0.714, 0.805, 0.853), (0.747, 0.823, 0.851)),
-    ((0.743, 0.847, 0.909), (0.792, 0.882, 0.923), (0.844, 0.917, 0.937), (0.899, 0.954, 0.952)),
+    ((0.468, 0.591, 0.700), (0.472, 0.583, 0.676), (0.476, 0.576, 0.653), (0.480, 0.568, 0.631)),
+    ((0.558, 0.683, 0.785), (0.572, 0.685, 0.770), (0.586, 0.687, 0.756), (0.600, 0.688, 0.741)),
+    ((0.646, 0.766, 0.853), (0.672, 0.780, 0.850), (0.699, 0.795, 0.847), (0.727, 0.809, 0.844)),
+    ((0.743, 0.848, 0.907), (0.788, 0.880, 0.922), (0.836, 0.914, 0.937), (0.887, 0.949, 0.952)),
 )
 # the interval: ln D̂ ± z·sqrt(s_tiles² + s_clip²), s_tiles the sd of ln D̂ over the tile bootstrap and s_clip the
 # clip-to-clip scatter of ln(D̂/D) that the tiles do not see: the registration gain varies with the scene's texture,
 # and the tiles of one clip share its turbulence at scales larger than a tile. s_clip from the calibration clips,
 # the gain model refitted without each clip: per clip ln(D̂/D)² minus its bootstrap variance, least squares against
-# D/r0; per D/r0 of GAIN_DR0, linear between, clamped outside (benchmarks/measure/fitgain.py; 108 accepted
-# calibration clips, 31 of them outdoor scenes, 18 low-texture crops)
-CLIP_LOG_SD = (0.041, 0.040, 0.040, 0.040)
+# D/r0 (the scatter grows with the strength); per D/r0 of GAIN_DR0, linear between, clamped outside
+# (benchmarks/measure/fitgain.py; 156 accepted calibration clips, 31 of them outdoor scenes, 18 low-texture crops)
+CLIP_LOG_SD = (0.037, 0.041, 0.044, 0.047)
 # a shorter window samples less of the turbulence: the clip term's variance grows by CLIP_WINDOW_VAR·(64/T − 1),
 # fitted on the calibration clips' windows of 16 and 32 frames with their 64-frame estimates (fitgain.py)
 CLIP_FRAMES = 64
-CLIP_WINDOW_VAR = 0.00067
-# two-sided 90 %: the Student-t quantile t_0.95 with the degrees of freedom of the clip term's fit (108 clips, two
-# coefficients: 106), since s_clip is estimated from a finite number of clips; the normal Φ⁻¹(0.95) = 1.6449 is its
+CLIP_WINDOW_VAR = 0.00061
+# two-sided 90 %: the Student-t quantile t_0.95 with the degrees of freedom of the clip term's fit (156 clips, two
+# coefficients: 154), since s_clip is estimated from a finite number of clips; the normal Φ⁻¹(0.95) = 1.6449 is its
 # limit
-CLIP_DOF = 106
-Z90 = 1.6593560339471853  # scipy.stats.t.ppf(0.95, 106)
+CLIP_DOF = 154
+Z90 = 1.6548083854766773  # scipy.stats.t.ppf(0.95, 154)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
 BOIL_GRID = (0.0, 0.03, 0.1, 0.3)
