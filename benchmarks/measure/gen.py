@@ -15,15 +15,15 @@
 #   calt_X_i  fourth calibration (issue 28): the 32 least textured train crops (calt/, prep.py), i = 0…7 per
 #             strength, default optics for even i, a field geometry of calf_* for odd i; strength c gets crops
 #             4·i + c of the texture ranking, so every strength sees the whole texture range
-#   calg_X_g  fifth calibration (issue 28): every geometry g of the field bank at D/r0 3.5 and 4.5, two train crops
+#   val_X_17…39, valf_X_16…39  a fourth validation batch, fixed before any of its clips was simulated: every cell
+#             brought to 40 clips, scene types alternating, images of bsd100 (img/ and img2/) and sunhays_outdoor
+#             never repeated within a cell (first unused in a per-cell rotation of each list)
+#   calg_X_g_k  fifth calibration (issue 28): every geometry g of the field bank at D/r0 3.5 and 4.5, crops k = 0, 1
 #             each (cal5/, prep.py): the regime where the fourth validation's field 4.5 cell covered 76 % had 4
 #             accepted calibration clips of footprint < 10 px
 #   valn_X_i, valnf_X_i  a fresh validation set (after the fifth calibration), i = 0…31 per strength: new seeds, new
 #             winds, the field geometry (5·i + 3·strength index) mod 16, scene types alternating, no image twice in a
 #             cell; the 40-clip set above has informed four calibrations and is not used to judge the fifth
-#   val_X_17…39, valf_X_16…39  a fourth validation batch, fixed before any of its clips was simulated: every cell
-#             brought to 40 clips, scene types alternating, images of bsd100 (img/ and img2/) and sunhays_outdoor
-#             never repeated within a cell (first unused in a per-cell rotation of each list)
 # All: 64 frames at 30 fps, boiling 0.1, wind 1–3 m/s, --save-flow, --no-mp4; --depth none except vald_*.
 import glob
 import json
