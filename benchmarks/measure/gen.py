@@ -19,7 +19,7 @@
 #             brought to 40 clips, scene types alternating, images of bsd100 (img/ and img2/) and sunhays_outdoor
 #             never repeated within a cell (first unused in a per-cell rotation of each list)
 #   calg_X_g_k  fifth calibration (issue 28): every geometry g of the field bank at D/r0 3.5 and 4.5, crops k = 0, 1
-#             each (cal5/, prep.py): the regime where the fourth validation's field 4.5 cell covered 76 % had 4
+#             (cal5/, prep.py): the regime where the fourth validation's field 4.5 cell covered 76 % had 4
 #             accepted calibration clips of footprint < 10 px
 #   valn_X_i, valnf_X_i  a fresh validation set (after the fifth calibration), i = 0…31 per strength: new seeds, new
 #             winds, the field geometry (5·i + 3·strength index) mod 16, scene types alternating, no image twice in a
