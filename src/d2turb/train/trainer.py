@@ -14,6 +14,7 @@ afterwards. DDP plumbing: :mod:`d2turb.train.distributed`; validation: :mod:`d2t
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import os
@@ -337,6 +338,9 @@ class Trainer:
 
     def close(self) -> None:
         """Leave the process group (after every rank got here); the DDP wrapper, whose reducer holds the group,
-        goes first."""
+        goes first. DDP sits in reference cycles (its hooks), so it is collected here, not at interpreter exit after
+        the group is gone, where gloo's worker threads can abort the process ("terminate called without an active
+        exception", pytorch/pytorch#190489)."""
         self.ddp = self.model
+        gc.collect()
         shutdown(self.world)
