@@ -225,6 +225,13 @@ def test_bins_and_sampling():
         sample_dr0(3, 4.0, 2.0)
 
 
+def test_lambda_over_d_px_against_hand_values():
+    # default ifov = λ/(2D): Nyquist, 2 px; λ = 525 nm, D = 0.1 m, ifov = 5e-6 rad: 5.25e-6 / 5e-6 = 1.05 px
+    assert TurbulenceParams().lambda_over_d_px == pytest.approx(2.0, rel=1e-12)
+    p = TurbulenceParams(wavelength_m=525e-9, aperture_m=0.1, ifov_rad=5e-6)
+    assert p.lambda_over_d_px == pytest.approx(1.05, rel=1e-12)
+
+
 def test_rgb_wavelengths_blur_blue_less_in_pixels_than_red():
     """Per-channel wavelength: the same path difference, own PSF sampling; diffraction grows with λ."""
     s = Simulator(TurbulenceParams(wavelength_m=(650e-9, 525e-9, 450e-9), dr0=1.0))

@@ -39,8 +39,7 @@ def _physics_for(record: dict, depth: torch.Tensor) -> PhysicsDeblur:
     """The physics deblur at the clip's true D/r0 and optics, with the mean depth modulation of Eq. 4."""
     params = TurbulenceParams(**{k: v for k, v in record.get("params", {}).items() if k in _PARAM_KEYS})
     m = depth_modulation(depth[None], params.modulation, params.offset_s)
-    lambda_over_d_px = params.reference_wavelength / (params.aperture_m * params.ifov_rad)
-    return PhysicsDeblur(float(record["dr0"]), lambda_over_d_px, modulation=float(m.mean()))
+    return PhysicsDeblur(float(record["dr0"]), params.lambda_over_d_px, modulation=float(m.mean()))
 
 
 _PARAM_KEYS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "modulation", "offset_s")

@@ -184,10 +184,6 @@ def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
         raise D2TurbError(f"--param: {exc}") from exc
 
 
-def _lambda_over_d_px(p: TurbulenceParams) -> float:
-    return p.reference_wavelength / (p.aperture_m * p.ifov_rad)
-
-
 def _measured_dr0(head: list, params: dict) -> float:
     """D/r0 measured on the clip's first frames ``head`` (d2turb.measure); D2TurbError if it cannot be."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
@@ -199,7 +195,7 @@ def _registration_dr0(head: list, params: dict) -> float:
     for a clip that d2turb.measure refuses; D2TurbError if it cannot be registered either."""
     if len(head) < 2:
         raise D2TurbError(f"a clip needs at least 2 frames, got {len(head)}")
-    return registration_dr0(head, _lambda_over_d_px(_turbulence_params(params)))
+    return registration_dr0(head, _turbulence_params(params).lambda_over_d_px)
 
 
 def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64):
@@ -237,9 +233,8 @@ def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", 
                     file=sys.stderr,
                 )
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
-        lambda_over_d_px = _lambda_over_d_px(p)
-        deblur = PhysicsDeblur(p.dr0, lambda_over_d_px)
-        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {lambda_over_d_px:.3g} px)"
+        deblur = PhysicsDeblur(p.dr0, p.lambda_over_d_px)
+        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px)"
     restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
     return restorer.restore, restorer.name
 

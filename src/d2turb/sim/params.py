@@ -168,6 +168,11 @@ class TurbulenceParams:
     def r0_m(self) -> float:
         return self.aperture_m / self.dr0
 
+    @property
+    def lambda_over_d_px(self) -> float:
+        """λ/(D·ifov) at the reference wavelength: the diffraction angle in pixels (2 = Nyquist sampling)."""
+        return self.reference_wavelength / (self.aperture_m * self.ifov_rad)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["wavelength_m"] = list(self.wavelengths) if len(self.wavelengths) == 3 else self.wavelength_m
