@@ -2,7 +2,7 @@
 
     PYTHONPATH=src python3 benchmarks/clip_real_niqe.py [--data ../shared/data/real] [--clips NAME ...]
         [--fusion mean fba] [--deblur physics ...] [--temporal 32] [--frames 96] [--stride 6] [--dr0-cache FILE]
-        [--json FILE]
+        [--controls] [--json FILE]
 
 For each clip: D/r0 as ``d2turb restore --deblur auto`` finds it: measured by ``d2turb.measure.measure_clip`` on its
 first 64 frames (default optics, 50 bootstrap resamples), or, for a clip the measurement refuses, estimated from the
@@ -25,13 +25,21 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.measure import measure_clip
-from d2turb.restore.clip import ClipFrame, ClipRestorer, PhysicsDeblur, flow_variance_px2, registration_dr0
+from d2turb.restore.clip import (
+    ClipFrame,
+    ClipRestorer,
+    PhysicsDeblur,
+    default_balance,
+    flow_variance_px2,
+    registration_dr0,
+)
 from d2turb.restore.files import MEASURE_FRAMES, clip_frames
 from d2turb.restore.single import Restorer
 
@@ -48,9 +56,10 @@ RESIDUAL_TO_OBSERVED = 0.6  # validation clips: σ of the residual misregistrati
 def physics_variants(name: str, dr0, flows: list, lambda_over_d_px: float = 2.0):
     """(deblur of a fused frame, deblur of a single frame, description) of a variant, or None (no D/r0).
 
-    physics: the default (``PhysicsDeblur(dr0)``) on both; jitter: the fused frame's OTF also carries the residual
-    registration jitter, σ = RESIDUAL_TO_OBSERVED × the rms of the clip's registered flows (the single frame has
-    none); ``model:NAME``: the restoration model NAME (a weights name or file) on both, as ``--deblur NAME``
+    physics: the default (``PhysicsDeblur(dr0)``) on both; ``physics@M``: the same with M times its Wiener weight
+    (the Laplacian prior's balance, ``default_balance(dr0)``) on both; jitter: the fused frame's OTF also carries
+    the residual registration jitter, σ = RESIDUAL_TO_OBSERVED × the rms of the clip's registered flows (the single
+    frame has none); ``model:NAME``: the restoration model NAME (a weights name or file) on both, as ``--deblur NAME``
     and single-frame ``restore --weights NAME`` do (no D/r0 needed)."""
     if name.startswith("model:"):
         restore = Restorer(name.split(":", 1)[1]).restore
@@ -60,6 +69,10 @@ def physics_variants(name: str, dr0, flows: list, lambda_over_d_px: float = 2.0)
     desc = f"D/r0 {dr0:.3g}"
     if name == "physics":
         return PhysicsDeblur(dr0, lambda_over_d_px), PhysicsDeblur(dr0, lambda_over_d_px), desc
+    if name.startswith("physics@"):
+        balance = float(name.split("@", 1)[1]) * default_balance(dr0)
+        deblur = PhysicsDeblur(dr0, lambda_over_d_px, balance=balance)
+        return deblur, deblur, desc + f", balance {balance:.3g}"
     if name == "jitter":
         jit = RESIDUAL_TO_OBSERVED * float(np.mean([flow_variance_px2(f) for f in flows])) ** 0.5
         return (
@@ -100,7 +113,31 @@ def _measure(path: Path, refused: str) -> dict:
         return {"dr0": dr0, "refused": str(exc), "source": f"{refused}"}
 
 
-def run_clip(path: Path, dr0, fusion: str, variants: list[str], temporal: int, frames: int, stride: int) -> dict:
+def _u8(x: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray((x.permute(1, 2, 0).numpy() * 255).round().clip(0, 255).astype(np.uint8))
+
+
+def _f32(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(a.astype(np.float32) / 255).permute(2, 0, 1)
+
+
+# Controls: what NIQE makes of a light denoise of the input frame alone (no fusion, no deblur)
+CONTROLS = {
+    "input + Gaussian 0.5 px": lambda x: _f32(cv2.GaussianBlur(_u8(x), (0, 0), 0.5)),
+    "input + NL-means h 3": lambda x: _f32(cv2.fastNlMeansDenoisingColored(_u8(x), None, 3, 3, 7, 21)),
+}
+
+
+def run_clip(
+    path: Path,
+    dr0,
+    fusion: str,
+    variants: list[str],
+    temporal: int,
+    frames: int,
+    stride: int,
+    controls: bool = False,
+) -> dict:
     clip = _frames(path, frames)
     wanted = set(range(0, len(clip), stride))
     restorer = _Sampled(wanted, temporal=temporal, fusion=fusion)
@@ -117,6 +154,8 @@ def run_clip(path: Path, dr0, fusion: str, variants: list[str], temporal: int, f
     for i in sorted(wanted):
         rows["input"].append(float(niqe(clip[i])))
         rows["fused"].append(float(niqe(fused[i])))
+    for name, control in CONTROLS.items() if controls else ():
+        rows[name] = [float(niqe(control(clip[i]))) for i in sorted(wanted)]
     for name in variants:
         built = physics_variants(name, dr0, flows)
         if built is None:
@@ -148,6 +187,7 @@ def main() -> None:
     ap.add_argument(
         "--refused", default="registration", choices=["none", "registration"], help="D/r0 when measure refuses"
     )
+    ap.add_argument("--controls", action="store_true", help="also a light denoise of the input frame (CONTROLS)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     cache = json.loads(args.dr0_cache.read_text()) if args.dr0_cache and args.dr0_cache.exists() else {}
@@ -165,7 +205,7 @@ def main() -> None:
         entry = {"measured": cache[name]}
         for fusion in args.fusion:
             entry[fusion] = run_clip(
-                path, cache[name]["dr0"], fusion, args.deblur, args.temporal, args.frames, args.stride
+                path, cache[name]["dr0"], fusion, args.deblur, args.temporal, args.frames, args.stride, args.controls
             )
             print(name, fusion, json.dumps(entry[fusion]["niqe"]), flush=True)
         result["clips"][name] = entry

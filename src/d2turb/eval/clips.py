@@ -35,7 +35,7 @@ def _deblurs(names: list[str], device: str) -> dict[str, Callable | str]:
     return out
 
 
-def _physics_for(record: dict, depth: torch.Tensor) -> PhysicsDeblur:
+def physics_deblur_for(record: dict, depth: torch.Tensor) -> PhysicsDeblur:
     """The physics deblur at the clip's true D/r0 and optics, with the mean depth modulation of Eq. 4."""
     params = TurbulenceParams(**{k: v for k, v in record.get("params", {}).items() if k in _PARAM_KEYS})
     m = depth_modulation(depth[None], params.modulation, params.offset_s)
@@ -103,7 +103,7 @@ def evaluate_clips(
     for idx in range(n):
         item, record = data[idx], data.records[idx]
         deblurs = {
-            name: (_physics_for(record, item["depth"]) if fn == "physics" else fn) for name, fn in options.items()
+            name: (physics_deblur_for(record, item["depth"]) if fn == "physics" else fn) for name, fn in options.items()
         }
         restorer = ClipRestorer(temporal=temporal, preset=preset, passes=passes, fusion=fusion)
         frame_means = _clip_scores(item, deblurs, restorer, stride)
