@@ -5,11 +5,11 @@
 
 DATASET_DIR is a sequence dataset (``d2turb make-dataset --frames N``). For each clip, ``ClipRestorer(temporal)``
 with the physics deblur at the clip's true D/r0 and optics (as ``d2turb evaluate --clips`` does), and for every
-``--stride``-th frame from ``--first``: NIQE and PSNR against the clean image of the input frame, the fused frame,
-the restored frame, the same Wiener filter on the single input frame (the comparison of issue 23's acceptance 2)
-and the clean image itself. Per clip, whether the restored frames' mean NIQE is below both the input's and the
-single-frame filter's (the acceptance's test), and whether the clean image's is below the input's. Means per bin;
-prints and writes one JSON object.
+``--stride``-th frame from ``--first``: NIQE, PIQE and PSNR against the clean image of the input frame, the fused
+frame, the restored frame, the same Wiener filter on the single input frame (the comparison of issue 23's acceptance
+2) and the clean image itself. Per clip and score, whether the restored frames' mean is below both the input's and
+the single-frame filter's (the acceptance's test), and whether the clean image's is below the input's. Means per
+bin; prints and writes one JSON object.
 """
 
 from __future__ import annotations
@@ -27,10 +27,16 @@ from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for
 from d2turb.eval.metrics import psnr
 from d2turb.eval.niqe import niqe
+from d2turb.eval.piqe import piqe
 from d2turb.restore.clip import ClipRestorer
 
 ROWS = ("input", "fused", "restored", "single-frame filter", "clean")
 BINS = ("weak", "medium", "strong")
+
+
+def _restored_passes(mean: dict[str, float]) -> bool:
+    """Issue 23's acceptance 2 on one clip: the restored frames score below the input and the single-frame filter."""
+    return mean["restored"] < min(mean["input"], mean["single-frame filter"])
 
 
 def main() -> None:
@@ -61,8 +67,10 @@ def main() -> None:
             }
             for r, x in images.items():
                 x = (x.clamp(0, 1) * 255).round() / 255
-                scores[r].append((float(niqe(x)), float(psnr(x, item["gt"])) if r != "clean" else None))
+                truth = float(psnr(x, item["gt"])) if r != "clean" else None
+                scores[r].append((float(niqe(x)), float(piqe(x)), truth))
         niqe_mean = {r: float(np.mean([s[0] for s in v])) for r, v in scores.items()}
+        piqe_mean = {r: float(np.mean([s[1] for s in v])) for r, v in scores.items()}
         for r, v in scores.items():
             per_bin[(record["bin"], r)].extend(v)
         clips.append(
@@ -71,8 +79,12 @@ def main() -> None:
                 "bin": record["bin"],
                 "dr0": round(float(record["dr0"]), 3),
                 "niqe": {r: round(v, 3) for r, v in niqe_mean.items()},
+                "piqe": {r: round(v, 2) for r, v in piqe_mean.items()},
                 "restored_passes": niqe_mean["restored"] < min(niqe_mean["input"], niqe_mean["single-frame filter"]),
                 "clean_below_input": niqe_mean["clean"] < niqe_mean["input"],
+                "piqe_restored_passes": piqe_mean["restored"]
+                < min(piqe_mean["input"], piqe_mean["single-frame filter"]),
+                "piqe_clean_below_input": piqe_mean["clean"] < piqe_mean["input"],
             }
         )
         print(json.dumps(clips[-1]), flush=True)
@@ -80,7 +92,8 @@ def main() -> None:
         b: {
             r: {
                 "niqe": round(float(np.mean([s[0] for s in per_bin[(b, r)]])), 3),
-                "psnr": None if r == "clean" else round(float(np.mean([s[1] for s in per_bin[(b, r)]])), 2),
+                "piqe": round(float(np.mean([s[1] for s in per_bin[(b, r)]])), 2),
+                "psnr": None if r == "clean" else round(float(np.mean([s[2] for s in per_bin[(b, r)]])), 2),
             }
             for r in ROWS
         }
@@ -93,6 +106,8 @@ def main() -> None:
         "per_bin": table,
         "clips_restored_pass": sum(c["restored_passes"] for c in clips),
         "clips_clean_below_input": sum(c["clean_below_input"] for c in clips),
+        "clips_piqe_restored_pass": sum(c["piqe_restored_passes"] for c in clips),
+        "clips_piqe_clean_below_input": sum(c["piqe_clean_below_input"] for c in clips),
         "clips": clips,
     }
     text = json.dumps(result, indent=1)
