@@ -80,10 +80,9 @@ def main() -> None:
                 "dr0": round(float(record["dr0"]), 3),
                 "niqe": {r: round(v, 3) for r, v in niqe_mean.items()},
                 "piqe": {r: round(v, 2) for r, v in piqe_mean.items()},
-                "restored_passes": niqe_mean["restored"] < min(niqe_mean["input"], niqe_mean["single-frame filter"]),
+                "restored_passes": _restored_passes(niqe_mean),
                 "clean_below_input": niqe_mean["clean"] < niqe_mean["input"],
-                "piqe_restored_passes": piqe_mean["restored"]
-                < min(piqe_mean["input"], piqe_mean["single-frame filter"]),
+                "piqe_restored_passes": _restored_passes(piqe_mean),
                 "piqe_clean_below_input": piqe_mean["clean"] < piqe_mean["input"],
             }
         )
