@@ -25,7 +25,7 @@ import torch
 
 from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for
-from d2turb.eval.metrics import psnr
+from d2turb.eval.metrics import psnr, quantise_8bit
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
 from d2turb.restore.clip import ClipRestorer
@@ -66,7 +66,7 @@ def main() -> None:
                 "clean": item["gt"],
             }
             for r, x in images.items():
-                x = (x.clamp(0, 1) * 255).round() / 255
+                x = quantise_8bit(x)
                 truth = float(psnr(x, item["gt"])) if r != "clean" else None
                 scores[r].append((float(niqe(x)), float(piqe(x)), truth))
         niqe_mean = {r: float(np.mean([s[0] for s in v])) for r, v in scores.items()}

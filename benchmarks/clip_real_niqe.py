@@ -31,6 +31,7 @@ import torch
 
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
+from d2turb.io import to_uint8
 from d2turb.measure import measure_clip
 from d2turb.restore.clip import (
     ClipFrame,
@@ -113,18 +114,14 @@ def _measure(path: Path, refused: str) -> dict:
         return {"dr0": dr0, "refused": str(exc), "source": f"{refused}"}
 
 
-def _u8(x: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray((x.permute(1, 2, 0).numpy() * 255).round().clip(0, 255).astype(np.uint8))
-
-
 def _f32(a: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(a.astype(np.float32) / 255).permute(2, 0, 1)
 
 
 # Controls: what NIQE makes of a light denoise of the input frame alone (no fusion, no deblur)
 CONTROLS = {
-    "input + Gaussian 0.5 px": lambda x: _f32(cv2.GaussianBlur(_u8(x), (0, 0), 0.5)),
-    "input + NL-means h 3": lambda x: _f32(cv2.fastNlMeansDenoisingColored(_u8(x), None, 3, 3, 7, 21)),
+    "input + Gaussian 0.5 px": lambda x: _f32(cv2.GaussianBlur(to_uint8(x), (0, 0), 0.5)),
+    "input + NL-means h 3": lambda x: _f32(cv2.fastNlMeansDenoisingColored(to_uint8(x), None, 3, 3, 7, 21)),
 }
 
 

@@ -13,13 +13,12 @@ import argparse
 from pathlib import Path
 
 import cv2
-import numpy as np
 import torch
 from PIL import Image
 
 from d2turb.eval.niqe import niqe
 from d2turb.eval.report import comparison_grid
-from d2turb.io import list_images, read_image
+from d2turb.io import list_images, read_image, to_uint8
 from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,8 +35,8 @@ def main() -> None:
     outputs = ClipRestorer(temporal=32, deblur=deblur).restore(frames)
     restored = next(out.restored for out in outputs if out.index == FRAME)
     frame = frames[FRAME]
-    u8 = np.ascontiguousarray((frame.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8))
-    denoised = torch.from_numpy(cv2.fastNlMeansDenoisingColored(u8, None, 3, 3, 7, 21) / 255.0).permute(2, 0, 1)
+    denoised = cv2.fastNlMeansDenoisingColored(to_uint8(frame), None, 3, 3, 7, 21)
+    denoised = torch.from_numpy(denoised / 255.0).permute(2, 0, 1)
     images = {
         "input": frame,
         "input, NL-means h 3": denoised.float(),

@@ -25,7 +25,7 @@ import torch
 
 from d2turb.data.datasets import PairDataset
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import psnr, ssim
+from d2turb.eval.metrics import psnr, quantise_8bit, ssim
 from d2turb.eval.niqe import niqe
 from d2turb.io import read_image
 from d2turb.restore.single import Restorer
@@ -41,10 +41,6 @@ def unsharp(image: torch.Tensor, sigma: float, amount: float) -> torch.Tensor:
     hwc = np.ascontiguousarray(image.permute(1, 2, 0).numpy())
     low = cv2.GaussianBlur(hwc, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     return torch.from_numpy(hwc + amount * (hwc - low)).permute(2, 0, 1).clamp(0, 1)
-
-
-def _quantise(x: torch.Tensor) -> torch.Tensor:
-    return (x.clamp(0, 1) * 255.0).round() / 255.0
 
 
 def _real_frames(folder: Path) -> list[tuple[str, torch.Tensor]]:
@@ -87,9 +83,9 @@ def main() -> None:
     for name, sigma, amount, outs, reals in rows:
         per_bin = {b: [] for b in BINS}
         for it, y in zip(items, outs):
-            y = _quantise(y)
+            y = quantise_8bit(y)
             per_bin[BINS[int(it["bin"])]].append((float(psnr(y, it["gt"])), float(ssim(y, it["gt"]))))
-        real_niqe = {n: float(niqe(_quantise(y))) for n, y in reals}
+        real_niqe = {n: float(niqe(quantise_8bit(y))) for n, y in reals}
         airport = [v for n, v in real_niqe.items() if n.startswith("airport")]
         other = [v for n, v in real_niqe.items() if not n.startswith("airport")]
         row = {
@@ -98,7 +94,7 @@ def main() -> None:
             "amount": amount,
             "psnr": {b: round(float(np.mean([v[0] for v in per_bin[b]])), 3) for b in BINS},
             "ssim": {b: round(float(np.mean([v[1] for v in per_bin[b]])), 4) for b in BINS},
-            "val_niqe": round(float(np.mean([float(niqe(_quantise(y))) for y in outs])), 3),
+            "val_niqe": round(float(np.mean([float(niqe(quantise_8bit(y))) for y in outs])), 3),
             "real_niqe": {
                 "mean": round(float(np.mean(list(real_niqe.values()))), 3),
                 "airport": round(float(np.mean(airport)), 3) if airport else None,

@@ -7,7 +7,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from test_metrics_ddp import _pairs
 
 from d2turb.errors import D2TurbError
-from d2turb.eval.metrics import PSNR, SSIM, KeyedMean, psnr, ssim
+from d2turb.eval.metrics import PSNR, SSIM, KeyedMean, psnr, quantise_8bit, ssim
 
 
 @pytest.fixture(autouse=True)
@@ -123,3 +123,10 @@ def test_keyed_mean_equals_numpy_means_per_key_and_group():
         single.update({"a": torch.ones(3)}, groups=[0, 1])
     single.reset()
     assert single.compute() == {} and single.groups() == []
+
+
+def test_quantise_8bit_is_what_an_8bit_png_holds():
+    # clamped to [0, 1], then the nearest multiple of 1/255: the 8-bit levels worked out by hand
+    x = torch.tensor([-0.1, 0.0, 0.4 / 255, 0.6 / 255, 76.4 / 255, 1.2])
+    expected = np.array([0, 0, 0, 1, 76, 255], np.uint8).astype(np.float32) / 255
+    np.testing.assert_allclose(quantise_8bit(x).numpy(), expected, rtol=0, atol=1e-7)

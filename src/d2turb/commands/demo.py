@@ -108,7 +108,7 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
     A model with a rectifier also gets predicted | true flow columns and the flow end-point errors."""
     # lazy: see d2turb.commands
     from d2turb.data.samples import SAMPLE_SIZE
-    from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
+    from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, quantise_8bit, ssim
     from d2turb.eval.report import comparison_grid, flow_to_rgb
     from d2turb.io import write_image, write_text
     from d2turb.ops.splat import backward_flow
@@ -125,7 +125,7 @@ def restore_demo(weights, res, names: list[str], out, device) -> dict:
     for k, (level, value) in enumerate(LEVELS):
         for i, name in enumerate(names):
             j = k * b + i
-            restored = (details["restored"][j].clamp(0, 1) * 255).round() / 255  # what the saved PNG holds
+            restored = quantise_8bit(details["restored"][j])  # what the saved PNG holds
             write_image(out / f"{name}_{level}_restored.png", restored)
             scores = {}
             for label, image in (("input", res.turb[j].float().cpu()), ("restored", restored)):

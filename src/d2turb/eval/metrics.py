@@ -36,6 +36,12 @@ def _pair(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch
     return pred, target
 
 
+def quantise_8bit(image: torch.Tensor) -> torch.Tensor:
+    """What a user gets from the saved 8-bit PNG: ``image`` clamped to [0, 1] and rounded to multiples of 1/255 (the
+    metrics of restored images are computed on that)."""
+    return (image.clamp(0, 1) * 255.0).round() / 255.0
+
+
 def psnr(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
     """Per-image PSNR in dB, shape (B,) (capped at 100 dB for identical images)."""
     pred, target = _pair(pred, target)

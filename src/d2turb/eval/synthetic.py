@@ -20,7 +20,7 @@ from d2turb.data.layout import BIN_NAMES
 from d2turb.errors import D2TurbError
 from d2turb.eval.labels import GENERIC_STEMS, weights_label
 from d2turb.eval.lpips import LPIPS
-from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
+from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, quantise_8bit, ssim
 from d2turb.eval.report import comparison_grid, latex_table, markdown_table
 from d2turb.io import write_image, write_json, write_text
 from d2turb.restore import IdentityRestorer, Restorer
@@ -30,11 +30,6 @@ logger = logging.getLogger(__name__)
 
 ALL_METRICS = ("psnr", "ssim", "lpips", "epe", "psnr_tilt")
 DEFAULT_METRICS = ("psnr", "ssim", "lpips")
-
-
-def _quantise(x: torch.Tensor) -> torch.Tensor:
-    """What a user gets from the saved 8-bit PNG: metrics are computed on that."""
-    return (x.clamp(0, 1) * 255.0).round() / 255.0
 
 
 def _unique_names(names: list[str]) -> list[str]:
@@ -103,7 +98,7 @@ def _scores(
     details: dict, item: dict, metrics: list[str], lpips_model, device
 ) -> tuple[dict[str, float], torch.Tensor]:
     """(metric → value, the 8-bit restored image) for one model's ``restore_with_details`` output on one sample."""
-    pred, gt = _quantise(details["restored"]), item["gt"]
+    pred, gt = quantise_8bit(details["restored"]), item["gt"]
     values = {}
     if "psnr" in metrics:
         values["psnr"] = float(psnr(pred, gt))
@@ -115,7 +110,7 @@ def _scores(
     if "epe" in metrics:  # both flows are backward flows: warp(tilt, flow) ≈ gt
         values["epe"] = float(end_point_error(details["bwd_flow_px"], item["bwd_flow_px"]))
     if "psnr_tilt" in metrics:
-        values["psnr_tilt"] = float(psnr(_quantise(details["deblurred"]), item["tilt"]))
+        values["psnr_tilt"] = float(psnr(quantise_8bit(details["deblurred"]), item["tilt"]))
     return values, pred
 
 
