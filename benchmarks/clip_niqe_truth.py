@@ -54,7 +54,9 @@ def main() -> None:
         deblur = physics_deblur_for(record, item["depth"])
         frames = list(item["turb"])
         wanted = set(range(args.first, len(frames) - args.first + 1, args.stride))
+        clean = quantise_8bit(item["gt"])
         scores = {r: [] for r in ROWS}
+        scores["clean"].append((float(niqe(clean)), float(piqe(clean)), None))  # one clean image per clip
         for out in ClipRestorer(temporal=args.temporal, deblur=deblur).restore(frames):
             if out.index not in wanted:
                 continue
@@ -63,12 +65,10 @@ def main() -> None:
                 "fused": out.fused,
                 "restored": out.restored,
                 "single-frame filter": deblur(frames[out.index]),
-                "clean": item["gt"],
             }
             for r, x in images.items():
                 x = quantise_8bit(x)
-                truth = float(psnr(x, item["gt"])) if r != "clean" else None
-                scores[r].append((float(niqe(x)), float(piqe(x)), truth))
+                scores[r].append((float(niqe(x)), float(piqe(x)), float(psnr(x, item["gt"]))))
         niqe_mean = {r: float(np.mean([s[0] for s in v])) for r, v in scores.items()}
         piqe_mean = {r: float(np.mean([s[1] for s in v])) for r, v in scores.items()}
         for r, v in scores.items():
