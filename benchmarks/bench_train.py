@@ -69,7 +69,7 @@ def bench(args, pack: Path, run_dir: Path) -> dict:
 
     def batches():
         while True:
-            yield from trainer.loader
+            yield from trainer.data.loader
 
     stream = batches()
     totals = {"data": 0.0, "synthesis": 0.0, "step": 0.0}
@@ -79,7 +79,7 @@ def bench(args, pack: Path, run_dir: Path) -> dict:
         batch = next(stream)
         _sync(device)
         t1 = time.perf_counter()
-        batch = trainer._to_device(batch)
+        batch = trainer.data.to_device(batch)
         _sync(device)
         t2 = time.perf_counter()
         trainer.train_step(batch)
