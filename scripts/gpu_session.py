@@ -249,6 +249,14 @@ def main(argv=None) -> int:
     ap.add_argument("--candidates", default=",".join(CANDIDATES), help="comma-separated names of CANDIDATES")
     ap.add_argument("--budget-s", type=float, default=530.0, help="this script's wall time, start to end")
     ap.add_argument("--rehearsal", action="store_true", help="the same steps on a CPU at tiny sizes")
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override for every candidate's training (e.g. train.init_from=FILE for a second lease)",
+    )
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -292,6 +300,7 @@ def main(argv=None) -> int:
                 planned = min(planned, 4)
             sets = [f"train.iterations={planned}", f"train.max_minutes={max(minutes, 0.05):.3f}"]
             sets += [f"data.pack={pack}", f"val.pack={pack}"]
+            sets += args.overrides
             if s.rehearsal:
                 sets += REHEARSAL_SET
             elif rates[n].get("fallback_float32"):
