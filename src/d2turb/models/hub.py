@@ -35,7 +35,7 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 FORMAT = "2"  # 2: the authors' architecture is the default; files without the key are format 1
 # The shipped weights recommended for single-frame restoration: the default of `d2turb restore`, Restorer(), the demo
 # and the page (MODEL_CARD.md). Shipped weights are the package's resources/weights/NAME.safetensors.
-RECOMMENDED_WEIGHTS = "nafnet-cpu-spectral"
+RECOMMENDED_WEIGHTS = "nafnet-gpu-spectral"
 
 
 def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
