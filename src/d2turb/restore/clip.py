@@ -30,7 +30,7 @@ import torch
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
-from d2turb.restore.fusion import fourier_burst_accumulation
+from d2turb.restore.fusion import SharpestFusion, fourier_burst_accumulation, sharp_coefficients
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
 from d2turb.sim.tilt import dr0_from_tilt_variance
@@ -186,6 +186,7 @@ class _Frame:
     gray: np.ndarray  # (H,W) uint8
     flows: list = field(default_factory=list)  # per round: (H,W,2) backward flow onto that round's reference
     warped: list = field(default_factory=list)  # per round: the frame unwarped, (H,W,C) float32
+    sharp: object = None  # fusion "sharpest": the last round's SharpCoefficients (as long as that round's image)
 
 
 class ClipRestorer:
@@ -241,6 +242,7 @@ class ClipRestorer:
         source = iter(frames)
         self.flow = None
         self._sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
+        self._sharp = SharpestFusion()  # the window's current choice (fusion "sharpest")
         self.buffered = 0  # frame images held in memory (bounded by the window, not by the clip's length)
         while emitted < (length if length is not None else math.inf):
             progressed = False
@@ -301,6 +303,8 @@ class ClipRestorer:
             for level in range(1, passes + 1):
                 if j < readers[level] and len(frame.warped) >= level:
                     frame.warped[level - 1] = None
+                    if level == passes:
+                        frame.sharp = None
             if frame.raw is None and len(frame.warped) == passes and all(w is None for w in frame.warped):
                 del buf[j]
         self.buffered = sum((f.raw is not None) + sum(w is not None for w in f.warped) for f in buf.values())
@@ -349,6 +353,8 @@ class ClipRestorer:
         flow = self.flow(ref_gray, frame.gray, init)
         frame.flows = [flow]  # the last round's flow: the output's and the next round's start
         frame.warped.append(remap(frame.raw, flow))
+        if k == self.passes and self.fusion == "sharpest":
+            frame.sharp = sharp_coefficients(frame.warped[-1], ref)
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
         fused = self._reference(buf, index, self.passes, length)
@@ -356,6 +362,8 @@ class ClipRestorer:
             fused = self._robust([buf[j].warped[-1] for j in self._window(buf, index, length)], fused)
         elif self.fusion == "fba":
             fused = fourier_burst_accumulation([buf[j].warped[-1] for j in self._window(buf, index, length)])
+        elif self.fusion == "sharpest":
+            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)}, fused)
         frame = buf[index]
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:

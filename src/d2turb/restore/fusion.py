@@ -14,6 +14,9 @@ colour channels, applied to every channel. Written here because no maintained li
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -69,3 +72,131 @@ def fourier_burst_accumulation(stack: list[np.ndarray], power: float = FBA_POWER
         for k, x in enumerate(xs):
             out[y : y + tile, x : x + tile] += fused[k]
     return out[step : step + h, step : step + w].astype(np.float32)
+
+
+# -- sharpest-coefficient selection (streamed) -------------------------------------------------------------------------
+#
+# Per level of a Laplacian pyramid (Burt & Adelson 1983) each detail coefficient of the output is the registered frame's
+# coefficient with the largest colour amplitude √(Σ_c d_c²) in the window (one choice for all channels), the rule of
+# wavelet-domain fusion for turbulence (Anantrasirichai et al., IEEE TIP 2013, with a DT-CWT); the coarsest level is
+# the window's mean. A frame's coefficients are ruled out where the frame stays far from its registration reference
+# over a box (a moving object, a registration failure: the same test as the clip pipeline's fallback), so an outlier
+# is never selected. Streamed: each frame's pyramid is computed once, when it is registered, and kept (float16) while
+# a window holds it; the window's choice is updated incrementally (a frame entering is compared everywhere, a frame
+# leaving makes only the pixels it held be re-chosen among the others), so the result equals the direct argmax.
+
+SHARP_LEVELS = 3  # detail levels (the coarsest, 1/8 resolution, is the mean); 3–5 within 0.05 dB (docs/clips.md)
+_GATE_BOX = 15  # px: residual averaged over this box before the outlier test
+_GATE_LOW, _GATE_HIGH = 3.0, 6.0  # robust scales of the frame's residual: full weight → ruled out
+
+
+def laplacian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
+    """``levels`` detail images (fine to coarse) and the low-pass residual; exact inverse :func:`collapse_pyramid`."""
+    out, cur = [], np.asarray(image, dtype=np.float32)
+    for _ in range(levels):
+        down = cv2.pyrDown(cur)
+        out.append(cur - cv2.pyrUp(down, dstsize=(cur.shape[1], cur.shape[0])).reshape(cur.shape))
+        cur = down.reshape(down.shape[:2] + cur.shape[2:])
+    out.append(cur)
+    return out
+
+
+def collapse_pyramid(pyramid: list[np.ndarray]) -> np.ndarray:
+    cur = pyramid[-1]
+    for detail in reversed(pyramid[:-1]):
+        cur = cv2.pyrUp(cur, dstsize=(detail.shape[1], detail.shape[0])).reshape(detail.shape) + detail
+    return cur
+
+
+@dataclass
+class SharpCoefficients:
+    """One registered frame's detail coefficients (fine to coarse, (h,w,C) float16) and their selection amplitude
+    ((h,w) float16: colour amplitude × inlier gate, 0 where the frame is an outlier)."""
+
+    details: list
+    amplitude: list
+
+
+def outlier_gate(warped: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(H,W) float32 in [0,1]: 1 where the registered frame agrees with its reference within a few robust scales of
+    its residual (box-averaged), falling to 0 where it stays far above (a moving object, a failed registration)."""
+    r = cv2.blur(np.abs(warped - reference).mean(axis=2), (_GATE_BOX, _GATE_BOX))
+    scale = max(1.4826 * float(np.median(r)), 1e-3)
+    return np.clip((_GATE_HIGH - r / scale) / (_GATE_HIGH - _GATE_LOW), 0, 1).astype(np.float32)
+
+
+def sharp_coefficients(warped: np.ndarray, reference: np.ndarray, levels: int = SHARP_LEVELS) -> SharpCoefficients:
+    """The selection data of one registered frame ``warped`` (H,W,C) against its registration ``reference``."""
+    gate = outlier_gate(warped, reference)
+    details = laplacian_pyramid(warped, levels)[:-1]
+    amplitude = []
+    for d in details:
+        g = cv2.resize(gate, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
+        amplitude.append((np.sqrt((d * d).sum(axis=2)) * g).astype(np.float16))
+    return SharpCoefficients([d.astype(np.float16) for d in details], amplitude)
+
+
+class SharpestFusion:
+    """Streamed sharpest-coefficient fusion over a sliding window (module comment above). Call :meth:`fuse` once
+    per output with the window's frames; memory: one pyramid per frame held plus the current choice."""
+
+    def __init__(self):
+        self.members: set[int] = set()
+        self.best = None  # per level: [amplitude (h,w) f32, coefficient (h,w,C) f32, frame index (h,w) int64]
+
+    def fuse(self, window: dict[int, SharpCoefficients], mean: np.ndarray) -> np.ndarray:
+        """Fusion of the frames ``window`` (index → coefficients) whose mean image is ``mean`` (H,W,C)."""
+        if not window:
+            raise D2TurbError("sharpest fusion needs at least one frame")
+        ids = sorted(window)
+        levels = len(window[ids[0]].details)
+        leaving = self.members - set(ids)
+        if self.best is None or len(leaving) >= len(ids) or len(self.best) != levels:
+            self.best, self.members, leaving = None, set(), set()
+        if self.best is None:
+            self.best = []
+            for d in window[ids[0]].details:
+                self.best.append(
+                    [
+                        np.full(d.shape[:2], -1.0, np.float32),
+                        np.zeros(d.shape, np.float32),
+                        np.full(d.shape[:2], -1, np.int64),
+                    ]
+                )
+        staying = [j for j in ids if j in self.members]
+        for level, (amp, coef, who) in enumerate(self.best):
+            if leaving:  # re-choose, among the frames that stay, the pixels a leaving frame held
+                idx = np.flatnonzero(np.isin(who, list(leaving)))
+                amp.flat[idx], who.flat[idx] = -1.0, -1
+                a_flat, w_flat, c_flat = amp.reshape(-1), who.reshape(-1), coef.reshape(-1, coef.shape[-1])
+                for j in staying:
+                    a = window[j].amplitude[level].reshape(-1)[idx].astype(np.float32)
+                    better = a > a_flat[idx]
+                    sel = idx[better]
+                    a_flat[sel], w_flat[sel] = a[better], j
+                    c_flat[sel] = window[j].details[level].reshape(-1, coef.shape[-1])[sel]
+            for j in ids:
+                if j in self.members:
+                    continue
+                a = window[j].amplitude[level].astype(np.float32)
+                better = a > amp
+                np.copyto(amp, a, where=better)
+                np.copyto(who, j, where=better)
+                np.copyto(coef, window[j].details[level], where=better[..., None])
+        self.members = set(ids)
+        pyramid = laplacian_pyramid(mean, levels)
+        for level, (amp, coef, _) in enumerate(self.best):
+            pyramid[level] = np.where(amp[..., None] > 0, coef, pyramid[level])  # nothing to choose: the mean's
+        return collapse_pyramid(pyramid)
+
+
+def sharpest_fusion(stack: list[np.ndarray], references: list[np.ndarray] | None = None, levels: int = SHARP_LEVELS):
+    """Sharpest-coefficient fusion of registered frames (H,W,C) at once; ``references``: each frame's registration
+    reference (default: the frames' mean). Returns (H,W,C) float32."""
+    if not stack:
+        raise D2TurbError("sharpest fusion needs at least one frame")
+    frames = [np.asarray(s, dtype=np.float32) for s in stack]
+    mean = np.mean(frames, axis=0, dtype=np.float32)
+    refs = references if references is not None else [mean] * len(frames)
+    coeffs = {i: sharp_coefficients(f, np.asarray(r, np.float32), levels) for i, (f, r) in enumerate(zip(frames, refs))}
+    return SharpestFusion().fuse(coeffs, mean)
