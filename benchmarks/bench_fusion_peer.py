@@ -8,8 +8,9 @@ For each clip of a sequence dataset (``make-dataset --frames N``, docs/clips.md)
 (DIS fast, 2 passes, window ``--temporal``) restores the clip with ``--deblur none``; every ``--stride``-th output is
 scored as fused and after the physics Wiener filter at the clip's true D/r0 and optics with its Laplacian weight × M
 and D/r0 × S for each ``--deblur M@S``. Scores are PSNR with the global offset removed: the output is moved onto
-the clean image by the sub-pixel shift that phase correlation finds between them (``skimage.registration.phase_cross_correlation``,
-1/20 px; bicubic), and both are cropped by 8 px: a clip cannot see its own mean tilt, which plain PSNR punishes.
+the clean image by the sub-pixel shift that phase correlation finds between them
+(``skimage.registration.phase_cross_correlation``, 1/20 px; bicubic), and both are cropped by 8 px: a clip cannot
+see its own mean tilt, which plain PSNR punishes.
 
 The peer (optional): the windows of every ``--peer-stride``-th output of the mean run (the same registered frames)
 are fused by ``--peer-python`` (a scratch environment with PyPI's ``dtcwt``; numpy < 2) with the fusion steps of
