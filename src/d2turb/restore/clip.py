@@ -30,7 +30,7 @@ import torch
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
-from d2turb.restore.fusion import SharpestFusion, fourier_burst_accumulation, sharp_coefficients
+from d2turb.restore.fusion import SharpestFusion, coarse_grey, fourier_burst_accumulation, sharp_coefficients
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
 from d2turb.sim.tilt import dr0_from_tilt_variance
@@ -187,6 +187,7 @@ class _Frame:
     flows: list = field(default_factory=list)  # per round: (H,W,2) backward flow onto that round's reference
     warped: list = field(default_factory=list)  # per round: the frame unwarped, (H,W,C) float32
     sharp: object = None  # fusion "sharpest": the last round's SharpCoefficients (as long as that round's image)
+    coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
 
 
 class ClipRestorer:
@@ -353,8 +354,13 @@ class ClipRestorer:
         flow = self.flow(ref_gray, frame.gray, init)
         frame.flows = [flow]  # the last round's flow: the output's and the next round's start
         frame.warped.append(remap(frame.raw, flow))
-        if k == self.passes and self.fusion == "sharpest":
-            frame.sharp = sharp_coefficients(frame.warped[-1], ref)
+        if k == self.passes and self.fusion == "sharpest":  # outliers against the median of the window's frames
+            members = [buf[j] for j in self._window(buf, index, length)]
+            for f in members:
+                if f.coarse is None:
+                    f.coarse = coarse_grey(f.raw if k == 1 else f.warped[k - 2])
+            median = np.median(np.stack([f.coarse for f in members]), axis=0)
+            frame.sharp = sharp_coefficients(frame.warped[-1], median)
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
         fused = self._reference(buf, index, self.passes, length)

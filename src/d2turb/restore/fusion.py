@@ -78,16 +78,18 @@ def fourier_burst_accumulation(stack: list[np.ndarray], power: float = FBA_POWER
 #
 # Per level of a Laplacian pyramid (Burt & Adelson 1983) each detail coefficient of the output is the registered frame's
 # coefficient with the largest colour amplitude √(Σ_c d_c²) in the window (one choice for all channels), the rule of
-# wavelet-domain fusion for turbulence (Anantrasirichai et al., IEEE TIP 2013, with a DT-CWT); the coarsest level is
-# the window's mean. A frame's coefficients are ruled out where the frame stays far from its registration reference
-# over a box (a moving object, a registration failure: the same test as the clip pipeline's fallback), so an outlier
-# is never selected. Streamed: each frame's pyramid is computed once, when it is registered, and kept (float16) while
-# a window holds it; the window's choice is updated incrementally (a frame entering is compared everywhere, a frame
-# leaving makes only the pixels it held be re-chosen among the others), so the result equals the direct argmax.
+# wavelet-domain fusion for turbulence (Anantrasirichai et al., IEEE TIP 2013, with a DT-CWT); the coarsest level
+# (1/2^L resolution) is the inliers' mean. Outliers: each frame is compared, at that coarse resolution in grey, with
+# the per-pixel median of its window's frames (a robust reference: a square that is in one frame only is not in it);
+# where the frame stays far above its robust residual scale (a moving object, a registration failure) its
+# coefficients are never chosen and its low-pass is left out of the mean. Streamed: each frame's pyramid is computed
+# once, when it is registered, and kept (float16) while a window holds it; the window's choice is updated
+# incrementally (a frame entering is compared everywhere, a frame leaving makes only the pixels it held be re-chosen
+# among the others), so the result equals the direct argmax.
 
-SHARP_LEVELS = 3  # detail levels (the coarsest, 1/8 resolution, is the mean); 3–5 within 0.05 dB (docs/clips.md)
-_GATE_BOX = 15  # px: residual averaged over this box before the outlier test
-_GATE_LOW, _GATE_HIGH = 3.0, 6.0  # robust scales of the frame's residual: full weight → ruled out
+SHARP_LEVELS = 3  # detail levels; 3–5 within 0.05 dB on the validation clips (docs/clips.md)
+_GATE_LOW, _GATE_HIGH = 3.0, 6.0  # robust scales of the frame's coarse residual: full weight → ruled out
+_GATE_FLOOR = 0.01  # least robust scale (2.5 grey levels): frames that differ only by their blur are all inliers
 
 
 def laplacian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
@@ -108,32 +110,44 @@ def collapse_pyramid(pyramid: list[np.ndarray]) -> np.ndarray:
     return cur
 
 
-@dataclass
-class SharpCoefficients:
-    """One registered frame's detail coefficients (fine to coarse, (h,w,C) float16) and their selection amplitude
-    ((h,w) float16: colour amplitude × inlier gate, 0 where the frame is an outlier)."""
+def coarse_grey(image: np.ndarray, levels: int = SHARP_LEVELS) -> np.ndarray:
+    """The grey mean over channels of ``image`` (H,W,C) area-averaged to the size of its pyramid's low-pass."""
+    h, w = image.shape[:2]
+    for _ in range(levels):
+        h, w = (h + 1) // 2, (w + 1) // 2
+    return cv2.resize(np.asarray(image, np.float32).mean(axis=2), (w, h), interpolation=cv2.INTER_AREA)
 
-    details: list
-    amplitude: list
 
-
-def outlier_gate(warped: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """(H,W) float32 in [0,1]: 1 where the registered frame agrees with its reference within a few robust scales of
-    its residual (box-averaged), falling to 0 where it stays far above (a moving object, a failed registration)."""
-    r = cv2.blur(np.abs(warped - reference).mean(axis=2), (_GATE_BOX, _GATE_BOX))
-    scale = max(1.4826 * float(np.median(r)), 1e-3)
+def outlier_gate(coarse: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(h,w) float32 in [0,1], from a frame's and its robust reference's :func:`coarse_grey`: 1 where the frame
+    agrees within a few robust scales of its residual (at least ``_GATE_FLOOR``), 0 where it stays far above (3 × 3
+    coarse pixels averaged)."""
+    r = cv2.blur(np.abs(coarse - reference), (3, 3))
+    scale = max(1.4826 * float(np.median(r)), _GATE_FLOOR)
     return np.clip((_GATE_HIGH - r / scale) / (_GATE_HIGH - _GATE_LOW), 0, 1).astype(np.float32)
 
 
+@dataclass
+class SharpCoefficients:
+    """One registered frame's selection data: detail coefficients (fine to coarse, (h,w,C) float16), their selection
+    amplitude ((h,w) float16: colour amplitude × inlier gate), the low-pass (h,w,C) and its gate (h,w) float32."""
+
+    details: list
+    amplitude: list
+    lowpass: np.ndarray
+    gate: np.ndarray
+
+
 def sharp_coefficients(warped: np.ndarray, reference: np.ndarray, levels: int = SHARP_LEVELS) -> SharpCoefficients:
-    """The selection data of one registered frame ``warped`` (H,W,C) against its registration ``reference``."""
-    gate = outlier_gate(warped, reference)
-    details = laplacian_pyramid(warped, levels)[:-1]
+    """The selection data of one registered frame ``warped`` (H,W,C); ``reference``: the per-pixel median of the
+    :func:`coarse_grey` of its window's frames."""
+    pyramid = laplacian_pyramid(warped, levels)
+    gate = outlier_gate(coarse_grey(warped, levels), reference)
     amplitude = []
-    for d in details:
-        g = cv2.resize(gate, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
+    for d in pyramid[:-1]:
+        g = cv2.resize(gate, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_LINEAR)
         amplitude.append((np.sqrt((d * d).sum(axis=2)) * g).astype(np.float16))
-    return SharpCoefficients([d.astype(np.float16) for d in details], amplitude)
+    return SharpCoefficients([d.astype(np.float16) for d in pyramid[:-1]], amplitude, pyramid[-1], gate)
 
 
 class SharpestFusion:
@@ -145,7 +159,8 @@ class SharpestFusion:
         self.best = None  # per level: [amplitude (h,w) f32, coefficient (h,w,C) f32, frame index (h,w) int64]
 
     def fuse(self, window: dict[int, SharpCoefficients], mean: np.ndarray) -> np.ndarray:
-        """Fusion of the frames ``window`` (index → coefficients) whose mean image is ``mean`` (H,W,C)."""
+        """Fusion of the frames ``window`` (index → coefficients) whose mean image is ``mean`` (H,W,C); where no
+        frame may be chosen, the mean's coefficient."""
         if not window:
             raise D2TurbError("sharpest fusion needs at least one frame")
         ids = sorted(window)
@@ -154,15 +169,10 @@ class SharpestFusion:
         if self.best is None or len(leaving) >= len(ids) or len(self.best) != levels:
             self.best, self.members, leaving = None, set(), set()
         if self.best is None:
-            self.best = []
-            for d in window[ids[0]].details:
-                self.best.append(
-                    [
-                        np.full(d.shape[:2], -1.0, np.float32),
-                        np.zeros(d.shape, np.float32),
-                        np.full(d.shape[:2], -1, np.int64),
-                    ]
-                )
+            self.best = [
+                [np.full(d.shape[:2], -1.0, np.float32), np.zeros(d.shape, np.float32), np.full(d.shape[:2], -1)]
+                for d in window[ids[0]].details
+            ]
         staying = [j for j in ids if j in self.members]
         for level, (amp, coef, who) in enumerate(self.best):
             if leaving:  # re-choose, among the frames that stay, the pixels a leaving frame held
@@ -186,17 +196,26 @@ class SharpestFusion:
         self.members = set(ids)
         pyramid = laplacian_pyramid(mean, levels)
         for level, (amp, coef, _) in enumerate(self.best):
-            pyramid[level] = np.where(amp[..., None] > 0, coef, pyramid[level])  # nothing to choose: the mean's
+            pyramid[level] = np.where(amp[..., None] > 0, coef, pyramid[level])
+        num = np.zeros_like(pyramid[-1])
+        den = np.zeros(num.shape[:2] + (1,), np.float32)
+        for j in ids:  # the inliers' mean of the low-passes (1/4^L of the pixels: computed afresh)
+            num += window[j].gate[..., None] * window[j].lowpass
+            den += window[j].gate[..., None]
+        pyramid[-1] = np.where(den > 1e-3, num / np.maximum(den, 1e-3), pyramid[-1])
         return collapse_pyramid(pyramid)
 
 
-def sharpest_fusion(stack: list[np.ndarray], references: list[np.ndarray] | None = None, levels: int = SHARP_LEVELS):
-    """Sharpest-coefficient fusion of registered frames (H,W,C) at once; ``references``: each frame's registration
-    reference (default: the frames' mean). Returns (H,W,C) float32."""
+def robust_reference(stack: list[np.ndarray], levels: int = SHARP_LEVELS) -> np.ndarray:
+    """The per-pixel median of the frames' :func:`coarse_grey` (a frame's reference for :func:`sharp_coefficients`)."""
+    return np.median(np.stack([coarse_grey(f, levels) for f in stack]), axis=0)
+
+
+def sharpest_fusion(stack: list[np.ndarray], levels: int = SHARP_LEVELS) -> np.ndarray:
+    """Sharpest-coefficient fusion of one window of registered frames (H,W,C) at once. Returns (H,W,C) float32."""
     if not stack:
         raise D2TurbError("sharpest fusion needs at least one frame")
     frames = [np.asarray(s, dtype=np.float32) for s in stack]
-    mean = np.mean(frames, axis=0, dtype=np.float32)
-    refs = references if references is not None else [mean] * len(frames)
-    coeffs = {i: sharp_coefficients(f, np.asarray(r, np.float32), levels) for i, (f, r) in enumerate(zip(frames, refs))}
-    return SharpestFusion().fuse(coeffs, mean)
+    ref = robust_reference(frames, levels)
+    coeffs = {i: sharp_coefficients(f, ref, levels) for i, f in enumerate(frames)}
+    return SharpestFusion().fuse(coeffs, np.mean(frames, axis=0, dtype=np.float32))
