@@ -82,13 +82,18 @@ def fourier_burst_accumulation(stack: list[np.ndarray], power: float = FBA_POWER
 # (1/2^L resolution) is the inliers' mean. Outliers: each frame is compared, at that coarse resolution in grey, with
 # the per-pixel median of its window's frames (a robust reference: a square that is in one frame only is not in it);
 # where the frame stays far above its robust residual scale (a moving object, a registration failure) its
-# coefficients are never chosen and its low-pass is left out of the mean. Streamed: each frame's pyramid is computed
-# once, when it is registered, and kept (float16) while a window holds it; the window's choice is updated
-# incrementally (a frame entering is compared everywhere, a frame leaving makes only the pixels it held be re-chosen
-# among the others), so the result equals the direct argmax.
+# coefficients are never chosen and its low-pass is left out of the mean; where fewer than 3/4 of the window's
+# frames are inliers (a moving object crosses the place), and where the chosen amplitude exceeds 3 × the window's
+# mean amplitude (an edge that few frames hold: misregistered, a moving object's), the mean's coefficient is kept
+# (the peer's rule is max-of-inliers, below 2 × the median amplitude; a mean can be streamed). Streamed: each
+# frame's pyramid is computed once, when it is registered, and kept (float16) while a window holds it; the window's
+# choice is updated incrementally (a frame entering is compared everywhere, a frame leaving makes only the pixels it
+# held be re-chosen among the others), so the result equals the direct argmax; the amplitudes' sum is a running sum.
 
 SHARP_LEVELS = 3  # detail levels; 3–5 within 0.05 dB on the validation clips (docs/clips.md)
 _GATE_LOW, _GATE_HIGH = 3.0, 6.0  # robust scales of the frame's coarse residual: full weight → ruled out
+_OUTSTANDING = 3.0  # a choice above this × the window's mean amplitude is replaced by the mean's coefficient
+_SHARE_LOW, _SHARE_HIGH = 0.5, 0.75  # inlier share of the window: the mean's coefficients → the choice
 _GATE_FLOOR = 0.01  # least robust scale (2.5 grey levels): frames that differ only by their blur are all inliers
 
 
@@ -157,6 +162,8 @@ class SharpestFusion:
     def __init__(self):
         self.members: set[int] = set()
         self.best = None  # per level: [amplitude (h,w) f32, coefficient (h,w,C) f32, frame index (h,w) int64]
+        self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
+        self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
 
     def fuse(self, window: dict[int, SharpCoefficients], mean: np.ndarray) -> np.ndarray:
         """Fusion of the frames ``window`` (index → coefficients) whose mean image is ``mean`` (H,W,C); where no
@@ -169,11 +176,21 @@ class SharpestFusion:
         if self.best is None or len(leaving) >= len(ids) or len(self.best) != levels:
             self.best, self.members, leaving = None, set(), set()
         if self.best is None:
+            self.amp_sum = [np.zeros(d.shape[:2], np.float32) for d in window[ids[0]].details]
+            self.amps = {}
             self.best = [
                 [np.full(d.shape[:2], -1.0, np.float32), np.zeros(d.shape, np.float32), np.full(d.shape[:2], -1)]
                 for d in window[ids[0]].details
             ]
         staying = [j for j in ids if j in self.members]
+        for j in leaving:
+            for total, a in zip(self.amp_sum, self.amps.pop(j)):
+                total -= a
+        for j in ids:
+            if j not in self.members:
+                self.amps[j] = window[j].amplitude
+                for total, a in zip(self.amp_sum, self.amps[j]):
+                    total += a
         for level, (amp, coef, who) in enumerate(self.best):
             if leaving:  # re-choose, among the frames that stay, the pixels a leaving frame held
                 idx = np.flatnonzero(np.isin(who, list(leaving)))
@@ -195,14 +212,19 @@ class SharpestFusion:
                 np.copyto(coef, window[j].details[level], where=better[..., None])
         self.members = set(ids)
         pyramid = laplacian_pyramid(mean, levels)
-        for level, (amp, coef, _) in enumerate(self.best):
-            pyramid[level] = np.where(amp[..., None] > 0, coef, pyramid[level])
         num = np.zeros_like(pyramid[-1])
         den = np.zeros(num.shape[:2] + (1,), np.float32)
         for j in ids:  # the inliers' mean of the low-passes (1/4^L of the pixels: computed afresh)
             num += window[j].gate[..., None] * window[j].lowpass
             den += window[j].gate[..., None]
-        pyramid[-1] = np.where(den > 1e-3, num / np.maximum(den, 1e-3), pyramid[-1])
+        # where too few frames of the window agree (a moving object crosses it) the choice is noise: the mean's
+        share = np.clip((den[..., 0] / len(ids) - _SHARE_LOW) / (_SHARE_HIGH - _SHARE_LOW), 0, 1)
+        pyramid[-1] = pyramid[-1] + share[..., None] * (num / np.maximum(den, 1e-3) - pyramid[-1])
+        for level, (amp, coef, _) in enumerate(self.best):
+            s = cv2.resize(share, (coef.shape[1], coef.shape[0]), interpolation=cv2.INTER_LINEAR)[..., None]
+            # nothing to choose, or the choice stands out of the window (an edge in few frames: misregistered)
+            s = np.where((amp > 0) & (amp <= _OUTSTANDING * self.amp_sum[level] / len(ids)), s[..., 0], 0)[..., None]
+            pyramid[level] = pyramid[level] + s * (coef - pyramid[level])
         return collapse_pyramid(pyramid)
 
 
