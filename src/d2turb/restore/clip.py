@@ -47,6 +47,17 @@ def default_balance(dr0: float) -> float:
     return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
 
 
+# The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
+# left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
+# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md).
+SHARPEST_DR0_SCALE = 0.5
+
+
+def deblur_dr0(dr0: float, fusion: str) -> float:
+    """The D/r0 at which the physics deblur of a clip fused by ``fusion`` models the fused frame's blur."""
+    return dr0 * SHARPEST_DR0_SCALE if fusion == "sharpest" else dr0
+
+
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
