@@ -380,7 +380,7 @@ class ClipRestorer:
         elif self.fusion == "fba":
             fused = fourier_burst_accumulation([buf[j].warped[-1] for j in self._window(buf, index, length)])
         elif self.fusion == "sharpest":
-            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)}, fused)
+            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)})
         frame = buf[index]
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:

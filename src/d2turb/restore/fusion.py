@@ -120,7 +120,8 @@ def coarse_grey(image: np.ndarray, levels: int = SHARP_LEVELS) -> np.ndarray:
     h, w = image.shape[:2]
     for _ in range(levels):
         h, w = (h + 1) // 2, (w + 1) // 2
-    return cv2.resize(np.asarray(image, np.float32).mean(axis=2), (w, h), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(np.asarray(image, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    return small.reshape(h, w, -1).mean(axis=2)
 
 
 def outlier_gate(coarse: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -163,11 +164,12 @@ class SharpestFusion:
         self.members: set[int] = set()
         self.best = None  # per level: [amplitude (h,w) f32, coefficient (h,w,C) f32, frame index (h,w) int64]
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
+        self.detail_sum = None  # per level: Σ over the members of their details (h,w,C) f32 (the mean's details)
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
 
-    def fuse(self, window: dict[int, SharpCoefficients], mean: np.ndarray) -> np.ndarray:
-        """Fusion of the frames ``window`` (index → coefficients) whose mean image is ``mean`` (H,W,C); where no
-        frame may be chosen, the mean's coefficient."""
+    def fuse(self, window: dict[int, SharpCoefficients]) -> np.ndarray:
+        """Fusion of the frames ``window`` (index → coefficients); where no frame may be chosen, the frames' mean
+        coefficient (running sums)."""
         if not window:
             raise D2TurbError("sharpest fusion needs at least one frame")
         ids = sorted(window)
@@ -177,6 +179,7 @@ class SharpestFusion:
             self.best, self.members, leaving = None, set(), set()
         if self.best is None:
             self.amp_sum = [np.zeros(d.shape[:2], np.float32) for d in window[ids[0]].details]
+            self.detail_sum = [np.zeros(d.shape, np.float32) for d in window[ids[0]].details]
             self.amps = {}
             self.best = [
                 [np.full(d.shape[:2], -1.0, np.float32), np.zeros(d.shape, np.float32), np.full(d.shape[:2], -1)]
@@ -184,13 +187,16 @@ class SharpestFusion:
             ]
         staying = [j for j in ids if j in self.members]
         for j in leaving:
-            for total, a in zip(self.amp_sum, self.amps.pop(j)):
+            amps, details = self.amps.pop(j)
+            for total, a, dsum, d in zip(self.amp_sum, amps, self.detail_sum, details):
                 total -= a
+                dsum -= d
         for j in ids:
             if j not in self.members:
-                self.amps[j] = window[j].amplitude
-                for total, a in zip(self.amp_sum, self.amps[j]):
+                self.amps[j] = (window[j].amplitude, window[j].details)
+                for total, a, dsum, d in zip(self.amp_sum, window[j].amplitude, self.detail_sum, window[j].details):
                     total += a
+                    dsum += d
         for level, (amp, coef, who) in enumerate(self.best):
             if leaving:  # re-choose, among the frames that stay, the pixels a leaving frame held
                 idx = np.flatnonzero(np.isin(who, list(leaving)))
@@ -211,12 +217,16 @@ class SharpestFusion:
                 np.copyto(who, j, where=better)
                 np.copyto(coef, window[j].details[level], where=better[..., None])
         self.members = set(ids)
-        pyramid = laplacian_pyramid(mean, levels)
-        num = np.zeros_like(pyramid[-1])
+        n = np.float32(len(ids))
+        pyramid = [total / n for total in self.detail_sum]  # the mean's details
+        low = np.zeros_like(window[ids[0]].lowpass)
+        num = np.zeros_like(low)
         den = np.zeros(num.shape[:2] + (1,), np.float32)
-        for j in ids:  # the inliers' mean of the low-passes (1/4^L of the pixels: computed afresh)
+        for j in ids:  # the low-passes' mean and the inliers' mean (1/4^L of the pixels: computed afresh)
+            low += window[j].lowpass
             num += window[j].gate[..., None] * window[j].lowpass
             den += window[j].gate[..., None]
+        pyramid.append(low / n)
         # where too few frames of the window agree (a moving object crosses it) the choice is noise: the mean's
         share = np.clip((den[..., 0] / len(ids) - _SHARE_LOW) / (_SHARE_HIGH - _SHARE_LOW), 0, 1)
         pyramid[-1] = pyramid[-1] + share[..., None] * (num / np.maximum(den, 1e-3) - pyramid[-1])
@@ -240,4 +250,4 @@ def sharpest_fusion(stack: list[np.ndarray], levels: int = SHARP_LEVELS) -> np.n
     frames = [np.asarray(s, dtype=np.float32) for s in stack]
     ref = robust_reference(frames, levels)
     coeffs = {i: sharp_coefficients(f, ref, levels) for i, f in enumerate(frames)}
-    return SharpestFusion().fuse(coeffs, np.mean(frames, axis=0, dtype=np.float32))
+    return SharpestFusion().fuse(coeffs)
