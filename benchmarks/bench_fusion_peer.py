@@ -154,6 +154,7 @@ def main() -> None:
     ap.add_argument("--temporal", type=int, default=32)
     ap.add_argument("--stride", type=int, default=4)
     ap.add_argument("--max-clips", type=int, default=None)
+    ap.add_argument("--skip", type=int, default=0, help="start at this clip")
     ap.add_argument("--peer-python", default=None, help="python of a scratch venv with dtcwt (numpy < 2)")
     ap.add_argument("--peer-src", default=None, help="a checkout of rjw57/dtcwtfusion")
     ap.add_argument("--peer-stride", type=int, default=16)
@@ -171,7 +172,7 @@ def main() -> None:
     }
     with tempfile.TemporaryDirectory() as tmp:
         peer_dir = Path(tmp) if a.peer_python else None
-        for i in range(a.n):
+        for i in range(a.skip, a.n):
             item, record = data[i], data.records[i]
             row = {"id": item["id"], "bin": record["bin"], "dr0": float(record["dr0"])}
             for k, fusion in enumerate(a.fusions):
