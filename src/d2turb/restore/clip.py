@@ -50,7 +50,7 @@ def default_balance(dr0: float) -> float:
 # The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
 # left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
 # D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md).
-SHARPEST_DR0_SCALE = 0.5
+SHARPEST_DR0_SCALE = 0.3  # 0.6 / 0.5 / 0.4 / 0.3: 0.3 best in every bin (docs/clips.md), still below the mean + Wiener
 
 
 def deblur_dr0(dr0: float, fusion: str) -> float:
