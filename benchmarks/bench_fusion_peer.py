@@ -38,6 +38,7 @@ from skimage.registration import phase_cross_correlation
 from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for
 from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
+from d2turb.restore.fusion import sharpest_fusion
 
 MARGIN = 8  # px cropped on every side before scoring
 
@@ -119,12 +120,15 @@ def score_clip(item, record, fusion, a, peer_dir=None) -> dict:
     return {k: float(np.mean(v)) for k, v in scores.items()} | {"s_per_clip": wall}
 
 
-def run_peer(a, peer_dir: Path, data) -> dict:
+def run_peer(a, peer_dir: Path, data, run_child: bool = True) -> dict:
+    """Score the peer's fusions of the saved windows beside the mean and d2turb's sharpest fusion of the same frames
+    (at once: :func:`~d2turb.restore.fusion.sharpest_fusion`, the window's median as every frame's reference)."""
     files = sorted(str(p) for p in peer_dir.glob("*.npz"))
     child = peer_dir / "peer_child.py"
     child.write_text(PEER_CHILD)
     t0 = time.perf_counter()
-    subprocess.run([a.peer_python, str(child), a.peer_src, *files], check=True)
+    if run_child:
+        subprocess.run([a.peer_python, str(child), a.peer_src, *files], check=True)
     wall = time.perf_counter() - t0
     gts = {data[i]["id"]: (data[i]["gt"].permute(1, 2, 0).numpy(), data.records[i]["bin"]) for i in range(a.n)}
     rows: dict[str, dict] = {}
@@ -132,13 +136,10 @@ def run_peer(a, peer_dir: Path, data) -> dict:
         name = Path(f).stem
         clip_id = name.rsplit("_", 1)[0]
         gt, bin_ = gts[clip_id]
-        mean = np.load(f)["stack"].mean(0)
-        for key, suffix in (
-            ("mean (same frames)", None),
-            ("dtcwt max-inlier", "_max"),
-            ("dtcwt + shrinkage", "_shrink"),
-        ):
-            img = mean if suffix is None else np.load(f[:-4] + suffix + ".npy")
+        stack = np.load(f)["stack"]
+        own = {"mean (same frames)": stack.mean(0), "sharpest (same frames)": sharpest_fusion(list(stack))}
+        for key, suffix in [(k, None) for k in own] + [("dtcwt max-inlier", "_max"), ("dtcwt + shrinkage", "_shrink")]:
+            img = own[key] if suffix is None else np.load(f[:-4] + suffix + ".npy")
             rows.setdefault(key, {}).setdefault(bin_, []).append(psnr_offset_removed(img, gt))
     out = {k: {b: float(np.mean(v)) for b, v in per.items()} for k, per in rows.items()}
     return {"bins": out, "windows": len(files), "s_per_window": wall / max(len(files), 1)}
