@@ -1,4 +1,7 @@
-"""Fourier burst accumulation (FBA): fuse registered frames of one scene whose blur differs from frame to frame.
+"""Fusions of registered frames of one scene whose blur differs from frame to frame: Fourier burst accumulation
+(below) and the sharpest-coefficient selection (``--fusion sharpest``, the second half of this module).
+
+Fourier burst accumulation (FBA):
 
 Delbracio & Sapiro, "Removing camera shake via weighted Fourier burst accumulation", IEEE TIP 24(11), 2015: each
 spatial frequency ζ of the output is a weighted mean of the frames' Fourier coefficients,
