@@ -1,7 +1,8 @@
 """Clip restoration throughput per stage and peak memory over clip length (issue 23).
 
     python3 benchmarks/bench_clip.py [--sizes 256x256 1280x720 1920x1080] [--frames 24] [--temporal 24]
-                                     [--preset fast] [--passes 2] [--rss 100 1000] [--rss-size 64x64] [--json FILE]
+                                     [--preset fast] [--passes 2] [--fusion mean] [--rss 100 1000]
+                                     [--rss-size 64x64] [--json FILE]
 
 1. ``ClipRestorer`` on a synthetic clip (a natural image under smooth random warps, so DIS has real work) at each
    size: frames/s of the whole stream with ``--deblur none`` and with the physics Wiener filter, and the time per
@@ -29,10 +30,11 @@ CHILD = """
 import sys, numpy as np
 from d2turb.restore.clip import ClipRestorer
 h, w, n, t = map(int, sys.argv[1:5])
+fusion = sys.argv[5]
 rng = np.random.default_rng(0)
 base = rng.random((h, w, 3), dtype=np.float32)
 frames = (np.clip(base + 0.02 * rng.standard_normal((h, w, 3), dtype=np.float32), 0, 1) for _ in range(n))
-count = sum(1 for _ in ClipRestorer(temporal=t).restore(frames))
+count = sum(1 for _ in ClipRestorer(temporal=t, fusion=fusion).restore(frames))
 hwm = next(ln for ln in open("/proc/self/status") if ln.startswith("VmHWM:")).split()[1]
 print("RESULT", count, hwm)  # VmHWM: this process's own peak (ru_maxrss would carry the parent's over exec)
 """
@@ -62,7 +64,7 @@ def synthetic_clip(h: int, w: int, frames: int, seed: int = 0) -> list[np.ndarra
     return out
 
 
-def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes: int) -> dict:
+def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes: int, fusion: str = "mean") -> dict:
     import d2turb.restore.clip as clip
     from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
 
@@ -70,8 +72,9 @@ def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes:
     result = {}
     for name, deblur in (("none", "none"), ("physics", PhysicsDeblur(3.0, 2.0))):
         timers = {"registration": 0.0, "unwarp_fusion": 0.0, "deblur": 0.0}
-        r = ClipRestorer(temporal=temporal, preset=preset, passes=passes, deblur=deblur)
+        r = ClipRestorer(temporal=temporal, preset=preset, passes=passes, deblur=deblur, fusion=fusion)
         originals = (clip.DenseFlow.__call__, clip.global_shift_px, clip.remap, ClipRestorer._reference)
+        sharp = (clip.sharp_coefficients, clip.SharpestFusion.fuse)
 
         def timed(key, fn, timers=timers):
             def wrapper(*args, **kwargs):
@@ -87,6 +90,8 @@ def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes:
         clip.global_shift_px = timed("registration", originals[1])
         clip.remap = timed("unwarp_fusion", originals[2])
         ClipRestorer._reference = timed("unwarp_fusion", originals[3])
+        clip.sharp_coefficients = timed("unwarp_fusion", sharp[0])
+        clip.SharpestFusion.fuse = timed("unwarp_fusion", sharp[1])
         if r.deblur is not None:
             r.deblur = timed("deblur", r.deblur)
         try:
@@ -95,6 +100,7 @@ def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes:
             wall = time.perf_counter() - t0
         finally:
             clip.DenseFlow.__call__, clip.global_shift_px, clip.remap, ClipRestorer._reference = originals
+            clip.sharp_coefficients, clip.SharpestFusion.fuse = sharp
         result[name] = {
             "frames": n,
             "frames_per_s": n / wall,
@@ -103,9 +109,11 @@ def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes:
     return result
 
 
-def peak_rss(h: int, w: int, frames: int, temporal: int) -> dict:
+def peak_rss(h: int, w: int, frames: int, temporal: int, fusion: str = "mean") -> dict:
     out = subprocess.run(
-        [sys.executable, "-c", CHILD, str(h), str(w), str(frames), str(temporal)], capture_output=True, text=True
+        [sys.executable, "-c", CHILD, str(h), str(w), str(frames), str(temporal), fusion],
+        capture_output=True,
+        text=True,
     )
     line = next(ln for ln in out.stdout.splitlines() if ln.startswith("RESULT"))
     _, count, kib = line.split()
@@ -119,6 +127,7 @@ def main() -> None:
     ap.add_argument("--temporal", type=int, default=24)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--passes", type=int, default=2)
+    ap.add_argument("--fusion", default="mean")
     ap.add_argument("--rss", nargs="*", type=int, default=[100, 1000])
     ap.add_argument("--rss-size", default="64x64")
     ap.add_argument("--json", default=None)
@@ -133,10 +142,10 @@ def main() -> None:
     }
     for size in a.sizes:
         w, h = map(int, size.split("x"))
-        res["speed"][size] = stage_times(h, w, a.frames, a.temporal, a.preset, a.passes)
+        res["speed"][size] = stage_times(h, w, a.frames, a.temporal, a.preset, a.passes, a.fusion)
     rw, rh = map(int, a.rss_size.split("x"))
     for n in a.rss:
-        res["memory"][str(n)] = peak_rss(rh, rw, n, a.temporal)
+        res["memory"][str(n)] = peak_rss(rh, rw, n, a.temporal, a.fusion)
     text = json.dumps(res, indent=1)
     print(text)
     if a.json:

@@ -160,7 +160,8 @@ def test_fba_bad_arguments_are_one_line_errors():
         fourier_burst_accumulation([])
 
 
-def test_moving_square_falls_back_to_the_frame_without_ghosts():
+@pytest.mark.parametrize("fusion", ["mean", "sharpest"])
+def test_moving_square_falls_back_to_the_frame_without_ghosts(fusion):
     img = _scene(128)
     frames, boxes = [], []
     for i in range(8):
@@ -169,7 +170,7 @@ def test_moving_square_falls_back_to_the_frame_without_ghosts():
         f[50:70, x0 : x0 + 20] = [1.0, 0.0, 0.0]
         frames.append(torch.from_numpy(f).permute(2, 0, 1).contiguous())
         boxes.append(x0)
-    outs = list(ClipRestorer(temporal=8).restore(frames))
+    outs = list(ClipRestorer(temporal=8, fusion=fusion).restore(frames))
     plain = torch.stack(frames).mean(0)
     for o in outs:
         x0 = boxes[o.index]

@@ -15,5 +15,5 @@ DEFAULT_DEPTH = "prior"
 DEFAULT_BATCH = 8
 BATCH_PIXELS = 1 << 21
 # `--fusion` of clip restoration (d2turb.restore.clip): the plain mean is the default (chosen on the validation clips)
-CLIP_FUSIONS = ("mean", "robust", "fba")
+CLIP_FUSIONS = ("mean", "robust", "fba", "sharpest")
 DEFAULT_FUSION = "mean"

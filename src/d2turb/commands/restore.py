@@ -63,7 +63,8 @@ def register(sub):
         "--fusion",
         default=DEFAULT_FUSION,
         choices=CLIP_FUSIONS,
-        help="fusion of the registered frames: mean (default), robust, fba (Fourier burst accumulation: sharper)",
+        help="fusion of the registered frames: mean (default), robust, fba (Fourier burst accumulation), sharpest "
+        "(each pyramid coefficient from the frame that kept it best: sharper; docs/clips.md)",
     )
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
     p.add_argument("--out", required=True, help="output folder")

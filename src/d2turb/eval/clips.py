@@ -17,7 +17,7 @@ from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.io import write_json, write_text
 from d2turb.models.hub import resolve_weights
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams, depth_modulation
 from d2turb.sim.params import BINS
@@ -35,11 +35,15 @@ def _deblurs(names: list[str], device: str) -> dict[str, Callable | str]:
     return out
 
 
-def physics_deblur_for(record: dict, depth: torch.Tensor) -> PhysicsDeblur:
-    """The physics deblur at the clip's true D/r0 and optics, with the mean depth modulation of Eq. 4."""
+def physics_deblur_for(record: dict, depth: torch.Tensor, fusion: str = "mean") -> PhysicsDeblur:
+    """The physics deblur at the clip's true D/r0 and optics, with the mean depth modulation of Eq. 4 (after the
+    sharpest fusion, the OTF of a weaker turbulence: :func:`~d2turb.restore.clip.deblur_dr0`)."""
     params = TurbulenceParams(**{k: v for k, v in record.get("params", {}).items() if k in _PARAM_KEYS})
     m = depth_modulation(depth[None], params.modulation, params.offset_s)
-    return PhysicsDeblur(float(record["dr0"]), params.lambda_over_d_px, modulation=float(m.mean()))
+    dr0 = float(record["dr0"])
+    return PhysicsDeblur(
+        deblur_dr0(dr0, fusion), params.lambda_over_d_px, balance=default_balance(dr0), modulation=float(m.mean())
+    )
 
 
 _PARAM_KEYS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "modulation", "offset_s")
@@ -103,7 +107,8 @@ def evaluate_clips(
     for idx in range(n):
         item, record = data[idx], data.records[idx]
         deblurs = {
-            name: (physics_deblur_for(record, item["depth"]) if fn == "physics" else fn) for name, fn in options.items()
+            name: (physics_deblur_for(record, item["depth"], fusion) if fn == "physics" else fn)
+            for name, fn in options.items()
         }
         restorer = ClipRestorer(temporal=temporal, preset=preset, passes=passes, fusion=fusion)
         frame_means = _clip_scores(item, deblurs, restorer, stride)

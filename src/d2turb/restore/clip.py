@@ -30,7 +30,7 @@ import torch
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
-from d2turb.restore.fusion import fourier_burst_accumulation
+from d2turb.restore.fusion import SharpestFusion, coarse_grey, fourier_burst_accumulation, sharp_coefficients
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
 from d2turb.sim.tilt import dr0_from_tilt_variance
@@ -45,6 +45,17 @@ BALANCE_AT_2 = 0.002
 
 def default_balance(dr0: float) -> float:
     return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
+
+
+# The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
+# left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
+# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md).
+SHARPEST_DR0_SCALE = 0.3  # 0.6 / 0.5 / 0.4 / 0.3: 0.3 best in every bin (docs/clips.md), still below the mean + Wiener
+
+
+def deblur_dr0(dr0: float, fusion: str) -> float:
+    """The D/r0 at which the physics deblur of a clip fused by ``fusion`` models the fused frame's blur."""
+    return dr0 * SHARPEST_DR0_SCALE if fusion == "sharpest" else dr0
 
 
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
@@ -186,6 +197,8 @@ class _Frame:
     gray: np.ndarray  # (H,W) uint8
     flows: list = field(default_factory=list)  # per round: (H,W,2) backward flow onto that round's reference
     warped: list = field(default_factory=list)  # per round: the frame unwarped, (H,W,C) float32
+    sharp: object = None  # fusion "sharpest": the last round's SharpCoefficients (as long as that round's image)
+    coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
 
 
 class ClipRestorer:
@@ -241,6 +254,7 @@ class ClipRestorer:
         source = iter(frames)
         self.flow = None
         self._sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
+        self._sharp = SharpestFusion()  # the window's current choice (fusion "sharpest")
         self.buffered = 0  # frame images held in memory (bounded by the window, not by the clip's length)
         while emitted < (length if length is not None else math.inf):
             progressed = False
@@ -301,6 +315,8 @@ class ClipRestorer:
             for level in range(1, passes + 1):
                 if j < readers[level] and len(frame.warped) >= level:
                     frame.warped[level - 1] = None
+                    if level == passes:
+                        frame.sharp = None
             if frame.raw is None and len(frame.warped) == passes and all(w is None for w in frame.warped):
                 del buf[j]
         self.buffered = sum((f.raw is not None) + sum(w is not None for w in f.warped) for f in buf.values())
@@ -349,6 +365,13 @@ class ClipRestorer:
         flow = self.flow(ref_gray, frame.gray, init)
         frame.flows = [flow]  # the last round's flow: the output's and the next round's start
         frame.warped.append(remap(frame.raw, flow))
+        if k == self.passes and self.fusion == "sharpest":  # outliers against the median of the window's frames
+            members = [buf[j] for j in self._window(buf, index, length)]
+            for f in members:
+                if f.coarse is None:
+                    f.coarse = coarse_grey(f.raw if k == 1 else f.warped[k - 2])
+            median = np.median(np.stack([f.coarse for f in members]), axis=0)
+            frame.sharp = sharp_coefficients(frame.warped[-1], median)
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
         fused = self._reference(buf, index, self.passes, length)
@@ -356,6 +379,8 @@ class ClipRestorer:
             fused = self._robust([buf[j].warped[-1] for j in self._window(buf, index, length)], fused)
         elif self.fusion == "fba":
             fused = fourier_burst_accumulation([buf[j].warped[-1] for j in self._window(buf, index, length)])
+        elif self.fusion == "sharpest":
+            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)})
         frame = buf[index]
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:

@@ -28,7 +28,7 @@ from d2turb.io import (
 )
 from d2turb.measure import measure_clip
 from d2turb.ops.splat import backward_flow
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, registration_dr0
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance, registration_dr0
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams
 from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps
@@ -198,7 +198,9 @@ def _registration_dr0(head: list, params: dict) -> float:
     return registration_dr0(head, _turbulence_params(params).lambda_over_d_px)
 
 
-def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64):
+def clip_deblur(
+    choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64, fusion=DEFAULT_FUSION
+):
     """The deblur step of a clip: (None, a PhysicsDeblur or a model's restore; its description).
 
     Args:
@@ -207,6 +209,8 @@ def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", 
             the rough D/r0 of :func:`~d2turb.restore.clip.registration_dr0`, or none if the clip cannot be
             registered either) or a weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
+        fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
+            (:func:`~d2turb.restore.clip.deblur_dr0`).
     """
     if choice == "none":
         return None, "none"
@@ -233,8 +237,9 @@ def clip_deblur(choice: str, src: Path, *, dr0=None, params=None, device="cpu", 
                     file=sys.stderr,
                 )
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
-        deblur = PhysicsDeblur(p.dr0, p.lambda_over_d_px)
-        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px)"
+        deblur = PhysicsDeblur(deblur_dr0(p.dr0, fusion), p.lambda_over_d_px, balance=default_balance(p.dr0))
+        model = "" if deblur.dr0 == p.dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
+        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px{model})"
     restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
     return restorer.restore, restorer.name
 
@@ -283,7 +288,7 @@ def restore_clip_files(
     restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
     device = resolve_device(device)
     restorer.deblur, deblur_name = clip_deblur(
-        deblur, src, dr0=dr0, params=params, device=device, tile=tile, overlap=overlap
+        deblur, src, dr0=dr0, params=params, device=device, tile=tile, overlap=overlap, fusion=fusion
     )
     out_dir = check_output_dir(out, inputs=list_images(src) if src.is_dir() else [src])
     errors = FileErrors(2, fail_fast)  # per frame: a bad one is reported and skipped

@@ -1,0 +1,144 @@
+"""Sharpest-coefficient fusion (d2turb.restore.fusion, ``--fusion sharpest``) against known truths: frames of one
+image blurred by different known kernels, identical frames, an outlier frame (a square that is there in one frame
+only), the streamed choice against the direct one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from skimage import data as skdata
+
+from d2turb.errors import D2TurbError
+from d2turb.restore.clip import ClipRestorer
+from d2turb.restore.fusion import (
+    SharpestFusion,
+    collapse_pyramid,
+    laplacian_pyramid,
+    robust_reference,
+    sharp_coefficients,
+    sharpest_fusion,
+)
+
+
+def _scene(size=128) -> np.ndarray:
+    img = skdata.astronaut()[100 : 100 + size, 150 : 150 + size].astype(np.float32) / 255.0
+    return np.ascontiguousarray(img)
+
+
+def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    return np.stack([ndimage.gaussian_filter(img[..., c], sigma) for c in range(3)], -1).astype(np.float32)
+
+
+INNER = (slice(12, -12), slice(12, -12))
+
+
+def _mse(x, truth):
+    return float(((x - truth)[INNER] ** 2).mean())
+
+
+def test_pyramid_collapses_back_exactly():
+    img = np.random.default_rng(0).random((53, 70, 3)).astype(np.float32)
+    for levels in (1, 3, 4):
+        np.testing.assert_allclose(collapse_pyramid(laplacian_pyramid(img, levels)), img, atol=1e-5)
+
+
+def test_frames_blurred_by_known_kernels_fuse_closer_to_the_sharp_image_than_their_mean():
+    """Six frames of one image, each blurred by a known Gaussian (σ 0.5–2.5 px, one per frame), and four frames each
+    sharp in one quadrant only (σ 0.3 there, 2 px elsewhere: anisoplanatic blur): the fusion is measurably closer to
+    the sharp image than the frames' mean."""
+    img = _scene(128)
+    stack = [_blur(img, s) for s in (0.5, 1.5, 2.5, 2.0, 1.0, 2.5)]
+    mean, fused = _mse(np.mean(stack, 0), img), _mse(sharpest_fusion(stack), img)
+    assert fused < 0.6 * mean, (fused, mean)
+
+    sharp, soft = _blur(img, 0.3), _blur(img, 2.0)
+    quads = [
+        (slice(0, 64), slice(0, 64)),
+        (slice(0, 64), slice(64, 128)),
+        (slice(64, 128), slice(0, 64)),
+        (slice(64, 128), slice(64, 128)),
+    ]
+    stack = []
+    for q in quads:
+        f = soft.copy()
+        f[q] = sharp[q]
+        stack.append(f)
+    mean, fused = _mse(np.mean(stack, 0), img), _mse(sharpest_fusion(stack), img)
+    # each quadrant mostly from the frame that holds it sharp (its finest details, above 3 × the window's mean
+    # amplitude, count as outliers and stay the mean's)
+    assert fused < 0.4 * mean, (fused, mean)
+
+
+def test_identical_frames_fuse_to_themselves():
+    img = _scene(96)
+    np.testing.assert_allclose(sharpest_fusion([img] * 5), img, atol=2e-3)  # float16 coefficients
+
+
+def test_an_outlier_frame_does_not_print_into_the_fusion():
+    """Eight noisy frames of a static scene, a red square in one of them only: the fusion of the window shows the
+    background there (within the noise), where the mean prints an eighth of the square; through the clip pipeline,
+    the outputs of the other frames show no ghost."""
+    rng = np.random.default_rng(4)
+    img = _scene(128)
+    frames = [np.clip(img + 0.01 * rng.standard_normal(img.shape), 0, 1).astype(np.float32) for _ in range(8)]
+    frames[3][50:70, 40:60] = [1.0, 0.0, 0.0]
+    square = (slice(50, 70), slice(40, 60))
+    fused = sharpest_fusion(frames)
+    ghost = float(np.abs(fused - img)[square].mean())
+    plain = float(np.abs(np.mean(frames, 0) - img)[square].mean())
+    elsewhere = float(np.abs(fused - img)[50:70, 80:100].mean())  # the fusion's own error where no square ever was
+    assert ghost < 1.5 * elsewhere and ghost < 0.2 * plain, (ghost, elsewhere, plain)
+
+    tensors = [torch.from_numpy(f).permute(2, 0, 1).contiguous() for f in frames]
+    truth = torch.from_numpy(img).permute(2, 0, 1)
+    for o in ClipRestorer(temporal=8, fusion="sharpest").restore(tensors):
+        err = float((o.fused - truth)[:, 50:70, 40:60].abs().mean())
+        if o.index == 3:
+            assert float(o.fused[0, 52:68, 42:58].mean()) > 0.9  # the frame's own object stays (its fallback)
+        else:
+            assert err < 0.02, (o.index, err)
+
+
+def test_the_streamed_choice_equals_the_direct_one():
+    """Windows sliding over a stream: the incremental choice (a leaving frame's pixels re-chosen among the others)
+    gives the fusion computed from scratch for each window (the same choice; running sums to float32 rounding)."""
+    rng = np.random.default_rng(5)
+    img = _scene(64)
+    frames = [_blur(img, s) + 0.01 * rng.standard_normal(img.shape).astype(np.float32) for s in rng.uniform(0.3, 2, 14)]
+    ref = robust_reference(frames)
+    coeffs = {i: sharp_coefficients(f, ref) for i, f in enumerate(frames)}
+    streamed = SharpestFusion()
+    for lo in [0, 0, 1, 2, 3, 4, 5, 6, 6]:
+        window = {j: coeffs[j] for j in range(lo, lo + 8)}
+        np.testing.assert_allclose(streamed.fuse(window), SharpestFusion().fuse(window), atol=1e-5)
+
+
+def test_sharpest_errors_are_one_line():
+    with pytest.raises(D2TurbError, match="at least one frame"):
+        sharpest_fusion([])
+    with pytest.raises(D2TurbError, match="at least one frame"):
+        SharpestFusion().fuse({})
+
+
+def test_the_physics_deblur_after_the_sharpest_fusion_models_a_weaker_blur():
+    from d2turb.restore.clip import SHARPEST_DR0_SCALE, deblur_dr0
+
+    assert deblur_dr0(3.0, "mean") == 3.0 and deblur_dr0(3.0, "fba") == 3.0
+    assert 0 < SHARPEST_DR0_SCALE < 1 and deblur_dr0(3.0, "sharpest") == pytest.approx(3.0 * SHARPEST_DR0_SCALE)
+
+
+def test_memory_stays_bounded_on_a_long_stream():
+    """A stream of 80 frames, window 6: the fusion holds the pyramids of one window at most, and the frames' images
+    stay bounded by the window as with the mean (about 3.5 windows' worth)."""
+    rng = np.random.default_rng(6)
+    base = _scene(32)
+    restorer = ClipRestorer(temporal=6, fusion="sharpest")
+    frames = (np.clip(base + 0.01 * rng.standard_normal(base.shape), 0, 1).astype(np.float32) for _ in range(80))
+    held, count = [], 0
+    for _ in restorer.restore(frames):
+        held.append((len(restorer._sharp.amps), restorer.buffered))
+        count += 1
+    assert count == 80
+    assert max(h[0] for h in held) <= 6 and max(h[1] for h in held) <= 4 * 6, held
