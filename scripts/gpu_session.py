@@ -246,7 +246,11 @@ def main(argv=None) -> int:
     ap.add_argument("--pack", default=None, help="training pack (default packs/clean, carried; built when missing)")
     ap.add_argument("--clean", default=None, help="clean images to build the pack from when it is missing")
     ap.add_argument("--runs", default="runs/lease", help="run folders (not brought back whole)")
-    ap.add_argument("--candidates", default=",".join(CANDIDATES), help="comma-separated names of CANDIDATES")
+    ap.add_argument(
+        "--candidates",
+        default="nafnet_ft",
+        help=f"comma-separated names of {', '.join(CANDIDATES)}; side by side they share the device (docs/training.md)",
+    )
     ap.add_argument("--budget-s", type=float, default=530.0, help="this script's wall time, start to end")
     ap.add_argument("--rehearsal", action="store_true", help="the same steps on a CPU at tiny sizes")
     ap.add_argument(

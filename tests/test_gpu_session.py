@@ -18,7 +18,7 @@ def rehearsal(tmp_path_factory):
     out, runs = tmp / "out", tmp / "runs"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "gpu_session.py"), "--rehearsal", "--out", str(out)]
-        + ["--runs", str(runs), "--budget-s", "240"],
+        + ["--runs", str(runs), "--budget-s", "240", "--candidates", "nafnet_ft,nafnet_w24"],  # two side by side
         capture_output=True,
         text=True,
         timeout=300,
