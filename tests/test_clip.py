@@ -303,30 +303,6 @@ def test_clip_video_in_video_out(tmp_path):
     assert len(list((tmp_path / "out").glob("clip_*_restored.png"))) == 5
 
 
-def test_small_frames_that_cannot_be_measured_get_the_registration_estimate(tmp_path, capsys):
-    """Frames of 56 px are too small to measure D/r0 (d2turb.measure needs 64): the default deblur says so in a
-    note and falls back to the D/r0 of the clip's registered displacement, which for a static scene (no tilt: the
-    frames differ only by noise) is the smallest allowed; the clip is registered, fused and written."""
-    from d2turb.cli import main
-    from d2turb.io import write_image
-
-    rng = np.random.default_rng(3)
-    img = _scene(56)
-    for i in range(10):
-        frame = np.clip(img + 0.01 * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
-        write_image(tmp_path / "clip" / f"f{i:02d}.png", torch.from_numpy(frame).permute(2, 0, 1))
-    assert main(["restore", str(tmp_path / "clip"), "--temporal", "4", "--out", str(tmp_path / "out")]) == 0
-    err = capsys.readouterr().err
-    assert "too small" in err and "estimated from the clip's registered displacement" in err
-    dr0 = float(err.split("deblurring at D/r0 ")[1].split()[0])
-    assert dr0 <= 0.1, err
-    assert len(list((tmp_path / "out").glob("*_restored.png"))) == 10
-    with pytest.raises(Exception, match="too small"):
-        from d2turb.measure import measure_clip
-
-        measure_clip([torch.from_numpy(img).permute(2, 0, 1)] * 10)
-
-
 def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch):
     """evaluate --clips with the dataset and the clip restorer replaced by known frames: each clip's numbers are
     numpy means over its frames (image metrics on every stride-th frame), each bin's over its clips."""

@@ -35,6 +35,7 @@ TILE_PX = 128  # tiles of the estimate (their spread is its uncertainty)
 MIN_EDGES_PER_TILE = 40  # edge pixels for a tile's median
 MIN_TILES = 3  # fewer usable tiles: not confident
 EDGE_QUANTILE = 0.90  # edge pixels: Canny edges whose gradient is above this quantile of the image's gradient
+EDGE_NOISE_FACTOR = 6.0  # ... and above this many noise σ (|∇| of Sobel/8 on white noise of σ is ~0.6σ, rarely 2σ)
 # edge width of sharp scenes: the estimate is 0 on all 23 clean set14/mcmaster images tried (their strongest edges are
 # as steep as the table's sharpest step), so nothing is removed; kept as the model's parameter
 SCENE_SIGMA_PX = 0.0
@@ -72,6 +73,14 @@ def _grad_mag(g: np.ndarray) -> np.ndarray:
     return np.sqrt(gx * gx + gy * gy)
 
 
+def noise_sigma(g: np.ndarray) -> float:
+    """Standard deviation of white noise in a grey image (Immerkær, "Fast noise variance estimation", CVIU 64(2),
+    1996): σ = √(π/2)·mean|g ⊛ N|/6 with N = [[1,−2,1],[−2,4,−2],[1,−2,1]] (blind to ramps; texture raises it)."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    r = cv2.filter2D(g, cv2.CV_32F, kernel)[1:-1, 1:-1]
+    return math.sqrt(math.pi / 2) * float(np.abs(r).mean()) / 6
+
+
 def _ratios(g: np.ndarray, quantile: float = EDGE_QUANTILE) -> tuple[np.ndarray, np.ndarray]:
     """Gradient-peak ratios R = |∇g| / |∇(g ⊛ G_σ0)| at the image's strong edge pixels, and their (y, x)."""
     mag = _grad_mag(g)
@@ -81,7 +90,7 @@ def _ratios(g: np.ndarray, quantile: float = EDGE_QUANTILE) -> tuple[np.ndarray,
     edges = cv2.Canny(u8, max(hi * 0.5, 1.0), max(hi, 2.0), L2gradient=True) > 0
     m = 6  # no borders (the filters' reflection)
     edges[:m], edges[-m:], edges[:, :m], edges[:, -m:] = False, False, False, False
-    edges &= mag >= np.quantile(mag, quantile)
+    edges &= mag >= max(float(np.quantile(mag, quantile)), EDGE_NOISE_FACTOR * noise_sigma(g))
     ys, xs = np.nonzero(edges)
     r = mag[ys, xs] / np.maximum(mag0[ys, xs], 1e-6)
     return r, np.stack([ys, xs], 1)
@@ -145,7 +154,8 @@ def estimate_blur(image, tile: int = TILE_PX) -> BlurEstimate:
         raise D2TurbError(f"an image of {w}x{h} is too small to estimate its blur (need 32 px per side)")
     r, pos = _ratios(g)
     sig = sigma_from_ratio(r)
-    ty, tx = max(1, round(h / tile)), max(1, round(w / tile))
+    # tiles of about ``tile`` px, at least 3 per side where they stay 32 px or more
+    ty, tx = (max(min(3, n // 32), round(n / tile), 1) for n in (h, w))
     key = np.minimum(pos[:, 0] * ty // h, ty - 1) * tx + np.minimum(pos[:, 1] * tx // w, tx - 1)
     medians = []
     for k in range(ty * tx):
