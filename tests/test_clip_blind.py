@@ -46,6 +46,16 @@ def test_blur_estimate_recovers_a_known_gaussian_blur(sigma):
             assert est.sigma_ci[0] <= est.sigma_px <= est.sigma_ci[1]
 
 
+def test_tabulated_ratio_table_is_the_computed_one():
+    from d2turb.restore.blur import RATIO_TABLE_R, RATIO_TABLE_SIGMA, compute_ratio_table
+
+    r, sigma = compute_ratio_table()
+    n = len(RATIO_TABLE_R)
+    np.testing.assert_allclose(RATIO_TABLE_R, r[:n], atol=2e-4)
+    np.testing.assert_allclose(RATIO_TABLE_SIGMA, sigma[:n], atol=2e-4)
+    assert np.all(np.diff(RATIO_TABLE_R) < 0)  # monotone: one σ per ratio
+
+
 def _mtf50_sigma(otf: torch.Tensor) -> float:
     """σ of the Gaussian with the same 50 % point as ``otf`` along fx: exp(−2π²σ²f50²) = 1/2."""
     f, m = pixel_frequency_grid(*otf.shape[:1], 2 * (otf.shape[1] - 1))[0], otf[0]
