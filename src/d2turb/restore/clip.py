@@ -326,7 +326,9 @@ class ClipRestorer:
             return buf[j].raw if level == 0 else buf[j].warped[level - 1]
 
         if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
-            total = np.sum([image(j) for j in members], axis=0, dtype=np.float32)
+            total = image(members[0]).copy()  # summed in place: no stack of the window's frames in memory
+            for j in members[1:]:
+                total += image(j)
             count = 0
         else:
             c_lo, c_hi, total, count = cached
