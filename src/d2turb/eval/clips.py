@@ -50,8 +50,10 @@ def remove_global_offset(image: torch.Tensor, reference: torch.Tensor) -> tuple[
     window = np.outer(np.hanning(grey[0].shape[0]), np.hanning(grey[0].shape[1]))
     start, _, _ = phase_cross_correlation(grey[1] * window, grey[0] * window, upsample_factor=20)
 
+    coeffs = ndimage.spline_filter(grey[0], order=3, mode="nearest")  # once, not per shift tried
+
     def cost(shift):
-        moved = ndimage.shift(grey[0], shift, order=3, mode="nearest")
+        moved = ndimage.shift(coeffs, shift, order=3, mode="nearest", prefilter=False)
         return float(((moved - grey[1])[inner] ** 2).mean())
 
     start = start if np.abs(start).max() <= MAX_OFFSET_PX else np.zeros(2)
