@@ -263,3 +263,21 @@ def test_unreliable_estimate_gives_no_deblur_and_one_note(tmp_path, capsys):
     assert len(notes) == 1 and "no deblurring" in notes[0] and "--dr0" in notes[0], notes
     record = json.loads((tmp_path / "out" / "restore.json").read_text())["deblur"]
     assert record["sigma_px"] == 0.0 and not record["estimate"]["confident"]
+
+
+def test_a_blur_that_varies_across_the_image_is_deblurred_only_where_all_of_it_is_blurred():
+    """Top half sharp, bottom half blurred by 2.5 px (OpenCV): the tiles disagree, so the estimate is not confident;
+    the conservative deblur takes the lower quartile of the tiles (the sharp half: 0) and does nothing, with one
+    note; the same image blurred all over by 2.5 px is deblurred."""
+    img = _crop("astronaut", 256)
+    mixed = img.copy()
+    mixed[128:] = cv2.GaussianBlur(img, (0, 0), 2.5)[128:]
+    est = estimate_blur(mixed)
+    assert not est.confident and "differs" in est.reason and est.sigma_low_px < 0.5, est
+    t = torch.from_numpy(mixed).permute(2, 0, 1).contiguous()
+    deblur = BlindDeblur()
+    assert torch.equal(deblur(t), t) and deblur.deblur is None and "sharp" in deblur.note, deblur.record
+    blurred = torch.from_numpy(cv2.GaussianBlur(img, (0, 0), 2.5)).permute(2, 0, 1).contiguous()
+    deblur = BlindDeblur()
+    deblur(blurred)
+    assert deblur.deblur is not None and not deblur.note and 1.5 <= deblur.deblur.sigma_px <= 2.5, deblur.record

@@ -143,11 +143,14 @@ def sigma_from_ratio(r: np.ndarray) -> np.ndarray:
 @dataclass
 class BlurEstimate:
     """A blind estimate of an image's Gaussian blur: ``sigma_px`` (the blur beyond a sharp scene's edges), its 90 %
-    interval from the spread over tiles, ``edge_sigma_px`` (before the scene's own edge width is removed),
+    interval from the spread over tiles, ``sigma_low_px`` (the lower quartile of the tiles: a blur that three
+    quarters of the image has at least, for a conservative deblur where the blur varies), ``edge_sigma_px``
+    (before the scene's own edge width is removed),
     ``tiles`` used, ``spread`` (MAD of ln σ over them), ``confident`` and, when not, ``reason``."""
 
     sigma_px: float
     sigma_ci: tuple[float, float]
+    sigma_low_px: float
     edge_sigma_px: float
     tiles: int
     spread: float
@@ -181,11 +184,12 @@ def estimate_blur(image, tile: int = TILE_PX) -> BlurEstimate:
             medians.append(float(np.median(s)))
     medians = np.array(medians)
     if medians.size == 0:
-        return BlurEstimate(0.0, (0.0, 0.0), 0.0, 0, math.inf, False, "too few strong edges")
+        return BlurEstimate(0.0, (0.0, 0.0), 0.0, 0.0, 0, math.inf, False, "too few strong edges")
     edge = float(np.median(medians))
     logs = np.log(np.maximum(medians, 0.05))
     spread = float(1.4826 * np.median(np.abs(logs - np.median(logs)))) if medians.size > 1 else math.inf
     blur = math.sqrt(max(edge**2 - SCENE_SIGMA_PX**2, 0.0))
+    low = math.sqrt(max(float(np.quantile(medians, 0.25)) ** 2 - SCENE_SIGMA_PX**2, 0.0))
     half = 1.645 * spread / math.sqrt(max(medians.size, 1)) if math.isfinite(spread) else math.inf
     lo_e, hi_e = edge * math.exp(-half) if math.isfinite(half) else 0.0, edge * math.exp(min(half, 5.0))
     ci = tuple(math.sqrt(max(e**2 - SCENE_SIGMA_PX**2, 0.0)) for e in (lo_e, hi_e))
@@ -196,7 +200,7 @@ def estimate_blur(image, tile: int = TILE_PX) -> BlurEstimate:
         reason = f"the blur differs across the image (spread {spread:.2f} in ln σ, limit {SPREAD_MAX:g})"
     elif edge >= 0.95 * MAX_SIGMA_PX:
         reason = f"the edges are wider than the {MAX_SIGMA_PX:g} px the estimate covers"
-    return BlurEstimate(blur, ci, edge, int(medians.size), spread, not reason, reason)
+    return BlurEstimate(blur, ci, low, edge, int(medians.size), spread, not reason, reason)
 
 
 def gaussian_otf(shape: tuple[int, int], sigma_px: float) -> torch.Tensor:
@@ -243,8 +247,10 @@ class GaussianDeblur:
 class BlindDeblur:
     """The default deblur of a clip's fused frames: the blur is estimated on the first fused frame it is given
     (:func:`estimate_blur`; every later frame is deblurred with the same filter, no flicker), then a
-    :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, weakened by the ringing guard. Not confident, or nothing to
-    deblur: the frames pass unchanged. ``record`` says what was used and why; ``note`` is the one line for the user
+    :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, weakened by the ringing guard. Where the blur varies across the
+    image (tiles' spread above ``SPREAD_MAX``) the lower quartile of the tiles replaces σ (conservative); otherwise
+    not confident, or nothing to deblur: the frames pass unchanged. ``record`` says what was used and why; ``note``
+    is the one line for the user
     (empty when the estimate was used as is).
     """
 
@@ -256,13 +262,21 @@ class BlindDeblur:
     def decide(self, fused: torch.Tensor) -> None:
         est = estimate_blur(fused)
         rec = {"method": "blind", "estimate": est.as_dict(), "sigma_px": 0.0, "source": "estimated on the fused frame"}
-        if not est.confident:
+        target = est.sigma_px
+        varies = est.tiles >= MIN_TILES and est.spread > SPREAD_MAX and est.edge_sigma_px < 0.95 * MAX_SIGMA_PX
+        if not est.confident and varies:
+            target = est.sigma_low_px  # the blur varies: deblur only what three quarters of the image has at least
+            rec["conservative"] = f"lower quartile of the tiles, {target:.2f} px ({est.reason})"
+        if not est.confident and "conservative" not in rec:
             self.note = f"no deblurring: the blur estimate is not reliable ({est.reason})"
-        elif est.sigma_px * DEBLUR_SHARE < MIN_DEBLUR_SIGMA_PX:
-            rec["reason"] = f"estimated blur σ {est.sigma_px:.2f} px: as sharp as a sharp scene"
+        elif target * DEBLUR_SHARE < MIN_DEBLUR_SIGMA_PX:
+            if "conservative" in rec:
+                self.note = f"no deblurring: {est.reason}, and a quarter of the image or more is sharp"
+            else:
+                rec["reason"] = f"estimated blur σ {est.sigma_px:.2f} px: as sharp as a sharp scene"
         else:
             for step in RINGING_STEPS:
-                sigma = est.sigma_px * DEBLUR_SHARE * step
+                sigma = target * DEBLUR_SHARE * step
                 if sigma < MIN_DEBLUR_SIGMA_PX:
                     break
                 candidate = GaussianDeblur(sigma)
@@ -273,11 +287,13 @@ class BlindDeblur:
                     break
             if self.deblur is None:
                 self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
-            elif rec["sigma_px"] < est.sigma_px * DEBLUR_SHARE:
+            elif rec["sigma_px"] < target * DEBLUR_SHARE:
                 self.note = (
-                    f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {est.sigma_px * DEBLUR_SHARE:.2f} "
+                    f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {target * DEBLUR_SHARE:.2f} "
                     "by the ringing guard"
                 )
+            elif "conservative" in rec:
+                self.note = f"deblurring conservatively at σ {rec['sigma_px']:.2f} px: {est.reason}"
         if self.note:
             rec["note"] = self.note
         self.record = rec
