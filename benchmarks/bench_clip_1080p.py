@@ -7,8 +7,9 @@
 Runs ``python -m d2turb restore CLIP --temporal N --out TMP`` in a child process (a folder of the first ``--frames``
 frames when given, as symlinks), wall time from start to exit (interpreter start-up, imports, decoding, registration,
 fusion, the blind deblur, writing the PNGs and the mp4) and the child's peak resident memory
-(``resource.getrusage(RUSAGE_CHILDREN).ru_maxrss``). Skips (exit 0, a note) when the clip is absent. Prints one JSON
-object (and writes it to ``--json``).
+(``resource.getrusage(RUSAGE_CHILDREN).ru_maxrss``) and CPU time (user + system: what the run costs whatever the
+load of a shared machine; wall time on an idle machine is at least cpu_s / cores). Skips (exit 0, a note) when
+the clip is absent. Prints one JSON object (and writes it to ``--json``).
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ def main() -> None:
         if r.returncode != 0:
             sys.exit(f"restore failed ({r.returncode}): {r.stderr[-2000:]}")
         record = json.loads((Path(tmp) / "out" / "restore.json").read_text())
-    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    peak_kb, cpu_s = usage.ru_maxrss, usage.ru_utime + usage.ru_stime
     out = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}",
@@ -67,6 +69,8 @@ def main() -> None:
         "wall_s": round(wall, 2),
         "frames_per_s": round(len(files) / wall, 3),
         "peak_rss_gb": round(peak_kb / 1e6, 3),
+        "cpu_s": round(cpu_s, 1),  # user + system: on a loaded machine, the idle wall time is at least cpu_s / cores
+        "frames_per_cpu_s": round(len(files) / cpu_s, 3),
         "deblur": record.get("deblur"),
         "notes": [line for line in r.stderr.splitlines() if line.startswith("note:")],
     }

@@ -281,3 +281,17 @@ def test_a_blur_that_varies_across_the_image_is_deblurred_only_where_all_of_it_i
     deblur = BlindDeblur()
     deblur(blurred)
     assert deblur.deblur is not None and not deblur.note and 1.5 <= deblur.deblur.sigma_px <= 2.5, deblur.record
+
+
+def test_eight_bit_frames_are_held_as_uint8_exactly():
+    """A frame read from an 8-bit file (k/255 in float32, as d2turb.io.read_image divides) is held as uint8 and
+    given back bit-identical; any other frame is held as it is."""
+    from d2turb.restore.clip import _compact, _Frame
+
+    k = np.random.default_rng(7).integers(0, 256, (8, 9, 3)).astype(np.uint8)
+    frame = k.astype(np.float32)
+    frame /= np.float32(255)
+    held = _compact(frame)
+    assert held.dtype == np.uint8 and np.array_equal(_Frame(held, None).image(), frame)
+    other = frame + np.float32(1e-3)
+    assert _compact(other) is other

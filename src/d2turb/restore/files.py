@@ -296,7 +296,7 @@ def restore_clip_files(
     print(f"restoring {src} over windows of {temporal} frames, deblur: {deblur_name}", file=sys.stderr)
     count = 0
     with contextlib.ExitStack() as stack:
-        writer = stack.enter_context(BackgroundWriter(max_pending=4, compute_device=device))
+        writer = stack.enter_context(BackgroundWriter(max_pending=2, compute_device=device))
         video = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, fps))
         for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame"):
             stem = names[frame.index]
