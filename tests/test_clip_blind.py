@@ -199,24 +199,6 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
     assert "measured" not in err
 
 
-def test_large_frames_get_one_registration_round_by_default(monkeypatch):
-    """default_passes: 2 rounds, 1 from LARGE_FRAME_PX pixels (1080p); counted on the dense flow with the threshold
-    lowered to the test frames' size, and an explicit passes wins."""
-    from d2turb import registration
-    from d2turb.restore import clip as clip_module
-
-    assert clip_module.default_passes(1080, 1920) == 1 and clip_module.default_passes(256, 256) == 2
-    calls = []
-    real_call = registration.DenseFlow.__call__
-    monkeypatch.setattr(registration.DenseFlow, "__call__", lambda self, *a: calls.append(1) or real_call(self, *a))
-    frames = [torch.from_numpy(_crop("coffee", 64)).permute(2, 0, 1)] * 5
-    monkeypatch.setattr(clip_module, "LARGE_FRAME_PX", 64 * 64)
-    restorer = ClipRestorer(temporal=3)
-    assert len(list(restorer.restore(frames))) == 5 and len(calls) == 5 and restorer.passes_used == 1
-    calls.clear()
-    assert len(list(ClipRestorer(temporal=3, passes=2).restore(frames))) == 5 and len(calls) == 10
-
-
 def test_restore_never_calls_measured_what_measure_refuses(tmp_path, capsys):
     """Frames of 56 px are too small for d2turb.measure: `--deblur physics` refuses in one line (give --dr0), the
     default restores with the blind estimate and never says "measured"; with --dr0 the record says "given"."""

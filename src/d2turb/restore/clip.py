@@ -19,7 +19,6 @@ static or slowly moving camera; moving objects fall back to the single frame (no
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -52,17 +51,6 @@ def default_balance(dr0: float) -> float:
 # 2^-11 (< 0.13 grey levels of 255), far below the fusion's noise. Raw frames and earlier rounds stay float32: they
 # make the references that frames are registered onto, where a rounding that flips a grey level moves the flow
 STORE_DTYPE = np.float16
-# frames of at least LARGE_FRAME_PX pixels get one registration round by default, smaller ones two: the second round
-# gained 0.04–0.18 dB on the simulated validation clips (docs/clips.md) and costs a second dense flow per frame,
-# which at 1080p is the difference between about 1 and 2 frames/s on 2 cores
-LARGE_FRAME_PX = 1_000_000
-
-
-def default_passes(height: int, width: int) -> int:
-    """Registration rounds when not given: 2, or 1 for frames of ``LARGE_FRAME_PX`` pixels or more."""
-    return 1 if height * width >= LARGE_FRAME_PX else 2
-
-
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
@@ -223,8 +211,7 @@ class ClipRestorer:
 
     Args:
         temporal: frames per window (≥ 2).
-        passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion. None:
-            :func:`default_passes` of the first frame's size (2; 1 from ``LARGE_FRAME_PX`` pixels); ``passes_used``.
+        passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion.
         fusion: "mean", "robust" (pixels weighted by their agreement with the reference) or "fba" (Fourier burst
             accumulation: each frequency mostly from the frames that kept it best, ``restore/fusion.py``).
         deblur: "none", a :class:`PhysicsDeblur`, or any callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
@@ -237,7 +224,7 @@ class ClipRestorer:
     def __init__(
         self,
         temporal: int = DEFAULT_TEMPORAL,
-        passes: int | None = None,
+        passes: int = 2,
         fusion: str = DEFAULT_FUSION,
         deblur="none",
         preset: str = "fast",
@@ -246,14 +233,13 @@ class ClipRestorer:
     ):
         if not isinstance(temporal, int) or isinstance(temporal, bool) or temporal < 2:
             raise D2TurbError(f"--temporal must be an integer >= 2, got {temporal!r}")
-        if passes is not None and (not isinstance(passes, int) or isinstance(passes, bool) or passes < 1):
+        if not isinstance(passes, int) or isinstance(passes, bool) or passes < 1:
             raise D2TurbError(f"passes must be an integer >= 1, got {passes!r}")
         if fusion not in FUSIONS:
             raise D2TurbError(f"unknown fusion {fusion!r}; choose one of {', '.join(FUSIONS)}")
         if not (deblur == "none" or callable(deblur)):
             raise D2TurbError(f"deblur must be 'none' or a callable, got {deblur!r}")
         self.temporal, self.passes, self.fusion = temporal, passes, fusion
-        self.passes_used = passes  # resolved from the first frame when None
         self.deblur = None if deblur == "none" else deblur
         self.stabilise, self.fallback = stabilise, fallback
         DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
@@ -265,14 +251,7 @@ class ClipRestorer:
         """Restored frames in order, one per input frame ((3,H,W) tensors or (H,W,3) arrays in [0,1]), computed
         with a bounded lookahead. Raises ``D2TurbError`` for frames of different sizes or a clip of < 2 frames."""
         source = iter(frames)
-        first = next(source, None)
-        if first is not None:
-            source = itertools.chain([first], source)
-        if self.passes is not None:
-            self.passes_used = self.passes
-        else:
-            self.passes_used = 2 if first is None else default_passes(*to_hwc(first).shape[:2])
-        passes = self.passes_used
+        passes = self.passes
         buf: dict[int, _Frame] = {}
         length = None
         shape = None
@@ -323,7 +302,7 @@ class ClipRestorer:
         round k's unwarped frame) of frame j is read by the references of round L + 1 (windows from
         W(done[L+1]) on) and by the running sum of level L; the raw frame also by its own registration rounds and
         by the output's fallback; the last round by the outputs' fusion. Frames with nothing left are dropped."""
-        n, passes = self.temporal, self.passes_used
+        n, passes = self.temporal, self.passes
         guard = done[0] - n if length is None else math.inf  # the end may still shift the last windows back
         readers = []
         for level in range(passes + 1):
@@ -390,10 +369,10 @@ class ClipRestorer:
         flow = self.flow(ref_gray, frame.gray, init)
         frame.flows = [flow]  # the last round's flow: the output's and the next round's start
         warped = remap(frame.image(), flow)
-        frame.warped.append(warped.astype(STORE_DTYPE) if k == self.passes_used else warped)
+        frame.warped.append(warped.astype(STORE_DTYPE) if k == self.passes else warped)
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
-        fused = self._reference(buf, index, self.passes_used, length)
+        fused = self._reference(buf, index, self.passes, length)
         if self.fusion == "robust":
             fused = self._robust([buf[j].warped[-1] for j in self._window(buf, index, length)], fused)
         elif self.fusion == "fba":
@@ -475,7 +454,6 @@ def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:
 __all__ = [
     "ClipRestorer",
     "ClipFrame",
-    "default_passes",
     "PhysicsDeblur",
     "flow_variance_px2",
     "registration_dr0",

@@ -244,7 +244,7 @@ def restore_clip_files(
     deblur: str = "auto",
     dr0: float | None = None,
     params: dict | None = None,
-    passes: int | None = None,
+    passes: int = 2,
     preset: str = "fast",
     fusion: str = DEFAULT_FUSION,
     fps: float | None = None,
@@ -266,8 +266,7 @@ def restore_clip_files(
     Args:
         src: a video file or a folder of frames.
         deblur, dr0, params: see :func:`clip_deblur`.
-        passes, preset, fusion: registration rounds (None: 2, or 1 for frames of a megapixel or more:
-            ``restore.clip.default_passes``), DIS preset, fusion of the registered frames.
+        passes, preset, fusion: registration rounds, DIS preset, fusion of the registered frames.
         fps: frame rate of a folder clip's mp4 (default 30).
 
     Returns:
@@ -317,7 +316,7 @@ def restore_clip_files(
                 "or --deblur none",
                 file=sys.stderr,
             )
-    settings = {"temporal": temporal, "passes": restorer.passes_used, "preset": preset, "fusion": fusion}
+    settings = {"temporal": temporal, "passes": passes, "preset": preset, "fusion": fusion}
     write_json(out_dir / "restore.json", {"input": str(src), "frames": count, **settings, "deblur": record})
     print(f"restored {count} frame(s) of {src.name} into {out_dir}" + (f" ({mp4.name})" if mp4 else ""))
     return summary("restore", count + len(errors.failed), len(errors.failed))
