@@ -304,30 +304,6 @@ def test_clip_video_in_video_out(tmp_path):
     assert len(list((tmp_path / "out").glob("clip_*_restored.png"))) == 5
 
 
-def test_small_frames_that_cannot_be_measured_get_the_registration_estimate(tmp_path, capsys):
-    """Frames of 56 px are too small to measure D/r0 (d2turb.measure needs 64): the default deblur says so in a
-    note and falls back to the D/r0 of the clip's registered displacement, which for a static scene (no tilt: the
-    frames differ only by noise) is the smallest allowed; the clip is registered, fused and written."""
-    from d2turb.cli import main
-    from d2turb.io import write_image
-
-    rng = np.random.default_rng(3)
-    img = _scene(56)
-    for i in range(10):
-        frame = np.clip(img + 0.01 * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
-        write_image(tmp_path / "clip" / f"f{i:02d}.png", torch.from_numpy(frame).permute(2, 0, 1))
-    assert main(["restore", str(tmp_path / "clip"), "--temporal", "4", "--out", str(tmp_path / "out")]) == 0
-    err = capsys.readouterr().err
-    assert "too small" in err and "estimated from the clip's registered displacement" in err
-    dr0 = float(err.split("deblurring at D/r0 ")[1].split()[0])
-    assert dr0 <= 0.1, err
-    assert len(list((tmp_path / "out").glob("*_restored.png"))) == 10
-    with pytest.raises(Exception, match="too small"):
-        from d2turb.measure import measure_clip
-
-        measure_clip([torch.from_numpy(img).permute(2, 0, 1)] * 10)
-
-
 def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch):
     """evaluate --clips with the dataset and the clip restorer replaced by known frames: each clip's numbers are
     numpy means over its frames (image metrics on every stride-th frame), each bin's over its clips."""
@@ -383,8 +359,29 @@ def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch
         members = [s for s, r in zip(expected, records) if r["bin"] == b]
         want = {k: np.mean([m[k] for m in members]) for k in expected[0]}
         want["dr0"] = np.mean([r["dr0"] for r in records if r["bin"] == b])
-        assert res["bins"][b] == pytest.approx(want | {"clips": len(members)}, rel=1e-6)
+        got = {k: res["bins"][b][k] for k in list(want) + ["clips"]}
+        assert got == pytest.approx(want | {"clips": len(members)}, rel=1e-6)
+        assert {f"{row} psnr_aligned" for row in rows} <= set(res["bins"][b])
     assert list(res["bins"]) == ["weak", "strong"]  # bins in their order, only those with clips
+
+
+def test_global_offset_removal_recovers_a_known_subpixel_shift():
+    """A scene shifted by a known sub-pixel offset (scipy's spline shift, then a smooth low-pass): the estimated
+    offset is the shift to 0.05 px, and the offset-removed PSNR is far above the plain one (which punishes the
+    offset) while an unshifted copy scores the same both ways."""
+    from d2turb.eval.clips import remove_global_offset
+    from d2turb.eval.metrics import psnr
+
+    img = ndimage.gaussian_filter(_scene(96), (1.0, 1.0, 0))
+    truth = torch.from_numpy(img).permute(2, 0, 1).contiguous()
+    for dy, dx in [(1.3, -0.7), (-2.25, 0.4)]:
+        moved = np.stack([ndimage.shift(img[..., c], (dy, dx), order=3, mode="nearest") for c in range(3)], 0)
+        moved = torch.from_numpy(moved).float()
+        back, ref, (ey, ex) = remove_global_offset(moved, truth)
+        assert ey == pytest.approx(-dy, abs=0.05) and ex == pytest.approx(-dx, abs=0.05)
+        assert float(psnr(back[None], ref[None])) > float(psnr(moved[None], truth[None])) + 10
+    same, ref, shift = remove_global_offset(truth, truth)
+    assert max(map(abs, shift)) < 1e-6 and torch.allclose(same, ref, atol=1e-5)
 
 
 def test_residual_jitter_otf_is_the_gaussian_of_the_shifts():

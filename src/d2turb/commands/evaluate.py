@@ -37,7 +37,8 @@ def register(sub):
         nargs="+",
         default=["physics"],
         metavar="D",
-        help="with --clips: deblur options after fusion, physics and/or weights (default physics)",
+        help="with --clips: deblur options after fusion: physics (at each clip's true D/r0 and optics), blind (the "
+        "default of restore --temporal) and/or weights (default physics)",
     )
     p.add_argument(
         "--recursive",
@@ -105,6 +106,7 @@ def run(args):
             args.out,
             deblur=args.deblur,
             temporal=args.temporal,
+            preset=args.preset,
             fusion=args.fusion,
             max_samples=args.max_samples,
             device=device,

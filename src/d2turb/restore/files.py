@@ -24,11 +24,13 @@ from d2turb.io import (
     list_images,
     read_image,
     write_image,
+    write_json,
     write_npy,
 )
 from d2turb.measure import measure_clip
 from d2turb.ops.splat import backward_flow
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance, registration_dr0
+from d2turb.restore.blur import BlindDeblur
+from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams
 from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps
@@ -185,63 +187,59 @@ def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
 
 
 def _measured_dr0(head: list, params: dict) -> float:
-    """D/r0 measured on the clip's first frames ``head`` (d2turb.measure); D2TurbError if it cannot be."""
+    """D/r0 measured on the clip's first frames ``head`` by ``d2turb measure``'s method, with its refusals (no
+    extrapolation: what ``restore`` calls measured, ``measure`` measures); D2TurbError if it cannot be."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
-    return float(measure_clip(head, optics, bootstrap=50, extrapolate=True)["dr0"])  # a rough strength is enough
-
-
-def _registration_dr0(head: list, params: dict) -> float:
-    """D/r0 from the registered displacement of the clip's first frames ``head`` (restore.clip.registration_dr0),
-    for a clip that d2turb.measure refuses; D2TurbError if it cannot be registered either."""
-    if len(head) < 2:
-        raise D2TurbError(f"a clip needs at least 2 frames, got {len(head)}")
-    return registration_dr0(head, _turbulence_params(params).lambda_over_d_px)
+    return float(measure_clip(head, optics, bootstrap=50)["dr0"])
 
 
 def clip_deblur(
     choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64, fusion=DEFAULT_FUSION
 ):
-    """The deblur step of a clip: (None, a PhysicsDeblur or a model's restore; its description).
+    """The deblur step of a clip: (None, a PhysicsDeblur, a BlindDeblur or a model's restore; its description; a
+    record of the value used and where it came from, for the output folder's restore.json).
 
     Args:
-        choice: ``none``, ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 measured on the
-            clip's first MEASURE_FRAMES frames), ``auto`` (physics; when D/r0 is neither given nor measurable, at
-            the rough D/r0 of :func:`~d2turb.restore.clip.registration_dr0`, or none if the clip cannot be
-            registered either) or a weights name/path.
+        choice: ``none``; ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 that
+            ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused when it refuses);
+            ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.restore.blur.BlindDeblur`,
+            estimated on the fused frames of the one restoring pass: no second decode or registration); or a
+            weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
         fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
             (:func:`~d2turb.restore.clip.deblur_dr0`).
     """
     if choice == "none":
-        return None, "none"
+        return None, "none", {"method": "none"}
+    params = dict(params or {})
+    if choice == "auto" and dr0 is None:
+        blind = BlindDeblur()
+        return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
     if choice in ("physics", "auto"):
-        params = dict(params or {})
-        source = "given"
+        source = "given (--dr0)"
         if dr0 is None:
-            head = None
+            head = _clip_head(src)
             try:
-                head = _clip_head(src)
-                dr0, source = _measured_dr0(head, params), "measured on the clip"
+                dr0 = _measured_dr0(head, params)
             except D2TurbError as exc:
-                if choice == "physics":
-                    raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
-                try:
-                    head = _clip_head(src) if head is None else head  # read again only if reading failed
-                    dr0, source = _registration_dr0(head, params), "estimated from the registration"
-                except D2TurbError as exc2:
-                    print(f"note: no deblurring: {exc}; {exc2}", file=sys.stderr)
-                    return None, "none (D/r0 could not be measured)"
-                print(
-                    f"note: {exc}; deblurring at D/r0 {dr0:.3g} estimated from the clip's registered displacement "
-                    "(a rough estimate, docs/clips.md; give --dr0 to override)",
-                    file=sys.stderr,
-                )
+                raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
+            source = f"measured on the clip's first {len(head)} frames (d2turb measure)"
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
         deblur = PhysicsDeblur(deblur_dr0(p.dr0, fusion), p.lambda_over_d_px, balance=default_balance(p.dr0))
         model = "" if deblur.dr0 == p.dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
-        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px{model})"
+        optics = "from --param" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
+        record = {
+            "method": "physics",
+            "dr0": p.dr0,
+            "dr0_source": source,
+            "otf_dr0": deblur.dr0,
+            "lambda_over_d_px": p.lambda_over_d_px,
+            "optics": optics,
+            "balance": deblur.balance,
+        }
+        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px{model})", record
     restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
-    return restorer.restore, restorer.name
+    return restorer.restore, restorer.name, {"method": "model", "weights": restorer.name}
 
 
 def restore_clip_files(
@@ -287,7 +285,7 @@ def restore_clip_files(
         raise D2TurbError(f"--fps must be positive, got {fps}")
     restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
     device = resolve_device(device)
-    restorer.deblur, deblur_name = clip_deblur(
+    restorer.deblur, deblur_name, record = clip_deblur(
         deblur, src, dr0=dr0, params=params, device=device, tile=tile, overlap=overlap, fusion=fusion
     )
     out_dir = check_output_dir(out, inputs=list_images(src) if src.is_dir() else [src])
@@ -303,7 +301,7 @@ def restore_clip_files(
     print(f"restoring {src} over windows of {temporal} frames, deblur: {deblur_name}", file=sys.stderr)
     count = 0
     with contextlib.ExitStack() as stack:
-        writer = stack.enter_context(BackgroundWriter(max_pending=4, compute_device=device))
+        writer = stack.enter_context(BackgroundWriter(max_pending=2, compute_device=device))
         video = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, fps))
         for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame"):
             stem = names[frame.index]
@@ -316,5 +314,15 @@ def restore_clip_files(
             if video is not None:
                 video.write(frame.restored)
             count += 1
+    if isinstance(restorer.deblur, BlindDeblur):
+        record = restorer.deblur.record
+        if restorer.deblur.note:
+            print(
+                f"note: {restorer.deblur.note}; for the physics deblur give --dr0 X (and the optics with --param), "
+                "or --deblur none",
+                file=sys.stderr,
+            )
+    settings = {"temporal": temporal, "passes": passes, "preset": preset, "fusion": fusion}
+    write_json(out_dir / "restore.json", {"input": str(src), "frames": count, **settings, "deblur": record})
     print(f"restored {count} frame(s) of {src.name} into {out_dir}" + (f" ({mp4.name})" if mp4 else ""))
     return summary("restore", count + len(errors.failed), len(errors.failed))

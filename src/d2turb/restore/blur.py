@@ -1,0 +1,328 @@
+"""Blind blur estimate of an image (the fused frame of a clip) and a Wiener deblur with it that does not ring
+(docs/clips.md, "the blind deblur").
+
+Blur model: the image is a sharp scene convolved with a Gaussian of σ px (the turbulence's short-exposure blur,
+the residual misregistration the fusion averaged, the optics). At an ideal step edge of height A blurred to σ the
+gradient peak is A/(√(2π)·σ); blurred again by a Gaussian of σ0 it is A/(√(2π)·√(σ² + σ0²)), so the ratio of the
+two peaks, R = √(σ² + σ0²)/σ, gives σ = σ0/√(R² − 1) without knowing A (Zhuo & Sim, "Defocus map estimation from
+a single image", Pattern Recognition 44(9), 2011). The ratio is read at the strongest edges of the image (Canny,
+local gradient maxima); the discrete gradient and the pixel grid bias the formula, so R is mapped to σ by a table
+made on synthetic step edges of known σ (:func:`ratio_table`). Natural scenes' edges are not ideal steps: the
+estimate on sharp images is ``SCENE_SIGMA_PX`` (median over the clean validation images), removed in quadrature,
+σ_blur = √(σ_edge² − σ_scene²). Per tile a median; the estimate is the median of the tiles, its spread (median
+absolute deviation of ln σ over the tiles) and the number of tiles give the confidence.
+
+Deblur: a Wiener filter with the Gaussian OTF exp(−2π²σ_d²|f|²), σ_d = ``DEBLUR_SHARE``·σ_blur (under-correcting
+is safe, over-correcting rings), and the Laplacian smoothness prior of ``restore.clip``. Ringing guard: the share of
+the change that overshoots the fused frame's local range (:func:`ringing_index`, halos and bands do; a correct
+deblur of a blurred edge barely does); above ``RINGING_MAX`` σ_d is reduced until it passes, or no deblur.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from d2turb.errors import D2TurbError
+
+REBLUR_SIGMA_PX = 1.5  # σ0 of the re-blur: larger keeps R away from 1 for wide blurs, smaller resolves narrow ones
+TILE_PX = 128  # tiles of the estimate (their spread is its uncertainty)
+MIN_EDGES_PER_TILE = 40  # edge pixels for a tile's median
+MIN_TILES = 3  # fewer usable tiles: not confident
+EDGE_QUANTILE = 0.90  # edge pixels: Canny edges whose gradient is above this quantile of the image's gradient
+EDGE_NOISE_FACTOR = 6.0  # ... and above this many noise σ (|∇| of Sobel/8 on white noise of σ is ~0.6σ, rarely 2σ)
+# edge width of sharp scenes: the estimate is 0 on all 23 clean set14/mcmaster images tried (their strongest edges are
+# as steep as the table's sharpest step), so nothing is removed; kept as the model's parameter
+SCENE_SIGMA_PX = 0.0
+MAX_SIGMA_PX = 5.0  # about the table's range (5.04 px); wider is not trusted
+SPREAD_MAX = 0.35  # MAD of ln σ over the tiles above which the estimate is not confident
+MIN_DEBLUR_SIGMA_PX = 0.35  # below: the image is as sharp as a sharp scene, nothing to deblur
+# σ_d = DEBLUR_SHARE · σ_blur and the prior weight: on 36 simulated validation clips (set14/mcmaster crops,
+# λ/(D·ifov) 1–5 px, D/r0 1.1–4.6, window 16), PSNR with the global offset removed, the largest share whose worst
+# clip stays within 0.3 dB of no deblur: +0.68 dB mean over the fusion, worst −0.21 (share 1: +1.05 / +1.30 mean at
+# weight 0.01 / 0.002 but 3 / 1 clips below −0.3 dB and a ripple along the airport clip's edges; the physics deblur
+# at the true optics +2.35; docs/clips.md)
+DEBLUR_SHARE = 0.8
+DEBLUR_BALANCE = 0.01
+# ringing_index above which the deblur is weakened: above the largest value of the chosen deblur on the validation
+# clips (0.60; median 0.43); a deblur at twice the estimated σ reaches 0.55–0.75 there
+RINGING_MAX = 0.65
+RINGING_STEPS = (1.0, 0.75, 0.5)  # factors on σ_d tried in turn by the guard
+
+
+def _luma(image) -> np.ndarray:
+    """(H, W) float32 luma in [0, 1] of a (3,H,W)/(1,H,W) tensor or an (H,W[,C]) array."""
+    if isinstance(image, torch.Tensor):
+        arr = image.detach().cpu().float().numpy()
+        arr = arr[0] if arr.shape[0] == 1 else np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), arr[:3], 1)
+    else:
+        arr = np.asarray(image, np.float32)
+        if arr.ndim == 3:
+            arr = arr[..., 0] if arr.shape[2] == 1 else arr[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
+    if arr.ndim != 2:
+        raise D2TurbError(f"expected an image, got shape {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _grad_mag(g: np.ndarray) -> np.ndarray:
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8
+    return np.sqrt(gx * gx + gy * gy)
+
+
+def noise_sigma(g: np.ndarray) -> float:
+    """Standard deviation of white noise in a grey image (Immerkær, "Fast noise variance estimation", CVIU 64(2),
+    1996): σ = √(π/2)·mean|g ⊛ N|/6 with N = [[1,−2,1],[−2,4,−2],[1,−2,1]] (blind to ramps; texture raises it)."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    r = cv2.filter2D(g, cv2.CV_32F, kernel)[1:-1, 1:-1]
+    return math.sqrt(math.pi / 2) * float(np.abs(r).mean()) / 6
+
+
+def _ratios(g: np.ndarray, quantile: float = EDGE_QUANTILE) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient-peak ratios R = |∇g| / |∇(g ⊛ G_σ0)| at the image's strong edge pixels, and their (y, x)."""
+    mag = _grad_mag(g)
+    mag0 = _grad_mag(cv2.GaussianBlur(g, (0, 0), REBLUR_SIGMA_PX, borderType=cv2.BORDER_REFLECT))
+    u8 = np.clip(g * 255 + 0.5, 0, 255).astype(np.uint8)
+    hi = float(np.quantile(mag, quantile)) * 255 * 8  # cv2.Canny's L1-free Sobel scale
+    edges = cv2.Canny(u8, max(hi * 0.5, 1.0), max(hi, 2.0), L2gradient=True) > 0
+    m = 6  # no borders (the filters' reflection)
+    edges[:m], edges[-m:], edges[:, :m], edges[:, -m:] = False, False, False, False
+    edges &= mag >= max(float(np.quantile(mag, quantile)), EDGE_NOISE_FACTOR * noise_sigma(g))
+    ys, xs = np.nonzero(edges)
+    r = mag[ys, xs] / np.maximum(mag0[ys, xs], 1e-6)
+    return r, np.stack([ys, xs], 1)
+
+
+# (R, σ) of compute_ratio_table(), rounded (tests/test_clip_blind.py recomputes it): beyond σ ≈ 5 px the disc's
+# curvature breaks the step-edge model, so the table stops at 5.04 px
+RATIO_TABLE_R = (
+    2.1014, 2.0780, 2.0723, 2.0649, 2.0539, 2.0423, 2.0287, 2.0114, 1.9911, 1.9681, 1.9421, 1.9144, 1.8826,
+    1.8484, 1.8107, 1.7697, 1.7258, 1.6787, 1.6309, 1.5813, 1.5317, 1.4827, 1.4352, 1.3896, 1.3466, 1.3064,
+    1.2694, 1.2356, 1.2050, 1.1777, 1.1534, 1.1319, 1.1129, 1.0967, 1.0823, 1.0701, 1.0595, 1.0502, 1.0411,
+)  # fmt: skip
+RATIO_TABLE_SIGMA = (
+    0.0000, 0.2000, 0.2182, 0.2381, 0.2598, 0.2835, 0.3093, 0.3375, 0.3683, 0.4018, 0.4384, 0.4784, 0.5220,
+    0.5695, 0.6214, 0.6781, 0.7399, 0.8073, 0.8809, 0.9611, 1.0487, 1.1443, 1.2485, 1.3623, 1.4865, 1.6219,
+    1.7697, 1.9310, 2.1069, 2.2989, 2.5084, 2.7370, 2.9864, 3.2586, 3.5555, 3.8795, 4.2330, 4.6188, 5.0397,
+)  # fmt: skip
+
+
+def compute_ratio_table(count: int = 41) -> tuple[np.ndarray, np.ndarray]:
+    """(R, σ): the median gradient-peak ratio of synthetic step edges (all orientations, sub-pixel positions: a
+    disc of radius 40 px super-sampled 8×, area-averaged to pixels) blurred by a Gaussian of known σ (0, then
+    0.2–6 px geometric); R falls with σ. Takes seconds: ``RATIO_TABLE_*`` hold its values."""
+    sigmas = np.concatenate([[0.0], np.geomspace(0.2, 6.0, count - 1)])
+    n, sup = 160, 8
+    yy, xx = np.mgrid[0 : n * sup, 0 : n * sup].astype(np.float32)
+    c = n * sup / 2 - 0.37 * sup
+    rad = np.sqrt((xx - c) ** 2 + (yy - c) ** 2)
+    disc = (rad < 40 * sup).astype(np.float32)
+    ratios = []
+    for s in sigmas:
+        hi = cv2.GaussianBlur(disc, (0, 0), s * sup) if s > 0 else disc
+        img = cv2.resize(hi, (n, n), interpolation=cv2.INTER_AREA)  # pixel integration
+        img = 0.2 + 0.6 * img
+        r, _ = _ratios(img, 0.0)
+        ratios.append(float(np.median(r)) if r.size else 1.0)
+    return np.array(ratios), sigmas
+
+
+def ratio_table() -> tuple[np.ndarray, np.ndarray]:
+    """(R, σ) of the tabulated ``compute_ratio_table``."""
+    return np.array(RATIO_TABLE_R), np.array(RATIO_TABLE_SIGMA)
+
+
+def sigma_from_ratio(r: np.ndarray) -> np.ndarray:
+    """σ (px) of the edges' Gaussian blur from their gradient-peak ratios (the table, linear between nodes)."""
+    table_r, table_s = ratio_table()
+    return np.interp(-np.asarray(r, np.float64), -table_r, table_s)
+
+
+@dataclass
+class BlurEstimate:
+    """A blind estimate of an image's Gaussian blur: ``sigma_px`` (the blur beyond a sharp scene's edges), its 90 %
+    interval from the spread over tiles, ``sigma_low_px`` (the lower quartile of the tiles: a blur that three
+    quarters of the image has at least, for a conservative deblur where the blur varies), ``edge_sigma_px``
+    (before the scene's own edge width is removed),
+    ``tiles`` used, ``spread`` (MAD of ln σ over them), ``confident`` and, when not, ``reason``."""
+
+    sigma_px: float
+    sigma_ci: tuple[float, float]
+    sigma_low_px: float
+    edge_sigma_px: float
+    tiles: int
+    spread: float
+    confident: bool
+    reason: str = ""
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def estimate_blur(image, tile: int = TILE_PX) -> BlurEstimate:
+    """Blind estimate of the Gaussian blur σ (px) of an image from its strongest edges (see the module's doc).
+
+    Args:
+        image: (3,H,W) / (1,H,W) tensor or (H,W[,C]) array in [0, 1] (e.g. a clip's fused frame).
+        tile: side of the tiles whose medians give the estimate and its spread.
+    """
+    g = _luma(image)
+    h, w = g.shape
+    if min(h, w) < 32:
+        raise D2TurbError(f"an image of {w}x{h} is too small to estimate its blur (need 32 px per side)")
+    r, pos = _ratios(g)
+    sig = sigma_from_ratio(r)
+    # tiles of about ``tile`` px, at least 3 per side where they stay 32 px or more
+    ty, tx = (max(min(3, n // 32), round(n / tile), 1) for n in (h, w))
+    key = np.minimum(pos[:, 0] * ty // h, ty - 1) * tx + np.minimum(pos[:, 1] * tx // w, tx - 1)
+    medians = []
+    for k in range(ty * tx):
+        s = sig[key == k]
+        if s.size >= MIN_EDGES_PER_TILE:
+            medians.append(float(np.median(s)))
+    medians = np.array(medians)
+    if medians.size == 0:
+        return BlurEstimate(0.0, (0.0, 0.0), 0.0, 0.0, 0, math.inf, False, "too few strong edges")
+    edge = float(np.median(medians))
+    logs = np.log(np.maximum(medians, 0.05))
+    spread = float(1.4826 * np.median(np.abs(logs - np.median(logs)))) if medians.size > 1 else math.inf
+    blur = math.sqrt(max(edge**2 - SCENE_SIGMA_PX**2, 0.0))
+    low = math.sqrt(max(float(np.quantile(medians, 0.25)) ** 2 - SCENE_SIGMA_PX**2, 0.0))
+    half = 1.645 * spread / math.sqrt(max(medians.size, 1)) if math.isfinite(spread) else math.inf
+    lo_e, hi_e = edge * math.exp(-half) if math.isfinite(half) else 0.0, edge * math.exp(min(half, 5.0))
+    ci = tuple(math.sqrt(max(e**2 - SCENE_SIGMA_PX**2, 0.0)) for e in (lo_e, hi_e))
+    reason = ""
+    if medians.size < MIN_TILES:
+        reason = f"strong edges in only {medians.size} tile(s) of {tile} px (need {MIN_TILES})"
+    elif spread > SPREAD_MAX:
+        reason = f"the blur differs across the image (spread {spread:.2f} in ln σ, limit {SPREAD_MAX:g})"
+    elif edge >= 0.95 * MAX_SIGMA_PX:
+        reason = f"the edges are wider than the {MAX_SIGMA_PX:g} px the estimate covers"
+    return BlurEstimate(blur, ci, low, edge, int(medians.size), spread, not reason, reason)
+
+
+def gaussian_otf(shape: tuple[int, int], sigma_px: float) -> torch.Tensor:
+    """exp(−2π²σ²|f|²) on the rfft2 grid of ``shape`` (float64): the OTF of a Gaussian blur of σ px."""
+    from d2turb.sim.otf import pixel_frequency_grid
+
+    return torch.exp(-2 * math.pi**2 * sigma_px**2 * pixel_frequency_grid(*shape) ** 2)
+
+
+def ringing_index(fused: torch.Tensor, restored: torch.Tensor, radius: int = 2) -> float:
+    """Share of the deblur's change that overshoots the fused frame's local range: rms of restored − clip(restored,
+    local min, local max of fused over a (2·radius+1)² box) over rms of restored − fused. Halos and dark bands lie
+    outside the range; sharpening a blurred edge moves values within it."""
+    a = fused.detach().float().cpu().numpy().transpose(1, 2, 0)
+    b = restored.detach().float().cpu().numpy().transpose(1, 2, 0)
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    lo, hi = cv2.erode(a, k), cv2.dilate(a, k)
+    lo, hi = lo.reshape(a.shape), hi.reshape(a.shape)
+    over = b - np.clip(b, lo, hi)
+    change = float(np.sqrt(np.mean((b - a) ** 2)))
+    return float(np.sqrt(np.mean(over**2))) / change if change > 1e-6 else 0.0
+
+
+class GaussianDeblur:
+    """Wiener deconvolution of a Gaussian blur of ``sigma_px`` with the Laplacian prior of ``restore.clip``."""
+
+    def __init__(self, sigma_px: float, balance: float = DEBLUR_BALANCE):
+        if not math.isfinite(sigma_px) or not 0 < sigma_px <= 20:
+            raise D2TurbError(f"the deblur's σ must be in (0, 20] px, got {sigma_px!r}")
+        self.sigma_px, self.balance = float(sigma_px), float(balance)
+        self._gain: dict = {}
+
+    def __call__(self, image: torch.Tensor) -> torch.Tensor:
+        from d2turb.restore.clip import wiener_deconvolve, wiener_gain, wiener_padding
+
+        size = tuple(image.shape[-2:])
+        if size not in self._gain:
+            top, bottom, left, right = wiener_padding(*size)
+            shape = (size[0] + top + bottom, size[1] + left + right)
+            self._gain[size] = wiener_gain(gaussian_otf(shape, self.sigma_px), self.balance, shape)
+        return wiener_deconvolve(image, self._gain[size])
+
+
+class BlindDeblur:
+    """The default deblur of a clip's fused frames: the blur is estimated on the first fused frame it is given
+    (:func:`estimate_blur`; every later frame is deblurred with the same filter, no flicker), then a
+    :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, weakened by the ringing guard. Where the blur varies across the
+    image (tiles' spread above ``SPREAD_MAX``) the lower quartile of the tiles replaces σ (conservative); otherwise
+    not confident, or nothing to deblur: the frames pass unchanged. ``record`` says what was used and why; ``note``
+    is the one line for the user
+    (empty when the estimate was used as is).
+    """
+
+    def __init__(self):
+        self.deblur: GaussianDeblur | None = None
+        self.record: dict | None = None
+        self.note = ""
+
+    def decide(self, fused: torch.Tensor) -> None:
+        est = estimate_blur(fused)
+        rec = {"method": "blind", "estimate": est.as_dict(), "sigma_px": 0.0, "source": "estimated on the fused frame"}
+        target = est.sigma_px
+        varies = est.tiles >= MIN_TILES and est.spread > SPREAD_MAX and est.edge_sigma_px < 0.95 * MAX_SIGMA_PX
+        if not est.confident and varies:
+            target = est.sigma_low_px  # the blur varies: deblur only what three quarters of the image has at least
+            rec["conservative"] = f"lower quartile of the tiles, {target:.2f} px ({est.reason})"
+        if not est.confident and "conservative" not in rec:
+            self.note = f"no deblurring: the blur estimate is not reliable ({est.reason})"
+        elif target * DEBLUR_SHARE < MIN_DEBLUR_SIGMA_PX:
+            if "conservative" in rec:
+                self.note = f"no deblurring: {est.reason}, and a quarter of the image or more is sharp"
+            else:
+                rec["reason"] = f"estimated blur σ {est.sigma_px:.2f} px: as sharp as a sharp scene"
+        else:
+            for step in RINGING_STEPS:
+                sigma = target * DEBLUR_SHARE * step
+                if sigma < MIN_DEBLUR_SIGMA_PX:
+                    break
+                candidate = GaussianDeblur(sigma)
+                ring = ringing_index(fused, candidate(fused))
+                rec.setdefault("ringing_tried", []).append({"sigma_px": sigma, "ringing_index": ring})
+                if ring <= RINGING_MAX:
+                    self.deblur, rec["sigma_px"] = candidate, sigma
+                    break
+            if self.deblur is None:
+                self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
+            elif rec["sigma_px"] < target * DEBLUR_SHARE:
+                self.note = (
+                    f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {target * DEBLUR_SHARE:.2f} "
+                    "by the ringing guard"
+                )
+            elif "conservative" in rec:
+                self.note = f"deblurring conservatively at σ {rec['sigma_px']:.2f} px: {est.reason}"
+        if self.note:
+            rec["note"] = self.note
+        self.record = rec
+
+    def describe(self) -> str:
+        if self.record is None:
+            return "blind (estimated on the first fused frame)"
+        if self.deblur is None:
+            return "none (blind estimate: nothing to deblur or not reliable)"
+        e = self.record["estimate"]
+        return f"blind Gaussian Wiener at σ {self.deblur.sigma_px:.2f} px (edge estimate {e['sigma_px']:.2f} px)"
+
+    def __call__(self, fused: torch.Tensor) -> torch.Tensor:
+        if self.record is None:
+            self.decide(fused)
+        return fused if self.deblur is None else self.deblur(fused)
+
+
+__all__ = [
+    "BlindDeblur",
+    "BlurEstimate",
+    "GaussianDeblur",
+    "estimate_blur",
+    "gaussian_otf",
+    "compute_ratio_table",
+    "noise_sigma",
+    "ratio_table",
+    "ringing_index",
+    "sigma_from_ratio",
+]
