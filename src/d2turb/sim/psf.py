@@ -230,9 +230,7 @@ def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Ten
         img_f = torch.fft.rfft2(padded.contiguous(), s=(hp, wp))
         out = None
         for k in range(basis.shape[1]):
-            conv = torch.fft.irfft2(_cmul(img_f, kern_f[:, k]), s=(hp, wp))[
-                ..., half : half + hgt, half : half + wid
-            ]
+            conv = torch.fft.irfft2(_cmul(img_f, kern_f[:, k]), s=(hp, wp))[..., half : half + hgt, half : half + wid]
             out = conv.clone() if k == 0 else out.addcmul_(conv, weights[:, :, k - 1])
         return out
     na = (b + 1) // 2  # images 0..na-1 in the real parts, na..b-1 in the imaginary parts
