@@ -445,6 +445,10 @@ def test_temp_names_fit_whenever_the_name_does():
             and tmp.endswith(f".{2**22}-0123abcd.tmp{Path(name).suffix}")
         )
         tmp.encode().decode()  # cut at a character boundary
+    # a name that is not UTF-8 (raw bytes, surrogate-escaped by Python) is counted and kept in bytes (issue 37)
+    for raw in (b"\xff\xfe.png", b"\xe9" * 251 + b".png"):
+        tmp = temp_name(os.fsdecode(raw), "1-0123abcd")
+        assert len(os.fsencode(tmp)) <= 255 and os.fsencode(tmp).startswith(b"." + raw[:8])
 
 
 # ------------------------------------------------------------------------------------ 9. broken links
@@ -663,3 +667,18 @@ def test_tiled_warp_samples_the_padded_canvas_too():
     padded_flow = torch.nn.functional.pad(flow, (0, 12, 0, 28))
     expected = _oracle_warp(canvas, padded_flow, 100, 116)
     assert torch.allclose(warp_in_strips(image, flow, pad_to=32), expected, atol=1e-5)
+
+
+def test_file_name_not_utf8_is_one_error_line_and_nothing_written(tmp_path, capsys):
+    """A folder holding a file whose name is not valid UTF-8 (Latin-1 bytes): one `error:` line naming it with
+    the bytes escaped, exit 2, no output folder (it used to end in a UnicodeEncodeError traceback; issue 37)."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    pixels = (np.arange(24 * 32 * 3).reshape(24, 32, 3) % 251).astype(np.uint8)
+    Image.fromarray(pixels).save(folder / "ok.png")
+    Image.fromarray(pixels).save(os.fsdecode(os.fsencode(folder) + b"/caf\xe9.png"))
+    out = tmp_path / "out"
+    rc, _, err = run_cli(capsys, ["simulate", str(folder), "--out", str(out)])
+    assert rc == 2
+    one_error_line(err, "caf\\xe9.png", "not valid UTF-8")
+    assert not out.exists()
