@@ -193,12 +193,13 @@ def test_record_without_dr0_is_skipped_with_one_error_line(tmp_path, no_lpips, c
     del broken["dr0"]
     lines[2] = json.dumps(broken)
     (data / "meta.jsonl").write_text("\n".join(lines) + "\n")
-    rc = main(["evaluate", "--data", str(data), "--weights", "input", "--metrics", "psnr", "--out", str(tmp_path / "o")])
+    out = tmp_path / "o"
+    rc = main(["evaluate", "--data", str(data), "--weights", "input", "--metrics", "psnr", "--out", str(out)])
     err = capsys.readouterr().err
     errors = [line for line in err.splitlines() if line.startswith("error: ")]
     assert rc == 1 and "Traceback" not in err
     assert len(errors) == 1 and "meta.jsonl line 3" in errors[0] and "dr0" in errors[0]
-    res = json.loads((tmp_path / "o" / "results.json").read_text())
+    res = json.loads((out / "results.json").read_text())
     assert [s["id"] for s in res["per_sample"]] == ["0000000", "0000001", "0000003", "0000004"]
     assert res["bin_counts"] == {"weak": 2, "medium": 0, "strong": 2}
     assert res["table"]["input"]["psnr"]["strong"] == pytest.approx(-20 * math.log10(10 / 255), abs=1e-3)
