@@ -682,3 +682,35 @@ def test_file_name_not_utf8_is_one_error_line_and_nothing_written(tmp_path, caps
     assert rc == 2
     one_error_line(err, "caf\\xe9.png", "not valid UTF-8")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("inherited", ["default", "ignored"])
+def test_ctrl_c_during_simulate_stops_cleans_up_and_exits_130(tmp_path, inherited):
+    """SIGINT while `simulate` works through 64 images: exit 130 with one `interrupted` line, no temp file left,
+    every output it finished complete (turb, tilt and meta of each image), the rest not started. Also when the
+    process was started with SIGINT ignored (a script's `cmd &`), which it used to inherit and run to the end."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(64):
+        Image.fromarray((rng.random((48, 64, 3)) * 255).astype(np.uint8)).save(folder / f"img{i:02d}.png")
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if inherited == "ignored" else None
+    cmd = [sys.executable, "-m", "d2turb", "simulate", str(folder), "--out", str(out), "--seed", "1"]
+    proc = subprocess.Popen(cmd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, preexec_fn=ignore)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if out.is_dir() and len(list(out.glob("*_meta.json"))) >= 2:
+            break
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    err = err.decode()
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["interrupted"] and "Traceback" not in err
+    names = sorted(p.name for p in out.iterdir())
+    assert not [n for n in names if n.startswith(".") or ".tmp" in n], names
+    done = sorted(n.removesuffix("_meta.json") for n in names if n.endswith("_meta.json"))
+    assert 2 <= len(done) < 64
+    assert names == sorted(f"{stem}_{kind}" for stem in done for kind in ("meta.json", "tilt.png", "turb.png"))
+    for stem in done:
+        assert Image.open(out / f"{stem}_turb.png").size == (64, 48)
