@@ -178,8 +178,8 @@ def restore_clip(sim, params, image, depth, modulation, seed: int, restorer, out
     """A CLIP_FRAMES-frame clip of ``image`` per bin (frozen-flow turbulence moved by the wind, 8-bit frames),
     restored by the clip pipeline (window = the whole clip, physics deblur at the simulated D/r0 with the mean depth
     modulation, as ``evaluate --clips``), and every CLIP_STRIDE-th frame also by the single-frame model. Writes
-    demo_clip.gif and clip_LEVEL_{input,restored}.png (the middle frame); returns the frames shown, the per-bin
-    scores and the table lines."""
+    demo_clip.gif and clip_LEVEL_TT_{input,clip,model}.png (the frames scored and shown); returns the frames shown,
+    the per-bin scores and the table lines."""
     # lazy: see d2turb.commands
     import numpy as np
     import torch
@@ -230,8 +230,11 @@ def restore_clip(sim, params, image, depth, modulation, seed: int, restorer, out
             "clip": clip[middle],
             "model": None if model is None else model[middle],
         }
-        write_image(out / f"clip_{level}_input.png", frames[k][middle])
-        write_image(out / f"clip_{level}_restored.png", clip[middle])
+        for t in sorted({*scored, middle}):  # the frames scored and shown, as PNGs a user (or a test) can check
+            write_image(out / f"clip_{level}_{t:02d}_input.png", frames[k][t])
+            write_image(out / f"clip_{level}_{t:02d}_clip.png", clip[t])
+            if model is not None:
+                write_image(out / f"clip_{level}_{t:02d}_model.png", model[t])
     gif = []
     for t in range(CLIP_FRAMES):
         rows = [
@@ -300,7 +303,7 @@ def demo_figure(images, res, depth, modulation, clip: dict, restorer):
         sim.rows.append(([name], cells))
     model_name = restorer.name if restorer is not None else None
     columns = [f"input frame {CLIP_FRAMES // 2} of {CLIP_FRAMES}", f"clip pipeline ({CLIP_FRAMES} frames)"]
-    columns += ["single-frame model" if model_name else "single-frame model: none", "clean"]
+    columns += (["single-frame model"] if model_name else []) + ["clean"]
     title = (
         f"2. A simulated {CLIP_FRAMES}-frame clip of the {CLIP_IMAGE}, restored: the clip pipeline removes the tilt\n"
     )
@@ -317,13 +320,14 @@ def demo_figure(images, res, depth, modulation, clip: dict, restorer):
     for level, value in LEVELS:
         frames, row = clip["shown"][level], clip["scores"][level]
         cells = [to_uint8(frames["input"]), to_uint8(frames["clip"])]
-        cells.append(None if frames["model"] is None else to_uint8(frames["model"]))
+        if frames["model"] is not None:
+            cells.append(to_uint8(frames["model"]))
         cells.append(outline(clean, box))
         label = [level, f"D/r0 = {value:g}", f"input  {row['psnr_input']:.2f} dB"]
         label.append(f"clip   {row['psnr_clip']:.2f} ({_fmt_gain(row['psnr_clip'] - row['psnr_input'])})")
         if frames["model"] is not None:
             label.append(f"model  {row['psnr_model']:.2f} ({_fmt_gain(row['psnr_model'] - row['psnr_input'])})")
         section.rows.append((label, cells))
-        crops = [None if c is None else zoom(c, box) for c in cells[:3]] + [zoom(clean, box)]
+        crops = [zoom(c, box) for c in cells[:-1]] + [zoom(clean, box)]
         section.rows.append(([f"{level}: zoom 2x", "(yellow box)"], crops))
     return stack([render_section(sim), render_section(section)])
