@@ -288,7 +288,7 @@ def demo_figure(images, res, depth, modulation, clip: dict, restorer):
     section 2 the clip (rows: bins, each with a row of 2x crops; columns: input frame, clip restored, the
     single-frame model, clean)."""
     # lazy: see d2turb.commands
-    from d2turb.eval.figure import Section, busiest_box, outline, render_section, stack, zoom
+    from d2turb.eval.figure import Section, best_box, outline, render_section, stack, zoom
     from d2turb.io import to_uint8
 
     names = list(images)
@@ -316,7 +316,8 @@ def demo_figure(images, res, depth, modulation, clip: dict, restorer):
     section = Section(title, columns)
     clean = to_uint8(images[CLIP_IMAGE])
     strong = clip["shown"][LEVELS[-1][0]]
-    box = busiest_box(to_uint8(strong["clip"]), to_uint8(strong["input"]), ZOOM_BOX)
+    gain = [(to_uint8(strong[k]).astype(float) - clean) ** 2 for k in ("input", "clip")]
+    box = best_box((gain[0] - gain[1]).sum(axis=2), ZOOM_BOX)  # where the clip pipeline gains most (strong bin)
     for level, value in LEVELS:
         frames, row = clip["shown"][level], clip["scores"][level]
         cells = [to_uint8(frames["input"]), to_uint8(frames["clip"])]

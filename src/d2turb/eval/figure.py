@@ -114,15 +114,14 @@ def outline(image: np.ndarray, box: tuple[int, int, int, int], colour=(255, 210,
     return out
 
 
-def busiest_box(a: np.ndarray, b: np.ndarray, size: tuple[int, int], step: int = 8) -> tuple[int, int, int, int]:
-    """The ``size`` = (w, h) window where the images ``a`` and ``b`` differ most (sum of squared differences), on a
-    ``step`` px grid: where a zoom shows the difference."""
+def best_box(score: np.ndarray, size: tuple[int, int], step: int = 8) -> tuple[int, int, int, int]:
+    """The ``size`` = (w, h) window (x0, y0, x1, y1) of the largest sum of the HxW map ``score``, on a ``step`` px
+    grid: where a zoom shows what matters (the demo: where the restoration gains most)."""
     w, h = size
-    diff = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).sum(axis=2)
-    integral = np.pad(diff.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-    best, box = -1.0, (0, 0, w, h)
-    for y in range(0, a.shape[0] - h + 1, step):
-        for x in range(0, a.shape[1] - w + 1, step):
+    integral = np.pad(np.asarray(score, dtype=np.float64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    best, box = -np.inf, (0, 0, w, h)
+    for y in range(0, score.shape[0] - h + 1, step):
+        for x in range(0, score.shape[1] - w + 1, step):
             total = integral[y + h, x + w] - integral[y, x + w] - integral[y + h, x] + integral[y, x]
             if total > best:
                 best, box = total, (x, y, x + w, y + h)
