@@ -47,7 +47,7 @@ HEAVY_TESTS = {
     "test_compile_matches_eager_and_checkpoints_plain_names",
     "test_unreadable_things_are_one_line",
     "test_read_only_out_is_one_line",
-    "test_demo_figure_shows_every_part",
+    "test_demo_end_to_end",
 }
 
 

@@ -1,4 +1,4 @@
-"""`d2turb demo` end to end with the shipped model (one run, module scope): the figure holds the written PNGs in
+"""`d2turb demo` end to end with the shipped model (one run): the figure holds the written PNGs in
 labelled cells and stays within 2000 px, the printed per-bin PSNR of the input, the clip restoration and the
 single-frame model is recomputed here from those PNGs with numpy, the clip restoration visibly gains in every bin,
 and the README's sentences about the demo state what it prints."""
@@ -18,16 +18,14 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 LEVELS = ("weak", "medium", "strong")
 
 
-@pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    import contextlib
-    import io
-
-    out = tmp_path_factory.mktemp("demo") / "demo_out"
-    printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        assert main(["demo", "--out", str(out)]) == 0
-    return out, printed.getvalue()
+def test_demo_end_to_end(tmp_path, capsys):
+    """One demo run (about a minute of CPU), three checks; one test, so that xdist runs the demo once."""
+    out = tmp_path / "demo_out"
+    assert main(["demo", "--out", str(out)]) == 0
+    run = (out, capsys.readouterr().out)
+    check_figure_shows_every_part(run)
+    check_printed_psnr_is_what_the_pngs_give(run)
+    check_readme_describes_what_the_demo_prints(run)
 
 
 def _png(path) -> np.ndarray:
@@ -71,7 +69,7 @@ def _clip_scores(out: Path) -> dict[str, dict[str, float]]:
     }
 
 
-def test_demo_figure_shows_every_part(demo_run):
+def check_figure_shows_every_part(demo_run):
     out, printed = demo_run
     figure = _png(out / "demo.png")
     assert max(figure.shape[:2]) <= 2000
@@ -95,7 +93,7 @@ def test_demo_figure_shows_every_part(demo_run):
     assert Image.open(out / "demo_clip.gif").n_frames == demo.CLIP_FRAMES
 
 
-def test_demo_prints_the_psnr_of_input_clip_and_model_that_the_pngs_give(demo_run):
+def check_printed_psnr_is_what_the_pngs_give(demo_run):
     out, printed = demo_run
     table = _table(printed, "## A clip")
     scores = _clip_scores(out)
@@ -112,7 +110,7 @@ def test_demo_prints_the_psnr_of_input_clip_and_model_that_the_pngs_give(demo_ru
     assert "## Single frames" in printed and "nafnet-cpu-spectral" in printed
 
 
-def test_readme_describes_what_the_demo_prints(demo_run):
+def check_readme_describes_what_the_demo_prints(demo_run):
     """Every number the README quotes for the demo is the demo's (to the README's one decimal)."""
     _, printed = demo_run
     text = README.read_text()
