@@ -48,6 +48,7 @@ HEAVY_TESTS = {
     "test_unreadable_things_are_one_line",
     "test_read_only_out_is_one_line",
     "test_rehearsal_runs_every_step_and_brings_back_what_fits",
+    "test_demo_end_to_end",
 }
 
 

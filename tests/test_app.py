@@ -315,7 +315,9 @@ def test_base_install_does_not_pull_the_app_dependencies_and_the_command_says_ho
     env = {**os.environ, "PYTHONPATH": str(SRC)}
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 2, res.stderr
-    assert res.stderr.strip().splitlines() == ["error: d2turb app needs the app extra: pip install 'd2turb[app]'"]
+    assert res.stderr.strip().splitlines() == [
+        "error: d2turb app needs the app extra: pip install 'd2turb[app]' (from a checkout: pip install -e '.[app]')"
+    ]
     from d2turb.cli import build_parser
 
     assert build_parser().parse_args(["app"]).host == "127.0.0.1"  # this machine only, unless asked
@@ -335,7 +337,10 @@ def test_a_folder_named_gradio_is_not_the_extra(tmp_path, monkeypatch, capsys):
         monkeypatch.delenv(name, raising=False)
     assert importlib.util.find_spec("gradio") is not None  # the folder is importable as a namespace package
     assert main(["app"]) == 2
-    assert capsys.readouterr().err.strip() == "error: d2turb app needs the app extra: pip install 'd2turb[app]'"
+    assert (
+        capsys.readouterr().err.strip()
+        == "error: d2turb app needs the app extra: pip install 'd2turb[app]' (from a checkout: pip install -e '.[app]')"
+    )
 
 
 def test_clip_tab_simulates_from_an_image_and_restores_with_the_known_strength(workspace, tmp_path):

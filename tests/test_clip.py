@@ -263,6 +263,11 @@ def test_clip_errors_are_one_line(tmp_path, capsys):
         lines = [line for line in r.stderr.splitlines() if line.startswith("error:")]
         assert len(lines) == 1 and needle in lines[0], r.stderr
         assert "Traceback" not in r.stderr
+        if args[-1] != good:  # nothing left behind: no (empty) output folder
+            assert not args[-1].exists(), args
+    # mixed sizes: the mismatch is said once (not also in notes), before anything is measured or written
+    r = run(mixed, "--temporal", 4, "--out", tmp_path / "o2")
+    assert r.stderr.count("one size") == 1 and "b.png is 64x32" in r.stderr, r.stderr
     r = run(good, "--temporal", 3, "--out", tmp_path / "o6", "--save-flow")
     assert r.returncode == 1 and "f9.png" in r.stderr and "Traceback" not in r.stderr
     written = sorted(p.name for p in (tmp_path / "o6").glob("*_restored.png"))
@@ -297,7 +302,7 @@ def test_clip_video_in_video_out(tmp_path):
     assert r.returncode == 0, r.stderr
     import av
 
-    with av.open(str(tmp_path / "out" / "clip.mp4")) as c:
+    with av.open(str(tmp_path / "out" / "clip_restored.mp4")) as c:
         stream = c.streams.video[0]
         frames = sum(1 for _ in c.decode(stream))
         assert frames == 5 and float(stream.average_rate) == pytest.approx(12, rel=1e-3)

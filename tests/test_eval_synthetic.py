@@ -180,3 +180,27 @@ def test_flow_to_rgb_colour_wheel():
         [[1, 1, 1], [1, 0, 0], [0, 1, 1], [0.5, 1, 0], [1, 0.5, 0.5], [0.5, 0, 1]], dtype=torch.float32
     )
     torch.testing.assert_close(rgb, expected, atol=1e-6, rtol=0)
+
+
+def test_record_without_dr0_is_skipped_with_one_error_line(tmp_path, no_lpips, capsys):
+    """`evaluate --data` over a dataset whose meta line 3 lacks dr0: that record is one `error:` line naming the
+    file and line, every other record is evaluated (the input baseline's exact PSNR per bin), exit 1."""
+    from d2turb.cli import main
+
+    data = write_tiny_dataset(tmp_path / "data")
+    lines = (data / "meta.jsonl").read_text().splitlines()
+    broken = json.loads(lines[2])  # sample 0000002, the medium bin's only one
+    del broken["dr0"]
+    lines[2] = json.dumps(broken)
+    (data / "meta.jsonl").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "o"
+    rc = main(["evaluate", "--data", str(data), "--weights", "input", "--metrics", "psnr", "--out", str(out)])
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert rc == 1 and "Traceback" not in err
+    assert len(errors) == 1 and "meta.jsonl line 3" in errors[0] and "dr0" in errors[0]
+    res = json.loads((out / "results.json").read_text())
+    assert [s["id"] for s in res["per_sample"]] == ["0000000", "0000001", "0000003", "0000004"]
+    assert res["bin_counts"] == {"weak": 2, "medium": 0, "strong": 2}
+    assert res["table"]["input"]["psnr"]["strong"] == pytest.approx(-20 * math.log10(10 / 255), abs=1e-3)
+    assert len(res["skipped"]) == 1 and "line 3" in res["skipped"][0]["error"]

@@ -25,7 +25,31 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
     assert {b["name"]: b["params"] for b in listing["backbones"]}["restormer"] == 26_126_644
     assert main(["models"]) == 0
     out = capsys.readouterr().out
-    assert "d2turb            31.82 M" in out and "restormer         26.13 M" in out
+    assert "d2turb           31.82 M" in out and "restormer        26.13 M" in out
+    assert "nafnet            1.14 M  shipped: nafnet-cpu-spectral*, nafnet-cpu-small" in out
+
+
+def test_models_weights_column_says_how_to_get_weights(capsys):
+    """Each model's weights: the shipped files that hold it (read from the files' own metadata), else a training
+    config of configs/ that names the model; the paper model also through the authors' checkpoint."""
+    import yaml
+    from safetensors import safe_open
+
+    from d2turb.models.hub import shipped_weights_dir
+
+    assert main(["models", "--json"]) == 0
+    models = {m["name"]: m["weights"] for m in json.loads(capsys.readouterr().out)["models"]}
+    holds: dict[str, list[str]] = {}
+    for path in sorted(shipped_weights_dir().glob("*.safetensors")):
+        with safe_open(str(path), "pt") as f:
+            holds.setdefault(json.loads(f.metadata()["d2turb_config"])["name"], []).append(path.stem)
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    for name, weights in models.items():
+        assert sorted(weights["shipped"]) == sorted(holds.get(name, [])), name
+        if not weights["shipped"]:
+            config = configs / weights["train"].rsplit("configs/", 1)[1]
+            assert yaml.safe_load(config.read_text())["model"]["name"] == name, (name, config)
+    assert "convert" in models["d2turb"] and models["nafnet"]["shipped"]
 
 
 def test_bench_model_json(tmp_path, capsys):

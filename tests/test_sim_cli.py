@@ -91,24 +91,33 @@ def test_simulate_refuses_bad_parameters(small_png, tmp_path, capsys):
     assert "aperture_m" in capsys.readouterr().err
 
 
-def test_demo_writes_grid(tmp_path):
+def test_demo_without_a_model_writes_the_simulation_and_the_clip(tmp_path, monkeypatch):
+    """--weights none: the simulation and the clip restoration, no single-frame model (the full run with the shipped
+    model: tests/test_demo.py). A 4-frame clip keeps this quick."""
+    from d2turb.commands import demo
+
+    monkeypatch.setattr(demo, "CLIP_FRAMES", 4)
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out)]) == 0
-    grid = Image.open(out / "demo.png")
-    assert grid.size == (5 * 256, 4 * 192)  # columns clean|weak|medium|strong|depth, rows = 3 photos + a chart
+    assert main(["demo", "--out", str(out), "--weights", "none"]) == 0
     assert (out / "astronaut_strong_turb.png").is_file() and (out / "coffee_depth.png").is_file()
+    assert not list(out.glob("*_restored.png")) and not list(out.glob("clip_*_model.png"))
+    assert sorted(p.name for p in out.glob("clip_strong_*")) == [
+        f"clip_strong_{t:02d}_{k}.png" for t in (0, 2) for k in ("clip", "input")
+    ]
     meta = json.loads((out / "demo_meta.json").read_text())
-    assert meta["levels"] == {"weak": 1.5, "medium": 3.0, "strong": 4.5}
+    assert meta["levels"] == {"weak": 1.5, "medium": 3.0, "strong": 4.5} and "restoration" not in meta
+    assert max(Image.open(out / "demo.png").size) <= 2000
 
 
-def test_demo_restores_with_given_weights(tmp_path, tiny_d2turb_weights):
+def test_demo_restores_with_given_weights(tmp_path, tiny_d2turb_weights, monkeypatch):
+    from d2turb.commands import demo
+
+    monkeypatch.setattr(demo, "CLIP_FRAMES", 4)
     out = tmp_path / "demo"  # tiny D²Turb weights with a non-zero predicted flow (conftest)
     assert main(["demo", "--out", str(out), "--weights", str(tiny_d2turb_weights)]) == 0
-    grid = Image.open(out / "restore.png")
-    assert grid.size[1] > 12 * 192  # 4 images x 3 bins, one row each
     table = json.loads((out / "demo_meta.json").read_text())["restoration"]["table"]
     assert sorted(table) == ["medium", "strong", "weak"]
     for row in table.values():
         assert row["epe_zero_flow_px"] > 0 and row["epe_px"] != row["epe_zero_flow_px"]
     assert "| strong | 4.5 |" in (out / "demo_results.md").read_text()
-    assert (out / "chart_medium_restored.png").is_file()
+    assert (out / "chart_medium_restored.png").is_file() and (out / "clip_weak_00_model.png").is_file()

@@ -7,7 +7,9 @@ import argparse
 import contextlib
 import importlib
 import re
+import signal
 import sys
+import threading
 
 from d2turb import __version__
 from d2turb.commands.common import apply_wait_policy, log_to_stderr
@@ -63,6 +65,16 @@ def _end_progress_bars() -> None:
             bar.close()
 
 
+def _listen_to_ctrl_c():
+    """Ctrl-C (SIGINT) stops every command: the command's cleanup runs (temp files removed, finished outputs kept)
+    and it exits 130. A process started with SIGINT ignored (``cmd &`` in a script, some job runners) would
+    otherwise inherit that and run to the end; like ffmpeg, d2turb takes SIGINT back. Returns the undo."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
+        return lambda: None
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    return lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -73,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     log_to_stderr()
+    restore_sigint = _listen_to_ctrl_c()
     apply_wait_policy(args)  # before torch is imported
     from d2turb.io import set_max_pixels  # lazy: d2turb.io imports torch, which --help and usage errors never need
 
@@ -89,6 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         set_max_pixels(DEFAULT_MAX_PIXELS)
+        restore_sigint()
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from d2turb.errors import D2TurbError
 from d2turb.io import atomic_path, to_uint8
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif"}
-VIDEO_HINT = "install the video extra: pip install 'd2turb[video]'"
+VIDEO_HINT = "install the video extra: pip install 'd2turb[video]' (from a checkout: pip install -e '.[video]')"
 DEFAULT_FPS = 30.0  # when a container does not say
 
 

@@ -639,7 +639,7 @@ def run_clip(
                 "trim the video or use the command line"
             )
         check_pixels(src.name, w, h, limits.restore_pixels)
-        clip, mp4 = name, f"{Path(name).stem}.mp4"
+        clip, mp4 = name, f"{Path(name).stem}_restored.mp4"
     elif src.suffix.lower() in IMAGE_SUFFIXES:
         w, h = image_size(src)
         check_pixels(src.name, w, h, limits.sim_pixels)

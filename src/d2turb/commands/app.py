@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from d2turb.errors import D2TurbError
 
-INSTALL_HINT = "d2turb app needs the app extra: pip install 'd2turb[app]'"
+INSTALL_HINT = "d2turb app needs the app extra: pip install 'd2turb[app]' (from a checkout: pip install -e '.[app]')"
 
 
 def register(sub):

@@ -18,11 +18,12 @@ def register(sub):
     p = sub.add_parser(
         "restore",
         help="restore turbulence-degraded images (any size, tiled)",
-        description="Restore images, folders of frames or a video. Writes NAME_restored.png "
-        "(and NAME_flow.npy / NAME_deblurred.png on request) into --out, and NAME.mp4 for a video input (video "
-        "extra). With --temporal N, each input is a clip (a video file or a folder of frames) restored across "
-        "frames: registration to a sliding window of N frames, fusion, deblurring (docs/clips.md). Unreadable "
-        "inputs are reported (one error line each) and skipped; the exit status is then 1.",
+        description="Restore images, folders of frames or a video. Every output is named after its input "
+        "(docs/cli.md): NAME_restored.png (and NAME_flow.npy / NAME_deblurred.png / NAME_compare.png on request) "
+        "into --out, and NAME_restored.mp4 for a video or a clip (video extra). With --temporal N, each input is "
+        "a clip (a video file or a folder of frames) restored across frames: registration to a sliding window of "
+        "N frames, fusion, deblurring (docs/clips.md). Unreadable inputs are reported (one error line each) and "
+        "skipped; the exit status is then 1.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, or a video file")
     p.add_argument(
@@ -85,6 +86,12 @@ def register(sub):
         "displacement of each frame from the restored one, as simulate-video --save-flow)",
     )
     p.add_argument("--save-intermediate", action="store_true", help="also write NAME_deblurred.png (Î_tilt)")
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="also write NAME_compare.png (input | restored, labelled; a clip's or video's middle frame) and for a "
+        "clip or video NAME_compare.mp4 (side by side, video extra)",
+    )
     add_png_level_arg(p)
     add_max_pixels_arg(p)
     add_fail_fast_arg(p)
@@ -108,6 +115,7 @@ def run(args) -> int:
         save_intermediate=args.save_intermediate,
         png_level=args.png_level,
         fail_fast=args.fail_fast,
+        compare=args.compare,
     )
 
 
@@ -137,4 +145,5 @@ def run_clips(args) -> int:
         save_intermediate=args.save_intermediate,
         png_level=args.png_level,
         fail_fast=args.fail_fast,
+        compare=args.compare,
     )

@@ -63,7 +63,8 @@ class PairDataset(Dataset):
     Item: dict(turb, tilt, gt (3,H,W) float32 in [0,1]; bwd_flow_px (2,H,W) float32 px backward flow (and ``flow``,
     its deprecated name); depth (1,H,W) in [0,1]; dr0 float32 scalar; bin int64 scalar (index into
     ("weak","medium","strong")); id str). ``crop`` = random crop size, ``hflip``/``vflip`` = random mirroring (flow
-    kept consistent).
+    kept consistent). ``skip_invalid``: meta lines that are not valid records are left out (their messages in
+    ``invalid``) instead of refusing the dataset.
     Augmentation randomness comes from ``torch``'s global RNG (seeded per DataLoader worker).
     """
 
@@ -74,6 +75,7 @@ class PairDataset(Dataset):
         crop: int | None = None,
         hflip: bool = False,
         vflip: bool = False,
+        skip_invalid: bool = False,
     ):
         self.root = Path(root)
         if split is not None and (self.root / split / "dataset.json").is_file():
@@ -83,7 +85,8 @@ class PairDataset(Dataset):
             raise D2TurbError(f"{self.root}: dataset split is {config.get('split')!r}, not {split!r}")
         if int(config.get("frames", 1)) > 1:
             raise D2TurbError(f"{self.root}: holds sequences (make-dataset --frames); use d2turb.data.SequenceDataset")
-        self.records = sorted(read_meta(self.root), key=lambda r: r["index"])
+        self.invalid: list[str] = []  # with skip_invalid: one message per meta line that is not a valid record
+        self.records = sorted(read_meta(self.root, self.invalid if skip_invalid else None), key=lambda r: r["index"])
         self.patch = int(config["patch"])
         if crop is not None and not 1 <= crop <= self.patch:
             raise D2TurbError(f"crop {crop} must be between 1 and the dataset patch size {self.patch}")

@@ -197,16 +197,21 @@ def iter_meta(path: Path):
             yield n, None, f"not a valid sample record: {exc}"
 
 
-def read_meta(root: Path) -> list[dict]:
+def read_meta(root: Path, invalid: list | None = None) -> list[dict]:
     """The records of ``meta.jsonl``; the first invalid line (a damaged file, an id that would name a path outside
-    the folder) is a one-line ``D2TurbError`` naming the file and line."""
+    the folder) is a one-line ``D2TurbError`` naming the file and line. With a list ``invalid``, invalid lines are
+    skipped instead and their messages appended to it (evaluate reports them and goes on)."""
     path = Path(root) / META_NAME
     if not path.is_file():
         raise D2TurbError(f"{root}: no {META_NAME} (generation unfinished? rerun make-dataset)")
     records = []
     for n, rec, problem in iter_meta(path):
         if problem is not None:
-            raise D2TurbError(f"{path} line {n}: {problem}; check it with `d2turb check-dataset {root}`")
+            message = f"{path} line {n}: {problem}; check it with `d2turb check-dataset {root}`"
+            if invalid is None:
+                raise D2TurbError(message)
+            invalid.append(message)
+            continue
         records.append(rec)
     return records
 

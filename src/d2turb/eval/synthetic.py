@@ -203,9 +203,11 @@ def evaluate_synthetic(
         raise D2TurbError("evaluate: give at least one model (--weights PATH|NAME|input)")
     strict_lpips = _lpips_requested(metrics, lpips_weights, lpips_backbone)
     metrics = _check_options(metrics, max_samples)
-    dataset = PairDataset(data_dir)
+    dataset = PairDataset(data_dir, skip_invalid=not fail_fast)
     count = len(dataset) if max_samples is None else min(len(dataset), max_samples)
     if count == 0:
+        if dataset.invalid:
+            raise D2TurbError(f"{data_dir}: no valid sample record ({dataset.invalid[0]})")
         raise D2TurbError(f"{data_dir}: the dataset has no samples")
     restorers = [Restorer(w, device=device, tile=tile, overlap=overlap) for w in weights]
     # a run folder's model.safetensors: its config's model name and folder, not "model"
@@ -217,6 +219,10 @@ def evaluate_synthetic(
         lpips_model, notes = _lpips_or_note(metrics, strict_lpips, lpips_weights, lpips_backbone, lpips_net, device)
 
     samples, skipped, grids, mean = [], [], {b: [] for b in BIN_NAMES}, KeyedMean(sync_on_compute=False)
+    for message in dataset.invalid:  # meta lines that are not valid records: skipped like unreadable samples
+        skipped.append({"id": message.split(": ", 1)[0].rsplit("/", 1)[-1], "error": message})
+        if on_skip is not None:
+            on_skip(message)
     # the identity baseline would repeat the input column
     grid_models = [i for i, r in enumerate(restorers) if not isinstance(r.model, IdentityRestorer)]
     for i in _indices(count, progress):

@@ -34,10 +34,15 @@ def temp_name(name: str, token: str) -> str:
     temp name fits in :data:`NAME_MAX` bytes whenever ``name`` does; :func:`remove_stale_temp_files` reads both."""
     suffix = Path(name).suffix
     tail = f".{token}.tmp{suffix}"
-    if len(f".{name}{tail}".encode()) > NAME_MAX:
+    if len(os.fsencode(f".{name}{tail}")) > NAME_MAX:  # fsencode: a name that is not UTF-8 counts its raw bytes
         stem = name[: len(name) - len(suffix)]
-        room = NAME_MAX - len(f".{suffix}{tail}".encode())
-        name = stem.encode()[: max(room, 1)].decode(errors="ignore") + suffix
+        room = NAME_MAX - len(os.fsencode(f".{suffix}{tail}"))
+        cut = os.fsencode(stem)[: max(room, 1)]
+        try:  # a UTF-8 name is cut at a character boundary; one that is not UTF-8 keeps its raw bytes
+            stem.encode()
+            name = cut.decode(errors="ignore") + suffix
+        except UnicodeEncodeError:
+            name = os.fsdecode(cut) + suffix
     return f".{name}{tail}"
 
 

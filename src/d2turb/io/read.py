@@ -76,7 +76,22 @@ def expand_inputs(inputs: list[str]) -> list[Path]:
             raise D2TurbError(_missing_reason(p) if p.is_symlink() else f"{p}: no such file or directory")
     if not paths:
         raise D2TurbError("no input images found")
+    for p in paths:
+        check_utf8_name(p)
     return paths
+
+
+def check_utf8_name(path: str | os.PathLike) -> None:
+    """Refuse a path that is not valid UTF-8 (bytes a Linux file name may hold, e.g. Latin-1 ``\\xe9``): its
+    outputs, messages and JSON records could not name it. Raised before anything is written."""
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(text).decode("utf-8", "backslashreplace")
+        raise D2TurbError(
+            f"{shown}: file name is not valid UTF-8; rename it (e.g. convmv -f latin1 -t utf-8) or move it out"
+        ) from None
 
 
 def check_unique_stems(paths: Iterable[str | os.PathLike]) -> None:

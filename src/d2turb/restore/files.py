@@ -1,6 +1,11 @@
-"""Restored files from image files, videos and clips: what ``d2turb restore`` writes (NAME_restored.png, and on
-request NAME_flow.npy / NAME_deblurred.png; NAME.mp4 for a video) and ``d2turb restore --temporal`` (a clip
-restored across frames). The commands and the page both run these."""
+"""Restored files from image files, videos and clips: what ``d2turb restore`` writes and ``d2turb restore --temporal``
+(a clip restored across frames). The commands and the page both run these.
+
+One naming rule (docs/cli.md, :func:`d2turb.restore.compare.output_name`): every output is named after its input,
+``NAME_<what>.<ext>``, NAME being an image's or a video's file stem, or a folder clip's folder name:
+``NAME_restored.png`` (an image, a frame: a video's frames are NAME_NNNNNN), ``NAME_restored.mp4`` (a video, a
+clip), ``NAME_compare.png`` / ``NAME_compare.mp4`` (``--compare``), ``NAME_flow.npy``, ``NAME_deblurred.png``,
+``NAME_fused.png``."""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from PIL import Image, ImageOps
 from tqdm import tqdm
 
 from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
@@ -31,9 +37,10 @@ from d2turb.measure import measure_clip
 from d2turb.ops.splat import backward_flow
 from d2turb.restore.blur import BlindDeblur
 from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
+from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams
-from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps
+from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps, video_size
 
 
 def split_inputs(inputs: list) -> tuple[list[Path], list[Path]]:
@@ -50,11 +57,37 @@ def split_inputs(inputs: list) -> tuple[list[Path], list[Path]]:
 
 
 def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
-    write_image(out_dir / f"{stem}_restored.png", details["restored"], png_level)
+    write_image(out_dir / output_name(stem, "restored", "png"), details["restored"], png_level)
     if save_flow:
-        write_npy(out_dir / f"{stem}_flow.npy", details["bwd_flow_px"].numpy().astype(np.float32))
+        write_npy(out_dir / output_name(stem, "flow", "npy"), details["bwd_flow_px"].numpy().astype(np.float32))
     if save_intermediate:
-        write_image(out_dir / f"{stem}_deblurred.png", details["deblurred"], png_level)
+        write_image(out_dir / output_name(stem, "deblurred", "png"), details["deblurred"], png_level)
+
+
+def _save_compare(out_dir: Path, name: str, before, after, png_level: int) -> None:
+    """NAME_compare.png: input | restored, labelled."""
+    write_image(out_dir / output_name(name, "compare", "png"), side_by_side([before, after]), png_level)
+
+
+@contextlib.contextmanager
+def _no_empty_out(out_dir: Path):
+    """A run that leaves ``out_dir`` empty (it failed before writing anything, or wrote nothing) removes it, when it
+    did not exist before the run: no empty output folder is left behind."""
+    existed = out_dir.exists()
+    try:
+        yield
+    finally:
+        if not existed:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()  # only when empty
+
+
+def _video_frames(path: Path) -> int | None:
+    """Frame count stored in a video's container (None when it stores none or cannot be read: the bar counts up)."""
+    try:
+        return video_size(path)[0] or None
+    except D2TurbError:
+        return None
 
 
 def _named(path: Path, exc: D2TurbError) -> D2TurbError:
@@ -73,13 +106,15 @@ def restore_files(
     save_intermediate: bool = False,
     png_level: int = DEFAULT_PNG_LEVEL,
     fail_fast: bool = False,
+    compare: bool = False,
 ) -> int:
     """Restore images, folders of images and videos (frame by frame) with a model into the folder ``out``.
 
-    Writes NAME_restored.png per image (a video's frames: NAME_NNNNNN_restored.png, and NAME.mp4 with the video
-    extra), NAME_flow.npy (``save_flow``: float32 (2, H, W), the predicted backward flow V̂ in px, x then y) and
-    NAME_deblurred.png (``save_intermediate``: Î_tilt). An unreadable input is reported in one ``error:`` line and
-    skipped (``fail_fast``: raised).
+    Writes NAME_restored.png per image (a video's frames: NAME_NNNNNN_restored.png, and NAME_restored.mp4 with the
+    video extra), NAME_flow.npy (``save_flow``: float32 (2, H, W), the predicted backward flow V̂ in px, x then y)
+    and NAME_deblurred.png (``save_intermediate``: Î_tilt); with ``compare``, NAME_compare.png (input | restored,
+    labelled; a video's of its middle frame) and for a video NAME_compare.mp4 (side by side). An unreadable input
+    is reported in one ``error:`` line and skipped (``fail_fast``: raised).
 
     Args:
         weights: as :class:`~d2turb.restore.Restorer` takes them (None: the recommended shipped model).
@@ -94,7 +129,7 @@ def restore_files(
     errors = FileErrors(len(images) + len(videos), fail_fast)
     options = (save_flow, save_intermediate, png_level)
     count = 0
-    with BackgroundWriter(max_pending=4, compute_device=restorer.device) as writer:
+    with _no_empty_out(out_dir), BackgroundWriter(max_pending=4, compute_device=restorer.device) as writer:
         for path in tqdm(images, desc="restore", unit="img", disable=len(images) < 2):
             try:
                 image = read_image(path)
@@ -104,14 +139,21 @@ def restore_files(
                 errors.record(_named(path, exc))
                 continue
             writer.submit(_save, out_dir, path.stem, details, *options)
+            if compare:
+                writer.submit(_save_compare, out_dir, path.stem, image, details["restored"], png_level)
             count += 1
         for video in videos:
-            bar = tqdm(iter_video(video), desc=video.name, unit="frame")
+            total = _video_frames(video)
+            bar = tqdm(iter_video(video), desc=video.name, unit="frame", total=total)
             frames = iter(bar)
+            pick = (total or 0) // 2  # the frame of NAME_compare.png
             with contextlib.ExitStack() as stack:
-                mp4 = None
+                mp4 = side = None
                 if can_write_mp4():  # the restored clip as a video too, at the input's frame rate
-                    mp4 = stack.enter_context(Mp4Writer(out_dir / f"{video.stem}.mp4", video_fps(video)))
+                    fps = video_fps(video)
+                    mp4 = stack.enter_context(Mp4Writer(out_dir / output_name(video.stem, "restored", "mp4"), fps))
+                    if compare:
+                        side = stack.enter_context(Mp4Writer(out_dir / output_name(video.stem, "compare", "mp4"), fps))
                 while True:
                     try:
                         i, frame = next(frames, (None, None))
@@ -124,12 +166,18 @@ def restore_files(
                         errors.record(_named(video, exc))
                         break
                     writer.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
+                    if compare and i == pick:
+                        writer.submit(_save_compare, out_dir, video.stem, frame, details["restored"], png_level)
                     if mp4 is not None:
                         mp4.write(details["restored"])
+                    if side is not None:
+                        side.write(side_by_side([frame, details["restored"]]))
                     count += 1
                 if mp4 is not None and not mp4.frames:
                     stack.pop_all()
                     mp4.abort()
+                    if side is not None:
+                        side.abort()
     print(f"restored {count} image(s) with {restorer.name} into {out_dir}")
     return errors.finish("restore")
 
@@ -167,6 +215,43 @@ def clip_frames(src: Path, errors) -> tuple[list[str], object]:
             yield frame
 
     return names, read()
+
+
+def _header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an image as read_image will give it (EXIF rotation applied), from its header only;
+    None when the header cannot be read (the restoring pass reports the file)."""
+    try:
+        with Image.open(path) as im:
+            width, height = im.size
+            if im.getexif().get(ImageOps.ExifTags.Base.Orientation) in (5, 6, 7, 8):
+                width, height = height, width
+            return width, height
+    except Exception:  # noqa: BLE001 - any unreadable header: left to read_image, which reports it in one line
+        return None
+
+
+def check_frame_sizes(src: Path, files: list[Path]) -> None:
+    """A folder clip's frames must have one size: checked from the headers before anything is measured or
+    written, so that a mismatch is one error line and leaves nothing behind."""
+    first = None
+    for f in files:
+        size = _header_size(f)
+        if size is None:
+            continue
+        if first is None:
+            first = (f, size)
+        elif size != first[1]:
+            raise D2TurbError(
+                f"{src}: frame {f.name} is {size[0]}x{size[1]}, the first ({first[0].name}) is "
+                f"{first[1][0]}x{first[1][1]}: all frames of a clip must have one size"
+            )
+
+
+def _kept(frames, store: dict):
+    """The frames, each also kept in ``store`` under its index until the caller pops it."""
+    for i, frame in enumerate(frames):
+        store[i] = frame
+        yield frame
 
 
 MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when it is not given
@@ -261,13 +346,16 @@ def restore_clip_files(
     save_intermediate: bool = False,
     png_level: int = DEFAULT_PNG_LEVEL,
     fail_fast: bool = False,
+    compare: bool = False,
 ) -> int:
     """Restore a clip across frames into the folder ``out`` (``d2turb restore --temporal``): registration to a
     sliding window of ``temporal`` frames, fusion, deblurring (:class:`~d2turb.restore.clip.ClipRestorer`).
 
-    Writes NNN_restored.png per frame (a video's: NAME_NNNNNN_restored.png), an mp4 (video extra; a video keeps its
-    name, a folder's is FOLDER_restored.mp4), NNN_fused.png (``save_intermediate``) and flow/NNNNNN.npy
-    (``save_flow``: float32 (2, H, W), the forward displacement of each frame from the restored one, px, x then y).
+    NAME is the video's stem or the folder's name. Writes FRAME_restored.png per frame (a folder's frames keep
+    their stems; a video's are NAME_NNNNNN), NAME_restored.mp4 (video extra), FRAME_fused.png
+    (``save_intermediate``), flow/NNNNNN.npy (``save_flow``: float32 (2, H, W), the forward displacement of each
+    frame from the restored one, px, x then y) and with ``compare`` NAME_compare.mp4 (input | restored side by
+    side, video extra) and NAME_compare.png (the middle frame).
 
     Args:
         src: a video file or a folder of frames.
@@ -284,36 +372,52 @@ def restore_clip_files(
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise D2TurbError(f"--fps must be positive, got {fps}")
     restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
+    files = list_images(src) if src.is_dir() else []
+    check_frame_sizes(src, files)
     device = resolve_device(device)
     restorer.deblur, deblur_name, record = clip_deblur(
         deblur, src, dr0=dr0, params=params, device=device, tile=tile, overlap=overlap, fusion=fusion
     )
-    out_dir = check_output_dir(out, inputs=list_images(src) if src.is_dir() else [src])
+    out_dir = check_output_dir(out, inputs=files or [src])
     errors = FileErrors(2, fail_fast)  # per frame: a bad one is reported and skipped
     names, frames = clip_frames(src, errors)
     fps = video_fps(src) if is_video(src) else (fps or 30.0)
-    # a video keeps its name (its folder cannot be --out); a folder's mp4 is marked, so a user's CLIP.mp4 beside the
-    # frames is never replaced
-    mp4 = out_dir / (f"{src.stem}.mp4" if is_video(src) else f"{src.resolve().name}_restored.mp4")
+    total = _video_frames(src) if is_video(src) else len(files)  # the bar's total (unreadable frames aside)
+    name = src.stem if is_video(src) else src.resolve().name
+    mp4 = out_dir / output_name(name, "restored", "mp4")
+    side = out_dir / output_name(name, "compare", "mp4") if compare else None
     if not can_write_mp4():
         print(f"note: no mp4 written; {VIDEO_HINT}")
-        mp4 = None
+        mp4 = side = None
+    inputs: dict[int, object] = {}  # with compare: the input frames not yet restored (bounded by the lookahead)
+    if compare:
+        frames = _kept(frames, inputs)
+    pick, last = (total or 0) // 2, None  # NAME_compare.png: the middle frame (the last one, if fewer were read)
     print(f"restoring {src} over windows of {temporal} frames, deblur: {deblur_name}", file=sys.stderr)
     count = 0
-    with contextlib.ExitStack() as stack:
+    with _no_empty_out(out_dir), contextlib.ExitStack() as stack:
         writer = stack.enter_context(BackgroundWriter(max_pending=2, compute_device=device))
         video = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, fps))
-        for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame"):
+        side_video = None if side is None else stack.enter_context(Mp4Writer(side, fps))
+        for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame", total=total or None):
             stem = names[frame.index]
-            writer.submit(write_image, out_dir / f"{stem}_restored.png", frame.restored, png_level)
+            writer.submit(write_image, out_dir / output_name(stem, "restored", "png"), frame.restored, png_level)
+            if compare:
+                before = inputs.pop(frame.index)
+                if frame.index <= pick:
+                    last = (before, frame.restored)
+                if side_video is not None:
+                    side_video.write(side_by_side([before, frame.restored]))
             if save_intermediate:
-                writer.submit(write_image, out_dir / f"{stem}_fused.png", frame.fused, png_level)
+                writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), frame.fused, png_level)
             if save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
                 fwd = backward_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
                 writer.submit(write_npy, out_dir / "flow" / f"{frame.index:06d}.npy", fwd)
             if video is not None:
                 video.write(frame.restored)
             count += 1
+        if last is not None:
+            writer.submit(_save_compare, out_dir, name, *last, png_level)
     if isinstance(restorer.deblur, BlindDeblur):
         record = restorer.deblur.record
         if restorer.deblur.note:
@@ -322,7 +426,10 @@ def restore_clip_files(
                 "or --deblur none",
                 file=sys.stderr,
             )
-    settings = {"temporal": temporal, "passes": passes, "preset": preset, "fusion": fusion}
-    write_json(out_dir / "restore.json", {"input": str(src), "frames": count, **settings, "deblur": record})
+    if count:  # a run that restored nothing leaves no folder (_no_empty_out), so no restore.json either
+        settings = {"temporal": temporal, "passes": passes, "preset": preset, "fusion": fusion}
+        write_json(out_dir / "restore.json", {"input": str(src), "frames": count, **settings, "deblur": record})
     print(f"restored {count} frame(s) of {src.name} into {out_dir}" + (f" ({mp4.name})" if mp4 else ""))
+    if compare:
+        print(f"before | after: {out_dir / output_name(name, 'compare', 'png')}" + (f", {side.name}" if side else ""))
     return summary("restore", count + len(errors.failed), len(errors.failed))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 
@@ -119,22 +120,31 @@ def _chunk_floats(device: torch.device) -> int:
 _THREADS_LOCK = threading.Lock()
 
 
-def _small_eigh(mat: torch.Tensor):
-    """eigh of a small matrix on one thread: multi-threaded LAPACK on a busy CPU takes 10× longer and
-    stalls for seconds (384×384 on 2 shared cores: 0.08 s on one thread, 0.75 s median / 7 s worst on two).
+@contextlib.contextmanager
+def _one_thread(device: torch.device):
+    """Run the block on one torch thread (CPU only): torch's thread count is process-wide, so it is lowered
+    only for the block and restored on the way out; the lock keeps two threads from saving and restoring
+    each other's value.
 
-    torch's thread count is process-wide, so it is lowered only for this call and restored in ``finally``;
-    the lock keeps two threads from saving and restoring each other's value.
+    Used for the PCA of the PSFs, for two reasons. (1) Its BLAS products have a long inner dimension (w² up to
+    ~10⁴), and MKL splits that dimension differently for different thread counts: the Gram matrix of 384
+    PSFs of 65² differs in the last bits between 1 and 2 threads, and so would every blurred image, so a
+    make-dataset resumed with another thread count (a busy machine, another ``OMP_NUM_THREADS``) would not
+    be byte-identical. On one thread the result depends on the inputs only. (2) Multi-threaded LAPACK eigh
+    of a small matrix on a busy CPU takes 10× longer and stalls for seconds (384×384 on 2 shared cores:
+    0.08 s on one thread, 0.75 s median / 7 s worst on two).
     """
-    if mat.device.type != "cpu":
-        return torch.linalg.eigh(mat)
+    if device.type != "cpu":
+        yield
+        return
     with _THREADS_LOCK:
         threads = torch.get_num_threads()
         if threads == 1:
-            return torch.linalg.eigh(mat)
+            yield
+            return
         torch.set_num_threads(1)
         try:
-            return torch.linalg.eigh(mat)
+            yield
         finally:
             torch.set_num_threads(threads)
 
@@ -143,13 +153,19 @@ def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0
     """PSFs (N, w, w) → basis (K+1, w, w) [mean, components summing to 0] and weights (N, K).
 
     The principal components are fitted on at most ``max_fit`` evenly strided PSFs (eigh of their Gram
-    matrix), then every PSF is projected on them.
+    matrix), then every PSF is projected on them. On a CPU it runs on one thread, so the result does not
+    depend on the thread count (:func:`_one_thread`).
     """
+    with _one_thread(psfs.device):
+        return _pca_basis(psfs, max_components, explained, max_fit)
+
+
+def _pca_basis(psfs: torch.Tensor, max_components: int, explained: float, max_fit: int):
     n, w, _ = psfs.shape
     x = psfs.reshape(n, -1)
     mean = x.mean(0).double()  # only the fitted PSFs are copied to float64
     fit = x[:: max(1, math.ceil(n / max_fit))].double() - mean
-    lam, u = _small_eigh(fit @ fit.T)
+    lam, u = torch.linalg.eigh(fit @ fit.T)
     lam, u = lam.flip(0).clamp_min(0), u.flip(1)
     total = lam.sum()
     if total <= 1e-12 * float((mean * mean).sum()) * fit.shape[0]:
@@ -181,6 +197,16 @@ def _full_spectrum(half_spec: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([half_spec, rest], -1)
 
 
+def _cmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a·b for complex tensors, on one thread (CPU). torch's complex ``*`` rounds differently in its vectorised loop
+    and its scalar tail, and where one ends depends on how the work is split over the threads: the same spectra
+    multiplied on 1, 2 or 4 threads differed in the last bits. On one thread the split is always the same; this
+    memory-bound product is also faster there on a busy machine (300² × 6 planes: 1.4 ms on one thread, 15 ms on
+    two with the other core loaded)."""
+    with _one_thread(a.device):
+        return a * b
+
+
 def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Spatially varying blur in gather form: out(x) = Σ_k w_k(x)·(P_k ∗ I)(x), w_0 ≡ 1.
 
@@ -201,9 +227,7 @@ def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Ten
         img_f = torch.fft.rfft2(padded.contiguous(), s=(hp, wp))
         out = None
         for k in range(basis.shape[1]):
-            conv = torch.fft.irfft2((img_f * kern_f[:, k]).contiguous(), s=(hp, wp))[
-                ..., half : half + hgt, half : half + wid
-            ]
+            conv = torch.fft.irfft2(_cmul(img_f, kern_f[:, k]), s=(hp, wp))[..., half : half + hgt, half : half + wid]
             out = conv.clone() if k == 0 else out.addcmul_(conv, weights[:, :, k - 1])
         return out
     na = (b + 1) // 2  # images 0..na-1 in the real parts, na..b-1 in the imaginary parts
@@ -214,7 +238,7 @@ def blur_with_basis(image: torch.Tensor, basis: torch.Tensor, weights: torch.Ten
     w_a, w_b = (weights[:na], weights[na:]) if weights.shape[0] > 1 else (weights, weights)
     out_a = out_b = None
     for k in range(basis.shape[1]):
-        conv = torch.fft.ifft2((img_f * kern_f[:, k]).contiguous())[..., half : half + hgt, half : half + wid]
+        conv = torch.fft.ifft2(_cmul(img_f, kern_f[:, k]))[..., half : half + hgt, half : half + wid]
         if k == 0:
             out_a, out_b = conv.real.clone(), conv.imag[:nb].clone()
         else:
