@@ -53,6 +53,27 @@ DEBLUR_BALANCE = 0.01
 RINGING_MAX = 0.65
 RINGING_STEPS = (1.0, 0.75, 0.5)  # factors on σ_d tried in turn by the guard
 
+# The physics-shaped deblur (the default shape): the turbulence OTF family of ``sim.otf`` at an assumed D/r0 =
+# ``PHYSICS_DR0``, its λ/(D·ifov) chosen so that the edge estimate of that OTF's blur (``compute_physics_response``,
+# on the synthetic step edges of the ratio table) equals ``PHYSICS_SHARE``·σ_blur, and the Wiener filter of the
+# physics deblur (``restore.clip.PhysicsDeblur``) with a prior of weight ``PHYSICS_BALANCE``. On the simulated
+# validation clips (docs/clips.md) the edge estimate of the fused frame is 1.00× (median; 10–90 %: 0.73–1.18×) the
+# estimate of the simulator's true OTF on the step edges, on the fixed test clips 0.74× (0.53–0.92×), on skimage scenes
+# 0.70–1.16× (tests/test_clip_blind.py): so share 1, no bias correction. The grid (D/r0 1, 2, 3 × share 0.8–1.5 ×
+# weight, 39 validation clips of λ/(D·ifov) 1–4 px and 15 fixed test clips, PSNR with the global offset removed):
+# D/r0 1 and share 1 keep the most of the oracle's gain with no clip below −0.3 dB; the prior's weight 0.02
+# (not D/r0 1's 0.0006, which gained more on the clean simulated clips) because on the real clips smaller weights
+# amplify the compression's blocks into a visible grid (airport_heat_shimmer, dost_street_clip).
+PHYSICS_DR0 = 1.0
+PHYSICS_SHARE = 1.0
+PHYSICS_BALANCE = 0.02
+# above this edge estimate the Gaussian at DEBLUR_SHARE·σ is used instead: the estimates of 2.9–3.5 px came from
+# strong turbulence where the oracle itself gains little (+0.5 dB) or loses, and the physics shape lost up to 0.7 dB
+PHYSICS_MAX_SIGMA_PX = 2.8
+# ringing guard of the physics shape: above the largest ringing_index of the chosen deblur on the validation and
+# test clips (0.66; median 0.61 / 0.50); 0.70 stops a deblur that overshoots more than any that paid there
+PHYSICS_RINGING_MAX = 0.70
+
 
 def _luma(image) -> np.ndarray:
     """(H, W) float32 luma in [0, 1] of a (3,H,W)/(1,H,W) tensor or an (H,W[,C]) array."""
@@ -111,6 +132,19 @@ RATIO_TABLE_SIGMA = (
 )  # fmt: skip
 
 
+# (λ/(D·ifov), σ) of compute_physics_response() at PHYSICS_DR0, rounded (tests/test_clip_blind.py recomputes it)
+PHYSICS_RESPONSE_LOD = (
+    0.2500, 0.2805, 0.3148, 0.3533, 0.3965, 0.4449, 0.4993, 0.5603, 0.6287, 0.7055, 0.7917, 0.8885, 0.9970,
+    1.1189, 1.2556, 1.4090, 1.5811, 1.7743, 1.9911, 2.2344, 2.5074, 2.8138, 3.1576, 3.5434, 3.9764, 4.4622,
+    5.0074, 5.6192, 6.3058, 7.0763, 7.9409, 8.9112, 10.0000,
+)  # fmt: skip
+PHYSICS_RESPONSE_SIGMA = (
+    0.2954, 0.3104, 0.3263, 0.3444, 0.3627, 0.3830, 0.4059, 0.4309, 0.4595, 0.4907, 0.5250, 0.5619, 0.6023,
+    0.6470, 0.6948, 0.7484, 0.8080, 0.8778, 0.9553, 1.0461, 1.1531, 1.2800, 1.4254, 1.5910, 1.7790, 1.9968,
+    2.2399, 2.5096, 2.8229, 3.1687, 3.5495, 3.9984, 4.4763,
+)  # fmt: skip
+
+
 def compute_ratio_table(count: int = 41) -> tuple[np.ndarray, np.ndarray]:
     """(R, σ): the median gradient-peak ratio of synthetic step edges (all orientations, sub-pixel positions: a
     disc of radius 40 px super-sampled 8×, area-averaged to pixels) blurred by a Gaussian of known σ (0, then
@@ -131,6 +165,33 @@ def compute_ratio_table(count: int = 41) -> tuple[np.ndarray, np.ndarray]:
     return np.array(ratios), sigmas
 
 
+def _step_disc(n: int = 160, sup: int = 8) -> np.ndarray:
+    """The synthetic step edges of the tables: a disc of radius 40 px (off-centre), super-sampled ``sup``× and
+    area-averaged to (n, n) pixels, values 0/1."""
+    yy, xx = np.mgrid[0 : n * sup, 0 : n * sup].astype(np.float32)
+    c = n * sup / 2 - 0.37 * sup
+    disc = ((xx - c) ** 2 + (yy - c) ** 2 < (40 * sup) ** 2).astype(np.float32)
+    return cv2.resize(disc, (n, n), interpolation=cv2.INTER_AREA)
+
+
+def compute_physics_response(dr0: float = PHYSICS_DR0, count: int = 33) -> tuple[np.ndarray, np.ndarray]:
+    """(λ/(D·ifov), σ): the edge estimate (median σ over the strongest 3 % of the edge pixels) of the synthetic step
+    edges of the ratio table blurred by the short-exposure turbulence OTF (``sim.otf.image_otf``, tilt removed) at
+    ``dr0``, for λ/(D·ifov) from 0.25 to 10 px (geometric). ``PHYSICS_RESPONSE_*`` hold its values at PHYSICS_DR0."""
+    from d2turb.sim.otf import image_otf
+
+    pad = 64
+    img = np.pad(_step_disc(), pad, mode="edge")
+    spec = torch.fft.rfft2(torch.from_numpy(img).double())
+    lods = np.geomspace(0.25, 10.0, count)
+    sig = []
+    for lod in lods:
+        b = torch.fft.irfft2(spec * image_otf(*img.shape, dr0, float(lod)), s=img.shape).numpy()
+        r, _ = _ratios((0.2 + 0.6 * b[pad:-pad, pad:-pad]).astype(np.float32), 0.97)
+        sig.append(float(np.median(sigma_from_ratio(r))) if r.size else MAX_SIGMA_PX)
+    return lods, np.maximum.accumulate(np.array(sig))
+
+
 def ratio_table() -> tuple[np.ndarray, np.ndarray]:
     """(R, σ) of the tabulated ``compute_ratio_table``."""
     return np.array(RATIO_TABLE_R), np.array(RATIO_TABLE_SIGMA)
@@ -140,6 +201,12 @@ def sigma_from_ratio(r: np.ndarray) -> np.ndarray:
     """σ (px) of the edges' Gaussian blur from their gradient-peak ratios (the table, linear between nodes)."""
     table_r, table_s = ratio_table()
     return np.interp(-np.asarray(r, np.float64), -table_r, table_s)
+
+
+def physics_lod_for_sigma(sigma_px: float) -> float:
+    """λ/(D·ifov) (px) of the turbulence OTF at PHYSICS_DR0 whose edge estimate is ``sigma_px`` (the tabulated
+    ``compute_physics_response``, linear between nodes, clamped to its 0.25–10 px)."""
+    return float(np.interp(sigma_px, PHYSICS_RESPONSE_SIGMA, PHYSICS_RESPONSE_LOD))
 
 
 @dataclass
@@ -248,16 +315,20 @@ class GaussianDeblur:
 
 class BlindDeblur:
     """The default deblur of a clip's fused frames: the blur is estimated on the first fused frame it is given
-    (:func:`estimate_blur`; every later frame is deblurred with the same filter, no flicker), then a
-    :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, weakened by the ringing guard. Where the blur varies across the
-    image (tiles' spread above ``SPREAD_MAX``) the lower quartile of the tiles replaces σ (conservative); otherwise
-    not confident, or nothing to deblur: the frames pass unchanged. ``record`` says what was used and why; ``note``
-    is the one line for the user
-    (empty when the estimate was used as is).
-    """
+    (:func:`estimate_blur`; every later frame is deblurred with the same filter, no flicker), then, with ``shape``
+    "physics" (default), the physics Wiener filter (``restore.clip.PhysicsDeblur``) at D/r0 ``PHYSICS_DR0`` and the
+    λ/(D·ifov) whose edge estimate is ``PHYSICS_SHARE``·σ (:func:`physics_lod_for_sigma`), or with "gaussian" a
+    :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, each weakened by its ringing guard. Where the blur varies across
+    the image (tiles' spread above ``SPREAD_MAX``) the Gaussian at ``DEBLUR_SHARE`` of the lower quartile of the
+    tiles (conservative, either shape); otherwise not confident, or nothing to deblur: the frames pass unchanged.
+    ``record`` says what was used and why; ``note`` is the one line for the user (empty when the estimate was used
+    as is)."""
 
-    def __init__(self):
-        self.deblur: GaussianDeblur | None = None
+    def __init__(self, shape: str = "physics"):
+        if shape not in ("physics", "gaussian"):
+            raise D2TurbError(f"the blind deblur's shape must be 'physics' or 'gaussian', got {shape!r}")
+        self.shape = shape
+        self.deblur = None
         self.record: dict | None = None
         self.note = ""
 
@@ -269,14 +340,37 @@ class BlindDeblur:
         if not est.confident and varies:
             target = est.sigma_low_px  # the blur varies: deblur only what three quarters of the image has at least
             rec["conservative"] = f"lower quartile of the tiles, {target:.2f} px ({est.reason})"
+        physics = self.shape == "physics" and "conservative" not in rec and target <= PHYSICS_MAX_SIGMA_PX
+        share = PHYSICS_SHARE if physics else DEBLUR_SHARE
         if not est.confident and "conservative" not in rec:
             self.note = f"no deblurring: the blur estimate is not reliable ({est.reason})"
-        elif target * DEBLUR_SHARE < MIN_DEBLUR_SIGMA_PX:
+        elif target * share < MIN_DEBLUR_SIGMA_PX:
             if "conservative" in rec:
                 self.note = f"no deblurring: {est.reason}, and a quarter of the image or more is sharp"
             else:
                 rec["reason"] = f"estimated blur σ {est.sigma_px:.2f} px: as sharp as a sharp scene"
+        elif physics:
+            from d2turb.restore.clip import PhysicsDeblur
+
+            rec["shape"] = "physics"
+            rec["dr0_assumed"] = PHYSICS_DR0
+            for step in RINGING_STEPS:
+                sigma = target * PHYSICS_SHARE * step
+                if sigma < MIN_DEBLUR_SIGMA_PX:
+                    break
+                lod = physics_lod_for_sigma(sigma)
+                candidate = PhysicsDeblur(PHYSICS_DR0, lod, balance=PHYSICS_BALANCE)
+                ring = ringing_index(fused, candidate(fused))
+                rec.setdefault("ringing_tried", []).append(
+                    {"sigma_px": sigma, "lambda_over_d_px": lod, "ringing_index": ring}
+                )
+                if ring <= PHYSICS_RINGING_MAX:
+                    self.deblur, rec["sigma_px"], rec["lambda_over_d_px"] = candidate, sigma, lod
+                    break
+            full = target * PHYSICS_SHARE
+            self._guard_note(rec, full)
         else:
+            rec["shape"] = "gaussian"
             for step in RINGING_STEPS:
                 sigma = target * DEBLUR_SHARE * step
                 if sigma < MIN_DEBLUR_SIGMA_PX:
@@ -287,18 +381,18 @@ class BlindDeblur:
                 if ring <= RINGING_MAX:
                     self.deblur, rec["sigma_px"] = candidate, sigma
                     break
-            if self.deblur is None:
-                self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
-            elif rec["sigma_px"] < target * DEBLUR_SHARE:
-                self.note = (
-                    f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {target * DEBLUR_SHARE:.2f} "
-                    "by the ringing guard"
-                )
-            elif "conservative" in rec:
+            self._guard_note(rec, target * DEBLUR_SHARE)
+            if self.deblur is not None and "conservative" in rec and not self.note:
                 self.note = f"deblurring conservatively at σ {rec['sigma_px']:.2f} px: {est.reason}"
         if self.note:
             rec["note"] = self.note
         self.record = rec
+
+    def _guard_note(self, rec: dict, full: float) -> None:
+        if self.deblur is None:
+            self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
+        elif rec["sigma_px"] < full:
+            self.note = f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {full:.2f} by the ringing guard"
 
     def describe(self) -> str:
         if self.record is None:
@@ -306,6 +400,11 @@ class BlindDeblur:
         if self.deblur is None:
             return "none (blind estimate: nothing to deblur or not reliable)"
         e = self.record["estimate"]
+        if self.record.get("shape") == "physics":
+            return (
+                f"blind physics Wiener at λ/(D·ifov) {self.record['lambda_over_d_px']:.2f} px, D/r0 {PHYSICS_DR0:g} "
+                f"(edge estimate {e['sigma_px']:.2f} px)"
+            )
         return f"blind Gaussian Wiener at σ {self.deblur.sigma_px:.2f} px (edge estimate {e['sigma_px']:.2f} px)"
 
     def __call__(self, fused: torch.Tensor) -> torch.Tensor:
@@ -320,7 +419,9 @@ __all__ = [
     "GaussianDeblur",
     "estimate_blur",
     "gaussian_otf",
+    "compute_physics_response",
     "compute_ratio_table",
+    "physics_lod_for_sigma",
     "noise_sigma",
     "ratio_table",
     "ringing_index",
