@@ -312,7 +312,7 @@ def test_a_blur_that_varies_across_the_image_is_deblurred_only_where_all_of_it_i
     blurred = torch.from_numpy(cv2.GaussianBlur(img, (0, 0), 2.5)).permute(2, 0, 1).contiguous()
     deblur = BlindDeblur()
     deblur(blurred)
-    assert deblur.deblur is not None and not deblur.note and 1.5 <= deblur.deblur.sigma_px <= 2.5, deblur.record
+    assert deblur.deblur is not None and not deblur.note and 1.5 <= deblur.record["sigma_px"] <= 2.5, deblur.record
 
 
 def test_eight_bit_frames_are_held_as_uint8_exactly():
