@@ -327,3 +327,35 @@ def test_eight_bit_frames_are_held_as_uint8_exactly():
     assert held.dtype == np.uint8 and np.array_equal(_Frame(held, None).image(), frame)
     other = frame + np.float32(1e-3)
     assert _compact(other) is other
+
+
+def test_blind_test_set_draws_optics_noise_and_jpeg_per_clip(tmp_path):
+    """make-dataset's blind test set (geometry ``blind``, camera noise and JPEG): each clip records its drawn
+    λ/(D·ifov) (1–4 px), noise σ and JPEG quality inside the asked ranges, its frames are 8-bit, and the draws depend on
+    (seed, index) only (a second run gives the same files)."""
+    from d2turb.data.generate import DatasetConfig, generate_dataset
+    from d2turb.data.sequence import SequenceDataset
+
+    src = tmp_path / "clean"
+    src.mkdir()
+    for name in ("astronaut", "coffee"):
+        cv2.imwrite(str(src / f"{name}.png"), (_crop(name, 160)[..., ::-1] * 255).astype(np.uint8))
+    camera = {"noise": [0.0, 3.0], "jpeg": [75, 95]}
+    outs = []
+    for k in range(2):
+        cfg = DatasetConfig(
+            clean=[str(src)], out=str(tmp_path / f"set{k}"), pairs=3, patch=64, split="test", depth="none", seed=3,
+            batch=1, device="cpu", geometry="blind", frames=4, sequence={"fps": 30, "wind": 2.0, "boil": 0.1},
+            camera=camera,
+        )  # fmt: skip
+        generate_dataset(cfg, progress=False)
+        outs.append(SequenceDataset(tmp_path / f"set{k}"))
+    data = outs[0]
+    assert json.loads((tmp_path / "set0" / "dataset.json").read_text())["camera"] == camera
+    for i, rec in enumerate(data.records):
+        p = rec["params"]
+        assert 1.0 <= p["wavelength_m"] / (p["aperture_m"] * p["ifov_rad"]) <= 4.0
+        assert 0.0 <= rec["camera"]["noise_grey"] <= 3.0 and 75 <= rec["camera"]["jpeg_quality"] <= 95
+        turb = data[i]["turb"]
+        assert torch.allclose(turb * 255, (turb * 255).round(), atol=1e-3)  # 8-bit
+        assert torch.equal(turb, outs[1][i]["turb"]) and rec["camera"] == outs[1].records[i]["camera"]

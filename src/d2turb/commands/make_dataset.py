@@ -15,6 +15,7 @@ from d2turb.commands.common import (
     parse_params,
     wait_passively,
 )
+from d2turb.errors import D2TurbError
 
 
 def register(sub):
@@ -51,12 +52,23 @@ def register(sub):
         default="fixed",
         metavar="NAME",
         help="imaging geometry: fixed (TurbulenceParams defaults + --param) or field (apertures, ranges and depth "
-        "offsets drawn per chunk of --batch samples; docs/datasets.md)",
+        "offsets drawn per chunk of --batch samples), blind (as field, and λ/(D·ifov) 1-4 px; docs/datasets.md)",
     )
     p.add_argument(
         "--frames", type=int, default=1, metavar="N", help="N > 1: turbulent clips of N frames per sample (filmstrips)"
     )
     add_motion_args(p)  # used with --frames N > 1
+    p.add_argument(
+        "--camera-noise",
+        metavar="LO,HI",
+        help="Gaussian camera noise on the turbulent frames, σ drawn per sample uniformly in LO..HI grey levels "
+        "(0-255 scale), e.g. 0,3",
+    )
+    p.add_argument(
+        "--jpeg",
+        metavar="LO,HI",
+        help="JPEG-compress each turbulent frame, quality drawn per sample in LO..HI, e.g. 75,95",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_png_level_arg(p)
     add_max_pixels_arg(p)
@@ -69,6 +81,14 @@ def run(args):
     from d2turb.data.generate import DatasetConfig, generate_dataset
 
     params = parse_params(args.param)
+    camera = {}
+    for key, text, cast in (("noise", args.camera_noise, float), ("jpeg", args.jpeg, int)):
+        if text:
+            try:
+                camera[key] = [cast(v) for v in text.split(",")]
+            except ValueError:
+                flag = "--camera-noise" if key == "noise" else "--jpeg"
+                raise D2TurbError(f"{flag} takes LO,HI, got {text!r}") from None
     cfg = DatasetConfig(
         clean=args.clean,
         out=args.out,
@@ -84,6 +104,7 @@ def run(args):
         params=params,
         geometry=args.geometry,
         png_level=args.png_level,
+        camera=camera,
         frames=args.frames,
         sequence=(
             dict(

@@ -82,6 +82,9 @@ class DatasetConfig:
     png_level: int = DEFAULT_PNG_LEVEL  # zlib level of the PNG files (not part of the dataset's identity)
     frames: int = 1  # > 1: sequence samples (d2turb.data.sequence)
     sequence: dict = field(default_factory=dict)  # fps, wind, wind_dir, boil
+    # camera degradation of the turbulent frames, drawn per sample: {"noise": [lo, hi] grey levels (σ of Gaussian
+    # noise on the 0–255 scale), "jpeg": [lo, hi] JPEG quality}; empty: none (issue 35's blind test set)
+    camera: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -112,6 +115,36 @@ def validate(cfg: DatasetConfig) -> None:
         raise D2TurbError(f"--seed must be between 0 and 2**63 - 1, got {cfg.seed}")
     if cfg.frames != 1 or cfg.sequence:
         cfg.sequence = sequence_settings(cfg.frames, cfg.sequence)
+    for key, (lo_ok, hi_ok) in {"noise": (0.0, 50.0), "jpeg": (1, 100)}.items():
+        span = cfg.camera.get(key)
+        if span is not None and not (len(span) == 2 and lo_ok <= span[0] <= span[1] <= hi_ok):
+            raise D2TurbError(f"camera {key} must be a range lo,hi within [{lo_ok:g}, {hi_ok:g}], got {span!r}")
+    if set(cfg.camera) - {"noise", "jpeg"}:
+        raise D2TurbError(f"unknown camera settings {sorted(set(cfg.camera) - {'noise', 'jpeg'})}")
+
+
+def camera_degrade(turb: torch.Tensor, camera: dict, seed: int, index: int, rows: int) -> tuple[torch.Tensor, dict]:
+    """Camera noise and JPEG on a sample's turbulent frames ((3, N·rows, W), frames stacked vertically), each
+    drawn per sample from (seed, index) only: Gaussian noise of σ uniform in ``camera["noise"]`` grey levels, 8-bit
+    quantisation, then each frame JPEG-compressed at a quality uniform in ``camera["jpeg"]`` (OpenCV)."""
+    import cv2
+
+    rng = _rng(seed, 3, index)
+    drawn = {}
+    img = turb.float().clamp(0, 1).numpy().transpose(1, 2, 0) * 255
+    if "noise" in camera:
+        drawn["noise_grey"] = float(rng.uniform(*camera["noise"]))
+        img = img + rng.normal(0.0, drawn["noise_grey"], img.shape)
+    u8 = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    if "jpeg" in camera:
+        drawn["jpeg_quality"] = int(rng.integers(camera["jpeg"][0], camera["jpeg"][1] + 1))
+        for y in range(0, u8.shape[0], rows):
+            bgr = np.ascontiguousarray(u8[y : y + rows, :, ::-1])
+            ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, drawn["jpeg_quality"]])
+            if not ok:
+                raise D2TurbError("JPEG encoding failed")
+            u8[y : y + rows] = cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1]
+    return torch.from_numpy(u8.transpose(2, 0, 1).astype(np.float32) / 255), drawn
 
 
 def check_patch_fits(sources: list[Path], patch: int) -> None:
@@ -295,8 +328,10 @@ def merge_meta(root: Path) -> int:
 
 def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
     sequence = {"frames": cfg.frames, "sequence": cfg.sequence} if cfg.frames > 1 else {}
+    camera = {"camera": cfg.camera} if cfg.camera else {}
     return {
         **sequence,
+        **camera,
         "version": FORMAT_VERSION,
         "pairs": cfg.pairs,
         "patch": cfg.patch,
@@ -328,7 +363,7 @@ def check_same_config(root: Path, record: dict) -> bool:
         old = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         old = None
-    keys = "version pairs patch split bins seed batch depth params geometry sources frames sequence".split()
+    keys = "version pairs patch split bins seed batch depth params geometry sources frames sequence camera".split()
     diff = keys if not isinstance(old, dict) else [k for k in keys if old.get(k) != record.get(k)]
     if not diff:
         return False
@@ -544,8 +579,12 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
             for b, (plan, meta) in enumerate(zip(plans, metas)):
                 if plan.id in done:
                     continue
+                frames_b = turb[b]
+                if cfg.camera:
+                    frames_b, drawn = camera_degrade(frames_b, cfg.camera, cfg.seed, plan.index, cfg.patch)
+                    meta = meta | {"camera": drawn}
                 sample = {
-                    "turb": turb[b],
+                    "turb": frames_b,
                     "tilt": tilt[b],
                     "gt": clean[b],
                     "flow": flow[b],

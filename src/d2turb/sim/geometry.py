@@ -35,6 +35,8 @@ class GeometryDistribution:
     wavelength_m: float = 525e-9
     size: int = 16
     seed: int = 0
+    # q drawn log-uniformly per geometry in this range (the blind test set); None: ``samples_per_lambda_d`` for all
+    samples_per_lambda_d_range: tuple[float, float] | None = None
 
     def __post_init__(self):
         for name in ("range_m", "footprint_px", "offset_s"):
@@ -43,6 +45,11 @@ class GeometryDistribution:
                 raise D2TurbError(f"geometry {name} must be an increasing pair of positive numbers, got {(lo, hi)}")
         if self.offset_s[1] > 1:
             raise D2TurbError(f"geometry offset_s must lie in (0, 1], got {self.offset_s}")
+        q_range = self.samples_per_lambda_d_range
+        if q_range is not None and not (
+            math.isfinite(q_range[0]) and math.isfinite(q_range[1]) and 0 < q_range[0] <= q_range[1]
+        ):
+            raise D2TurbError(f"geometry samples_per_lambda_d_range must be an increasing positive pair, got {q_range}")
         if self.size < 1:
             raise D2TurbError(f"geometry bank size must be at least 1, got {self.size}")
 
@@ -51,11 +58,14 @@ class GeometryDistribution:
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 7]))
         n = self.size
         strata = [(rng.permutation(n) + rng.random(n)) / n for _ in range(3)]
+        qs = [self.samples_per_lambda_d] * n
+        if self.samples_per_lambda_d_range is not None:  # a 4th stratum, drawn after the others (field unchanged)
+            qs = [_log_uniform(self.samples_per_lambda_d_range, u) for u in (rng.permutation(n) + rng.random(n)) / n]
         out = []
-        for u_range, u_foot, u_s in zip(*strata):
+        for u_range, u_foot, u_s, q in zip(*strata, qs):
             length = _log_uniform(self.range_m, u_range)
             footprint = _log_uniform(self.footprint_px, u_foot)
-            q, lam = self.samples_per_lambda_d, self.wavelength_m
+            lam = self.wavelength_m
             aperture = math.sqrt(footprint * lam * length / q)  # footprint = D/(ifov·L) = qD²/(λL)
             out.append(
                 TurbulenceParams(
@@ -85,6 +95,8 @@ def footprint_px(params: TurbulenceParams) -> float:
 GEOMETRIES: dict[str, GeometryDistribution | None] = {
     "fixed": None,  # one geometry: TurbulenceParams defaults plus the user's overrides
     "field": GeometryDistribution(),  # ranges 1-10 km, footprints 4-32 px: what real long-range footage shows
+    # issue 35's blind test set: as field, and λ/(D·ifov) 1–4 px drawn per geometry (use --batch 1: one per clip)
+    "blind": GeometryDistribution(samples_per_lambda_d_range=(1.0, 4.0), size=32, seed=35),
 }
 
 
