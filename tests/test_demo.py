@@ -13,6 +13,7 @@ from PIL import Image
 from d2turb.cli import main
 from d2turb.commands import demo
 from d2turb.data.samples import sample_images
+from d2turb.models.hub import RECOMMENDED_WEIGHTS
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 LEVELS = ("weak", "medium", "strong")
@@ -107,7 +108,7 @@ def check_printed_psnr_is_what_the_pngs_give(demo_run):
         )
         # the clip pipeline visibly removes turbulence: at least 1 dB over the input in every bin, above the model
         assert scores[level]["clip"] > scores[level]["input"] + 1.0 and scores[level]["clip"] > scores[level]["model"]
-    assert "## Single frames" in printed and "nafnet-cpu-spectral" in printed
+    assert "## Single frames" in printed and RECOMMENDED_WEIGHTS in printed
 
 
 def check_readme_describes_what_the_demo_prints(demo_run):

@@ -77,7 +77,7 @@ def test_clip_compare_png_and_side_by_side_mp4(tmp_path):
     names = sorted(p.name for p in out.iterdir())
     av = _av()
     videos = ["street_compare.mp4", "street_restored.mp4"] if av else []
-    assert names == sorted([f"{i}_restored.png" for i in range(6)] + ["street_compare.png", *videos])
+    assert names == sorted([f"{i}_restored.png" for i in range(6)] + ["street_compare.png", "restore.json", *videos])
     restored = np.asarray(Image.open(out / "3_restored.png"))
     _check_compare(np.asarray(Image.open(out / "street_compare.png")), frames[3], restored)
     if av:
@@ -110,7 +110,8 @@ def test_video_outputs_follow_the_rule(tmp_path):
         assert main(["restore", str(tmp_path / "take.mp4"), *extra, "--compare", "--out", str(out)]) == 0
         names = sorted(p.name for p in out.iterdir())
         expected = [f"take_{i:06d}_restored.png" for i in range(5)]
-        assert names == sorted(expected + ["take_compare.mp4", "take_compare.png", "take_restored.mp4"])
+        record = ["restore.json"] if "--temporal" in extra else []  # a clip's deblur record
+        assert names == sorted(expected + ["take_compare.mp4", "take_compare.png", "take_restored.mp4"] + record)
 
 
 def _av():

@@ -249,7 +249,7 @@ def test_every_config_builds_model_and_loss(path):
     loss = build_loss({**vars(cfg.loss), "vgg_weights": None}, model, warn=False)
     assert (loss.w_flow, loss.w_photo) == (5.0, 1.0)  # Sec. 3.3 weights
     # shipped-model recipes: no local VGG16 weights, so no perceptual term
-    if path.stem.startswith(("d2turb_small", "nafnet_cpu")):
+    if path.stem.startswith(("d2turb_small", "nafnet_cpu", "gpu_nafnet")):
         assert cfg.loss.vgg == 0.0 or cfg.loss.vgg_weights is None
     else:
         assert cfg.loss.vgg == 0.02 and loss.w_deblur == (0.0 if "no_deblur" in path.stem else 1.0)

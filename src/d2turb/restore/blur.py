@@ -28,6 +28,8 @@ import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
+from d2turb.restore.clip import wiener_deconvolve, wiener_gain, wiener_padding
+from d2turb.sim.otf import pixel_frequency_grid
 
 REBLUR_SIGMA_PX = 1.5  # σ0 of the re-blur: larger keeps R away from 1 for wide blurs, smaller resolves narrow ones
 TILE_PX = 128  # tiles of the estimate (their spread is its uncertainty)
@@ -275,7 +277,6 @@ def estimate_blur(image, tile: int = TILE_PX) -> BlurEstimate:
 
 def gaussian_otf(shape: tuple[int, int], sigma_px: float) -> torch.Tensor:
     """exp(−2π²σ²|f|²) on the rfft2 grid of ``shape`` (float64): the OTF of a Gaussian blur of σ px."""
-    from d2turb.sim.otf import pixel_frequency_grid
 
     return torch.exp(-2 * math.pi**2 * sigma_px**2 * pixel_frequency_grid(*shape) ** 2)
 
@@ -304,7 +305,6 @@ class GaussianDeblur:
         self._gain: dict = {}
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        from d2turb.restore.clip import wiener_deconvolve, wiener_gain, wiener_padding
 
         size = tuple(image.shape[-2:])
         if size not in self._gain:
