@@ -28,8 +28,8 @@ import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
-from d2turb.restore.clip import wiener_deconvolve, wiener_gain, wiener_padding
-from d2turb.sim.otf import pixel_frequency_grid
+from d2turb.restore.clip import PhysicsDeblur, wiener_deconvolve, wiener_gain, wiener_padding
+from d2turb.sim.otf import image_otf, pixel_frequency_grid
 
 REBLUR_SIGMA_PX = 1.5  # σ0 of the re-blur: larger keeps R away from 1 for wide blurs, smaller resolves narrow ones
 TILE_PX = 128  # tiles of the estimate (their spread is its uncertainty)
@@ -181,8 +181,6 @@ def compute_physics_response(dr0: float = PHYSICS_DR0, count: int = 33) -> tuple
     """(λ/(D·ifov), σ): the edge estimate (median σ over the strongest 3 % of the edge pixels) of the synthetic step
     edges of the ratio table blurred by the short-exposure turbulence OTF (``sim.otf.image_otf``, tilt removed) at
     ``dr0``, for λ/(D·ifov) from 0.25 to 10 px (geometric). ``PHYSICS_RESPONSE_*`` hold its values at PHYSICS_DR0."""
-    from d2turb.sim.otf import image_otf
-
     pad = 64
     img = np.pad(_step_disc(), pad, mode="edge")
     spec = torch.fft.rfft2(torch.from_numpy(img).double())
@@ -319,7 +317,6 @@ def _physics_deblur(lod: float):
     width that overshoots the true one puts the assumed diffraction cut-off (1/λ(D·ifov) cycles/px) below the
     image's, and the plain Wiener gain, 0 past it, would erase detail that is there (a loss of 1.2 dB on a
     weak-turbulence clip of the blind test set); so frequencies are only ever boosted, never cut."""
-    from d2turb.restore.clip import PhysicsDeblur, wiener_deconvolve, wiener_gain, wiener_padding
 
     class _Boost(PhysicsDeblur):
         def __call__(self, image: torch.Tensor) -> torch.Tensor:
