@@ -109,6 +109,7 @@ EXTRAPOLATION_LOG_SD = 0.3
 TEXTURED_FULL = 0.15
 LOW_TEXTURE_LOG_SD = 0.1
 MAX_SPAN = 3.0  # the 90 % interval's hi/lo above which the clip is refused, naming the parameter that widens it
+NEGLIGIBLE_DR0 = 0.3  # ... unless its upper bound is below this: "no measurable turbulence" is an answer
 
 
 @dataclass
