@@ -1,5 +1,5 @@
 # issue 36: simulated clips of known optics for the unknown-optics validation (docs/measure.md); run with
-# PYTHONPATH=src and ../shared/data present. `python3 sim36.py` measures three clips with none / path / ifov / all given.
+# PYTHONPATH=src and ../shared/data present. `python3 sim36.py` measures three clips (none, path, ifov, all given).
 import glob
 import time
 
