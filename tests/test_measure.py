@@ -285,8 +285,13 @@ def test_measure_command_writes_json_and_plot(tmp_path, capsys):
         frames.append(_warp(base, a * np.sin(2 * np.pi * x / 40), b * np.cos(2 * np.pi * y / 40))[8:-8, 8:-8])
     clip = _write_frames(tmp_path / "c", frames)
     out = tmp_path / "out"
-    args = ["--window", "8", "--plot", "--bootstrap", "20", "--param", "ifov_rad=2.625e-6", "--any-width"]
-    rc = main(["measure", str(clip), "--out", str(out), *args])
+    args = ["--window", "8", "--plot", "--bootstrap", "20", "--param", "ifov_rad=2.625e-6"]
+    # without the path the interval spans more than 3x: refused in one line naming what widens it
+    assert main(["measure", str(clip), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "spans" in err[0], err
+    assert "widened most by unknown path length (give --param path_length_m=…)" in err[0], err
+    rc = main(["measure", str(clip), "--out", str(out), *args, "--any-width"])
     assert rc == 0, capsys.readouterr().err
     line = capsys.readouterr().out.strip().splitlines()
     assert len(line) == 1 and "D/r0 =" in line[0] and "no path_length_m" in line[0]
