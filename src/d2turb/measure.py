@@ -18,7 +18,12 @@ nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is
 interval is log-normal: the spread of a bootstrap over spatial tiles (the fit redone per resample) and the
 clip-to-clip scatter measured on the calibration clips (``CLIP_LOG_SD``: the registration gain's dependence on
 the scene, the turbulence at scales larger than a tile; larger for windows shorter than 64 frames), in quadrature.
-A correlation scale below the calibrated 4 px is refused rather than extrapolated.
+
+Unknown optics (issue 36): λ/(D·ifov) without ifov_rad and the correlation scale without path_length_m are
+marginalised over the prior grids ``Q_GRID`` × ``FOOTPRINT_PX_GRID`` (λ/(D·ifov) narrowed by the fused frame's blur,
+``BLUR_GAIN``); the interval is the union of the grid's intervals, a given parameter's interval is intersected with
+it. A correlation scale below the calibrated 4 px and little texture widen the interval (uncalibrated terms); a
+90 % interval wider than ``MAX_SPAN`` is refused naming the term that widens it most.
 """
 
 from __future__ import annotations
