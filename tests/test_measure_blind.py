@@ -103,3 +103,28 @@ def test_stronger_simulated_turbulence_gives_a_larger_estimate():
         a = M.measure_clip(weak, optics, bootstrap=0, extrapolate=True)["dr0"]
         b = M.measure_clip(strong, optics, bootstrap=0, extrapolate=True)["dr0"]
         assert b > 1.3 * a, (optics, a, b)
+
+
+@pytest.mark.slow
+def test_restore_reports_the_estimate_and_interval_of_measure(tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from d2turb.cli import main
+
+    frames, p = _clip(2.5, 2.0, 1000.0, 2.0, 0.1, "camera", seed=3, frames=16)
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    for i, f in enumerate(frames):
+        rgb = (f.permute(1, 2, 0).numpy()[..., ::-1] * 255 + 0.5).clip(0, 255).astype(np.uint8)
+        cv2.imwrite(str(clip / f"{i:03d}.png"), rgb)
+    params = ["--param", f"ifov_rad={p.ifov_rad}", "--param", "path_length_m=1000"]
+    assert main(["measure", str(clip), "--out", str(tmp_path / "m"), "--bootstrap", "50", *params]) == 0
+    args = ["--temporal", "16", "--deblur", "physics", "--out", str(tmp_path / "r"), *params]
+    assert main(["restore", str(clip), *args]) == 0
+    measured = json.loads((tmp_path / "m" / "measure.json").read_text())
+    record = json.loads((tmp_path / "r" / "restore.json").read_text())
+    text = json.dumps(record)
+    assert f"{measured['dr0']:.6f}"[:6] in text and "d2turb measure, 90 %" in text
+    assert "dr0_ci" in text and "given (--dr0)" not in text
