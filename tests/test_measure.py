@@ -139,7 +139,7 @@ def test_pure_global_translation_measures_no_turbulence():
     rng = np.random.default_rng(1)
     shifts = rng.integers(-3, 4, (12, 2))
     clip = [np.roll(base, tuple(s), axis=(0, 1))[16:-16, 16:-16] for s in shifts]
-    out = M.measure_clip(clip, {"path_length_m": 1000.0}, bootstrap=20)
+    out = M.measure_clip(clip, {"path_length_m": 1000.0, "ifov_rad": 525e-9 / 0.2}, bootstrap=20)
     # no differential motion: D/r0 of ~0 (a registration noise floor of a few hundredths of a pixel)
     assert out["dr0"] < 0.15 and out["dr0_ci"][0] <= out["dr0"] <= out["dr0_ci"][1]
     sds = out["dr0_log_sd"]
@@ -148,16 +148,16 @@ def test_pure_global_translation_measures_no_turbulence():
     np.testing.assert_allclose(out["dr0_ci"], M.log_normal_interval(out["dr0"], (sds["tiles"], sds["clip"])))
 
 
-def test_footprint_below_the_calibrated_gain_is_refused_unless_extrapolating():
+def test_footprint_below_the_calibrated_gain_is_widened_not_refused():
     base = _texture(160, 2)
     rng = np.random.default_rng(1)
     clip = [np.roll(base, tuple(s), axis=(0, 1))[16:-16, 16:-16] for s in rng.integers(-3, 4, (12, 2))]
-    # D/(ifov·L) = 0.05 / (5e-6 · 5000) = 2.0 px: below the 4 px of the gain table
+    # D/(ifov·L) = 0.05 / (5e-6 · 5000) = 2.0 px: below the 4 px of the gain table, an extra log-sd of
+    # EXTRAPOLATION_LOG_SD·ln(4/2) instead of a refusal (no turbulence here: an upper bound near 0 is the answer)
     optics = {"aperture_m": 0.05, "wavelength_m": 5e-7, "ifov_rad": 5e-6, "path_length_m": 5000.0}
-    with pytest.raises(D2TurbError, match=r"footprint D/\(ifov·L\) of the tilt is 2\.0 px, below the 4 px"):
-        M.measure_clip(clip, optics, bootstrap=5)
-    out = M.measure_clip(clip, optics, bootstrap=5, extrapolate=True)
-    assert out["fit"]["footprint_per_px"] == pytest.approx(0.5)
+    out = M.measure_clip(clip, optics, bootstrap=5)
+    assert out["fit"]["footprint_px"] == pytest.approx(2.0)
+    assert out["dr0_ci"][1] < M.NEGLIGIBLE_DR0 and out["parameters"]["given"] == ["ifov_rad", "path_length_m"]
 
 
 def test_interval_is_the_quadrature_sum_against_hand_computed_values():
@@ -285,9 +285,17 @@ def test_measure_command_writes_json_and_plot(tmp_path, capsys):
         frames.append(_warp(base, a * np.sin(2 * np.pi * x / 40), b * np.cos(2 * np.pi * y / 40))[8:-8, 8:-8])
     clip = _write_frames(tmp_path / "c", frames)
     out = tmp_path / "out"
-    assert main(["measure", str(clip), "--out", str(out), "--window", "8", "--plot", "--bootstrap", "20"]) == 0
+    args = ["--window", "8", "--plot", "--bootstrap", "20", "--param", "ifov_rad=2.625e-6"]
+    # without the path the interval spans more than 3x: refused in one line naming what widens it
+    assert main(["measure", str(clip), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "spans" in err[0], err
+    assert "widened most by unknown path length (give --param path_length_m=…)" in err[0], err
+    rc = main(["measure", str(clip), "--out", str(out), *args, "--any-width"])
+    assert rc == 0, capsys.readouterr().err
     line = capsys.readouterr().out.strip().splitlines()
     assert len(line) == 1 and "D/r0 =" in line[0] and "no path_length_m" in line[0]
+    assert "given: ifov_rad, marginalised: footprint_px" in line[0]
     import json
 
     res = json.loads((out / "measure.json").read_text())

@@ -18,13 +18,18 @@ nuisance parameters fitted on a grid by the shape of D̂(τ) against τ; σ² is
 interval is log-normal: the spread of a bootstrap over spatial tiles (the fit redone per resample) and the
 clip-to-clip scatter measured on the calibration clips (``CLIP_LOG_SD``: the registration gain's dependence on
 the scene, the turbulence at scales larger than a tile; larger for windows shorter than 64 frames), in quadrature.
-A correlation scale below the calibrated 4 px is refused rather than extrapolated.
+
+Unknown optics (issue 36): λ/(D·ifov) without ifov_rad and the correlation scale without path_length_m are
+marginalised over the prior grids ``Q_GRID`` × ``FOOTPRINT_PX_GRID`` (λ/(D·ifov) narrowed by the fused frame's blur,
+``BLUR_GAIN``); the interval is the union of the grid's intervals, a given parameter's interval is intersected with
+it. A correlation scale below the calibrated 4 px and little texture widen the interval (uncalibrated terms); a
+90 % interval wider than ``MAX_SPAN`` is refused naming the term that widens it most.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -35,7 +40,7 @@ from d2turb.sim.params import cn2_spherical, isoplanatic_angle, positive_finite
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
-MIN_VALID_FRACTION = 0.15  # of the analysed area; below it the clip is refused
+MIN_VALID_FRACTION = 0.02  # of the analysed area; below it the clip is refused (below 0.15 it is widened)
 TEXTURE_MIN = 1.0  # smallest eigenvalue of the 9×9 structure tensor of the reference, grey levels²/px²
 # mean |frame(x + d) − ref| above RESIDUAL_REL times its median and above RESIDUAL_FLOOR grey levels excludes a pixel
 # (moving objects, failed registration); the floor keeps the mask from following the tilt itself on clean clips
@@ -82,7 +87,34 @@ Z90 = 1.6548083854766773  # scipy.stats.t.ppf(0.95, 154)
 WIND_GRID = np.geomspace(0.003, 3.0, 13)  # v/(fps·D): the wind's shift per frame in aperture diameters
 DIR_GRID = (0.0, 45.0, 90.0, 135.0)
 BOIL_GRID = (0.0, 0.03, 0.1, 0.3)
-FOOTPRINT_GRID = np.geomspace(0.002, 0.5, 12)  # ifov·L/D when the path length is not given
+# ---- what the user did not give: prior ranges, marginalised (docs/measure.md, "Unknown optics") ----
+# λ/(D·ifov), the diffraction angle in px (2 at Nyquist): without ifov_rad, the prior range (a resized video, an
+# unknown lens), narrowed by the blind estimate from the clip's blur (BLUR_EXCESS_MAX) where that is confident
+Q_PRIOR = (0.7, 6.0)
+Q_GRID = np.geomspace(*Q_PRIOR, 13)
+# the tilt's correlation scale D/(ifov·L) in px: without path_length_m the range of a path of 0.3–20 km at the default
+# aperture and wavelength and Nyquist sampling (1.9–127 px); with it, D²·q/(λ·L) clamped to this range
+FOOTPRINT_PRIOR_PX = (2.0, 128.0)
+FOOTPRINT_PX_GRID = np.geomspace(*FOOTPRINT_PRIOR_PX, 13)
+# blind λ/(D·ifov): the fused (registered, averaged) frame's blur σ_b (restore.blur.estimate_blur) against the
+# optical short-exposure blur q·s(D/r0) (s: the Gaussian-equivalent width of the tilt-removed OTF of sim.otf in units
+# of λ/D, :func:`short_exposure_width`). On simulated clips (the oracle: the simulator's known q and D/r0; q 2–3, D/r0
+# 2–4, docs/measure.md) σ_b = c·q·s(D/r0) with c 0.48–0.57; BLUR_GAIN is that range widened. Real clips add blur the
+# optics model leaves out (lens, sensor, codec): σ_b up to BLUR_EXCESS_MAX times the optical part. A grid point
+# (q, D/r0) is kept when [c_lo·q·s, c_hi·q·s·BLUR_EXCESS_MAX] meets the blur's 90 % interval. Tilt and blur both grow
+# like λ/r0 when D/r0 is large (T/σ² = 0.1816 (D/r0)^(5/3)/s² varies by 25 % over D/r0 1.5–8), so the blur fixes q
+# for a given D/r0 rather than D/r0 itself: it narrows the prior, it does not replace the optics.
+BLUR_GAIN = (0.42, 0.65)
+BLUR_EXCESS_MAX = 1.5
+# below the calibrated footprints (GAIN_FOOTPRINT_PX[0]) the gain is clamped: an extra log-sd of
+# EXTRAPOLATION_LOG_SD per unit of ln(4 px / footprint) (uncalibrated widening instead of a refusal)
+EXTRAPOLATION_LOG_SD = 0.3
+# little usable area: an extra log-sd LOW_TEXTURE_LOG_SD·sqrt(TEXTURED_FULL/valid − 1) below TEXTURED_FULL
+# (uncalibrated widening; the tile bootstrap already widens with fewer pairs)
+TEXTURED_FULL = 0.15
+LOW_TEXTURE_LOG_SD = 0.1
+MAX_SPAN = 3.0  # the 90 % interval's hi/lo above which the clip is refused, naming the parameter that widens it
+NEGLIGIBLE_DR0 = 0.3  # ... unless its upper bound is below this: "no measurable turbulence" is an answer
 
 
 @dataclass
@@ -96,8 +128,10 @@ class Optics:
     ifov_rad: float | None = None
     path_length_m: float | None = None
     fps: float | None = None
+    ifov_known: bool = field(init=False, default=False)  # ifov_rad was given (else λ/(D·ifov) is marginalised)
 
     def __post_init__(self):
+        self.ifov_known = self.ifov_rad is not None
         for name in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps"):
             value = getattr(self, name)
             if value is not None:
@@ -197,12 +231,14 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
     dis = DenseFlow("medium" if preset is None else preset)
     flows = np.empty((len(gray), h, w, 2), np.float32)
     residual = np.zeros((h, w), np.float32)
+    fused = np.zeros((h, w), np.float32)  # the registered frames' mean: its blur is the short-exposure blur
     for i, (f, (dx, dy)) in enumerate(zip(u8, shifts)):
         init = np.empty((h, w, 2), np.float32)
         init[..., 0], init[..., 1] = dx, dy
         flows[i] = dis(ref_u8, f, init)
         warped = cv2.remap(gray[i], gx + flows[i, ..., 0], gy + flows[i, ..., 1], cv2.INTER_LINEAR)
         residual += np.abs(warped - ref)
+        fused += warped
     residual /= len(gray)
     lam_min = structure_min_eigenvalue(ref)
     inner_res = residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX]
@@ -218,6 +254,7 @@ def register_clip(gray: np.ndarray, preset: str = "medium") -> tuple[np.ndarray,
         "textured_fraction": float((lam_min > TEXTURE_MIN)[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX].mean()),
         "median_residual_grey": float(np.median(residual[MARGIN_PX:-MARGIN_PX, MARGIN_PX:-MARGIN_PX])),
         "global_shift_rms_px": float(np.sqrt(np.mean(np.var(np.array(shifts), axis=0).sum()))),
+        "_fused": fused / len(gray),
     }
     return flows, mask, diag
 
@@ -243,10 +280,28 @@ def register_measurable(gray: np.ndarray, preset: str = "medium") -> tuple[np.nd
 
 
 def footprint_grid(optics: Optics) -> list[float]:
-    """ifov·L/D: the one value of the optics with a path length, else the grid the fit chooses from."""
-    if optics.path_length_m is not None:
-        return [optics.ifov_rad * optics.path_length_m / optics.aperture_m]
-    return list(FOOTPRINT_GRID)
+    """ifov·L/D of the footprint prior grid (the tilt's correlation scale D/(ifov·L) = 1/value, in px)."""
+    return list(1.0 / FOOTPRINT_PX_GRID)
+
+
+def short_exposure_width(dr0: float) -> float:
+    """s(D/r0): the σ (in units of λ/D) of the Gaussian whose OTF exp(−2π²s²u²) equals the tilt-removed mean OTF of
+    ``sim.otf.turbulence_otf`` (α = 1) where that falls to one half; σ_px = s·λ/(D·ifov). s(0) = 0.468 (Airy)."""
+    import torch
+
+    from d2turb.sim.otf import turbulence_otf
+
+    u = torch.linspace(0.0, 1.0, 4001, dtype=torch.float64)
+    otf = turbulence_otf(u, max(float(dr0), 0.0), alpha=1.0).numpy()
+    k = int(np.argmax(otf < 0.5))
+    u_half = float(np.interp(0.5, [otf[k], otf[k - 1]], [u[k].item(), u[k - 1].item()]))
+    return math.sqrt(math.log(2.0) / (2 * math.pi**2)) / u_half
+
+
+def _short_widths(dr0: np.ndarray) -> np.ndarray:
+    nodes = np.geomspace(0.05, 20.0, 40)
+    table = np.array([short_exposure_width(x) for x in nodes])
+    return np.interp(np.clip(dr0, nodes[0], nodes[-1]), nodes, table)
 
 
 def separations_for(h: int, w: int) -> list[int]:
@@ -364,17 +419,25 @@ def measure_clip(
     seed: int = 0,
     preset: str = "medium",
     extrapolate: bool = False,
+    blind: bool = True,
 ) -> dict:
     """Measure D/r0 (and r0, Cn², θ0 with a path length) from the frames of a static scene.
+
+    Every pixel-level parameter the optics do not give is marginalised over its prior range (``Q_PRIOR`` for
+    λ/(D·ifov) without ifov_rad, narrowed by the blind estimate from the clip's blur; ``FOOTPRINT_PRIOR_PX`` for the
+    tilt's correlation scale without path_length_m): the 90 % interval is the union of the intervals over the prior
+    grid, so that giving a parameter can only narrow it (the given interval is intersected with it, which moves its
+    bounds by at most the grid's interpolation). ``result["parameters"]`` says which were given and which were
+    marginalised, with their ranges.
 
     Args:
         frames: a sequence of (3,H,W) tensors or (H,W[,C]) arrays in [0, 1], one per frame.
         optics: :class:`Optics`, a dict of its fields (aperture_m, wavelength_m, ifov_rad, path_length_m, fps) or
-            a ``TurbulenceParams`` (its D/r0 is ignored).
+            a ``TurbulenceParams`` (its D/r0 is ignored; its ifov and path count as given).
         window: frames per window for a series of estimates over time (None: the whole clip only).
         bootstrap: resamples for the 90 % interval. max_size: the centre crop analysed (px per side).
-        extrapolate: give a number when the tilt's correlation scale lies below the calibrated footprints (clamped
-            gain, no valid interval) instead of refusing: for a rough strength (the clip deblur), not a measurement.
+        extrapolate: give a number even when the 90 % interval spans more than ``MAX_SPAN`` (a rough strength).
+        blind: narrow λ/(D·ifov) by the blur of the fused frame when ifov_rad is not given.
     Raises ``D2TurbError`` (one line) for input that cannot be measured.
     """
     optics = as_optics(optics)
@@ -383,29 +446,34 @@ def measure_clip(
         raise D2TurbError(f"window must be between {MIN_FRAMES} and the {len(gray)} frames of the clip, got {window}")
     gray, crop = _crop(gray, max_size)
     flows, mask, diag = register_measurable(gray, preset)
+    fused = diag.pop("_fused")
     h, w = mask.shape
     seps = separations_for(h, w)
-    footprints = footprint_grid(optics)
-    result = _estimate(flows, mask, seps, optics, footprints, bootstrap, seed, {})
+    blur = None
+    if blind and not optics.ifov_known:
+        from d2turb.restore.blur import estimate_blur
+
+        if min(fused.shape) >= 32:
+            est = estimate_blur(np.clip(fused / 255.0, 0, 1).astype(np.float32))
+            blur = {"sigma_px": est.sigma_px, "sigma_ci": list(est.sigma_ci), "confident": est.confident}
+            if not est.confident:
+                blur["reason"] = est.reason
+    extra = {"texture": _texture_log_sd(diag["valid_fraction"])}
+    result = estimate_from_sums(*lag_sums(flows, mask, seps), optics, None, bootstrap, seed, {}, blur, extra)
     result.update(diag)
-    footprint_px = 1.0 / result["fit"]["footprint_per_px"]
-    if footprint_px < GAIN_FOOTPRINT_PX[0] and not extrapolate:
-        what = (
-            "the aperture's footprint D/(ifov·L)" if optics.path_length_m else "the fitted correlation scale D/(ifov·L)"
-        )
-        hint = "" if optics.path_length_m else "; if the path is known, give the optics with --param path_length_m=…"
+    lo, hi = result["dr0_ci"]
+    if not extrapolate and (not lo > 0 or hi / lo > MAX_SPAN):
+        span = hi / lo if lo > 0 else math.inf
         raise D2TurbError(
-            f"cannot measure this clip: {what} of the tilt is {footprint_px:.1f} px, below the "
-            f"{GAIN_FOOTPRINT_PX[0]:g} px that the registration gain was calibrated for (DIS keeps less than half "
-            f"of the tilt power there){hint}"
+            f"cannot measure this clip: the 90 % interval of D/r0 [{lo:.2f}, {hi:.2f}] spans {span:.1f}x (limit "
+            f"{MAX_SPAN:g}x), widened most by {result['widened_by']}"
         )
     if window:
-        starts = list(range(0, len(gray) - int(window) + 1, int(window)))
         series = []
-        models: dict = {}  # unit models of the window length, shared by the windows
-        for s in starts:  # the clip's correlation scale (a property of the optics and the path, not of the moment)
-            est = _estimate(
-                flows[s : s + int(window)], mask, seps, optics, [1.0 / footprint_px], bootstrap, seed, models
+        models: dict = {}
+        for s in range(0, len(gray) - int(window) + 1, int(window)):
+            est = estimate_from_sums(
+                *lag_sums(flows[s : s + int(window)], mask, seps), optics, None, bootstrap, seed, models, blur, extra
             )
             series.append({"start_frame": s, "frames": int(window), **{k: est[k] for k in ("dr0", "dr0_ci")}})
         result["windows"] = series
@@ -415,7 +483,7 @@ def measure_clip(
         "separations_px": seps,
         "aperture_m": optics.aperture_m,
         "wavelength_m": optics.wavelength_m,
-        "ifov_rad": optics.ifov_rad,
+        "ifov_rad": optics.ifov_rad if optics.ifov_known else None,
         "path_length_m": optics.path_length_m,
         "fps": optics.fps,
         "window": window,
@@ -424,53 +492,193 @@ def measure_clip(
     return result
 
 
-def _estimate(flows, mask, seps, optics: Optics, footprints, bootstrap: int, seed: int, cache: dict) -> dict:
-    return estimate_from_sums(*lag_sums(flows, mask, seps), optics, footprints, bootstrap, seed, cache)
+def _texture_log_sd(valid_fraction: float) -> float:
+    if valid_fraction >= TEXTURED_FULL:
+        return 0.0
+    return LOW_TEXTURE_LOG_SD * math.sqrt(TEXTURED_FULL / max(valid_fraction, 1e-6) - 1.0)
 
 
-def estimate_from_sums(num, pairs, series, optics: Optics, footprints, bootstrap=200, seed=0, cache=None) -> dict:
+def _fit_per_footprint(num, pairs, t_len, models, gains):
+    """σ² (F,) and the weighted residual (F,) at the best nuisance point (wind, direction, boiling) of each footprint
+    of ``models`` (F, V, Dir, B, J, T); ``gains`` (F, J)."""
+    lags = np.arange(t_len)
+    w = pairs[:, None] * (t_len - lags)[None]
+    w[:, 0] = 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        data = np.where(w > 0, num / np.maximum(w, 1), 0.0)
+    m = models * np.asarray(gains, np.float64)[:, None, None, None, :, None]
+    sig2 = (w * data).sum((-1, -2)) / np.maximum((w * m).sum((-1, -2)), 1e-300)  # (F, V, Dir, B)
+    fit = sig2[..., None, None] * m
+    resid = (w * (data - fit) ** 2 / np.maximum(fit, 1e-12) ** 2).sum((-1, -2))
+    flat = resid.reshape(len(resid), -1)
+    best = flat.argmin(1)
+    return sig2.reshape(len(sig2), -1)[np.arange(len(sig2)), best], flat[np.arange(len(flat)), best], best
+
+
+def _points(optics: Optics):
+    """The (footprint px, q) grid of the parameters not given and the exact points of the given ones:
+    (grid_f (F,), grid_q (Q,), given [(f, q)] or None)."""
+    q_given = optics.wavelength_m / (optics.aperture_m * optics.ifov_rad) if optics.ifov_known else None
+    grid_q = Q_GRID if q_given is None else np.array([q_given])
+    grid_f = np.array(FOOTPRINT_PX_GRID)
+    if optics.path_length_m is None:
+        return grid_f, grid_q, None
+    f_of_q = np.clip(optics.aperture_m**2 * grid_q / (optics.wavelength_m * optics.path_length_m), *FOOTPRINT_PRIOR_PX)
+    return grid_f, grid_q, f_of_q
+
+
+def estimate_from_sums(
+    num, pairs, series, optics: Optics, footprints=None, bootstrap=200, seed=0, cache=None, blur=None, extra=None
+) -> dict:
     """The fit and the interval from the structure sums of :func:`lag_sums` (what :func:`measure_clip` does after
-    the registration); ``footprints``: the grid of ifov·L/D (one value when the path length is known)."""
+    the registration). ``footprints`` is ignored (kept for old callers: the grid is ``FOOTPRINT_PX_GRID``); ``blur``:
+    the fused frame's blur estimate for the blind λ/(D·ifov); ``extra``: named extra log-sds of the interval."""
+    optics = as_optics(optics)
     cache = {} if cache is None else cache
+    extra = dict(extra or {})
     t_len = num.shape[-1]
-    if t_len not in cache:
-        cache[t_len] = _models(series, t_len, footprints)
-    models = cache[t_len]
-    unit = (optics.aperture_m, optics.wavelength_m, optics.ifov_rad)
+    grid_f, grid_q, f_given = _points(optics)
+    fs = np.concatenate([grid_f, f_given]) if f_given is not None else grid_f
+    key = (t_len, tuple(np.round(fs, 9)))
+    if key not in cache:
+        cache[key] = _models(series, t_len, list(1.0 / fs))
+    models = cache[key]
     seps = [r for r, _, _ in series]
-    dr0 = 2.5
-    for _ in range(3):  # the gain depends on the strength: a fixed point (converges in 2–3 steps, ε varies slowly)
-        gains = np.stack([registration_gain(seps, dr0, 1.0 / a) for a in footprints])  # (F, J)
-        sig2, best = _fit(num.sum(0), pairs.sum(0), t_len, models, gains)
-        dr0 = float(dr0_from_tilt_variance(sig2, *unit))
+    n_f, n_q = len(fs), len(grid_q)
+    dr0 = np.full((n_f, n_q), 2.5)
+    tot_num, tot_pairs = num.sum(0), pairs.sum(0)
+    for qi, q in enumerate(grid_q):  # the gain depends on the strength: a fixed point per (footprint, q)
+        for _ in range(3):
+            gains = np.stack([registration_gain(seps, dr0[fi, qi], fs[fi]) for fi in range(n_f)])
+            sig2, resid, best = _fit_per_footprint(tot_num, tot_pairs, t_len, models, gains)
+            dr0[:, qi] = dr0_from_tilt_variance(np.maximum(sig2, 0.0), 1.0, float(q), 1.0)
+    # tile bootstrap per footprint at the gains of the central q (ln D/r0 = 3/5 ln σ² + const: its sd does not depend
+    # on q)
+    qc = int(np.argmin(np.abs(np.log(grid_q / 2.0))))
+    gains = np.stack([registration_gain(seps, dr0[fi, qc], fs[fi]) for fi in range(n_f)])
     rng = np.random.default_rng(seed)
     n_tiles = num.shape[0]
     boot = []
     for _ in range(bootstrap):
         pick = rng.integers(0, n_tiles, n_tiles)
-        boot.append(_fit(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)[0])
-    boot_dr0 = dr0_from_tilt_variance(np.array(boot, np.float64), *unit) if boot else np.array([dr0])
-    tiles_sd = float(np.std(np.log(boot_dr0))) if dr0 > 0 and np.all(boot_dr0 > 0) else 0.0
-    clip_sd = clip_log_sd(dr0, t_len)
-    lo, hi = log_normal_interval(dr0, (tiles_sd, clip_sd))
-    fi, vi, di, bi = best
+        boot.append(_fit_per_footprint(num[pick].sum(0), pairs[pick].sum(0), t_len, models, gains)[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tiles_sd = np.std(0.6 * np.log(np.array(boot)), axis=0) if boot else np.zeros(n_f)
+    tiles_sd = np.where(np.isfinite(tiles_sd), tiles_sd, 0.0)
+    ext_sd = EXTRAPOLATION_LOG_SD * np.log(np.maximum(GAIN_FOOTPRINT_PX[0] / fs, 1.0))
+    clip_sd = np.vectorize(lambda x: clip_log_sd(x, t_len))(dr0)
+    other = sum(v * v for v in extra.values())
+    total_sd = np.sqrt(tiles_sd[:, None] ** 2 + ext_sd[:, None] ** 2 + clip_sd**2 + other)
+    lo, hi = dr0 * np.exp(-Z90 * total_sd), dr0 * np.exp(Z90 * total_sd)
+    # the blind λ/(D·ifov): keep the grid points whose optical blur q·s(D/r0) the fused frame's blur allows
+    allowed = np.ones((n_f, n_q), bool)
+    blur_used = False
+    if blur is not None and blur.get("confident") and blur["sigma_ci"][1] > 0:
+        optical = grid_q[None, :] * _short_widths(dr0)
+        ok = (BLUR_GAIN[0] * optical <= blur["sigma_ci"][1]) & (
+            BLUR_GAIN[1] * BLUR_EXCESS_MAX * optical >= blur["sigma_ci"][0]
+        )
+        if ok[: len(grid_f)].any():
+            allowed, blur_used = ok, True
+    # the best footprint by the fit; the point estimate at it and at the central allowed q
+    _, resid, best = _fit_per_footprint(tot_num, tot_pairs, t_len, models, gains)
+    if f_given is None:
+        cand = [fi for fi in range(len(grid_f)) if allowed[fi].any()]
+        fi_best = min(cand, key=lambda fi: resid[fi])
+        rows = np.arange(len(grid_f))
+        point_rows = [fi_best] * n_q
+    else:
+        rows = np.arange(len(grid_f), n_f)  # the given path: footprint f_given[qi] for q = grid_q[qi]
+        point_rows = list(rows)
+    q_ok = [qi for qi in range(n_q) if allowed[point_rows[qi], qi]] or list(range(n_q))
+    q_mid = float(np.sqrt(grid_q[q_ok[0]] * grid_q[q_ok[-1]]))
+    qi_best = min(q_ok, key=lambda qi: abs(math.log(grid_q[qi] / q_mid)))
+    fi_point = point_rows[qi_best]
+    estimate = float(dr0[fi_point, qi_best])
+    # the interval: the union over the allowed points of the prior grid (the given values only: their points)
+    prior_rows = np.arange(len(grid_f))
+    sel = np.zeros((n_f, n_q), bool)
+    sel[prior_rows] = allowed[prior_rows]
+    if not sel.any():
+        sel[prior_rows] = True
+    env = (float(lo[sel].min()), float(hi[sel].max()))
+    if f_given is not None:
+        gsel = np.zeros((n_f, n_q), bool)
+        gsel[point_rows, np.arange(n_q)] = True
+        if (gsel & allowed).any():
+            gsel &= allowed
+        ci = (max(float(lo[gsel].min()), env[0]), min(float(hi[gsel].max()), env[1]))
+    else:
+        ci = env
+    ci = (min(ci[0], estimate), max(ci[1], estimate))
+    # what widens the interval most: each parameter's share of ln(hi/lo)
+    width = {
+        "the tile bootstrap": float(tiles_sd[fi_point]),
+        "the clip-to-clip scatter": float(clip_sd[fi_point, qi_best]),
+    }
+    width.update({"little texture": extra.get("texture", 0.0)})
+    width["a footprint below the calibrated 4 px"] = float(ext_sd[fi_point])
+    spans = {k: 2 * Z90 * v for k, v in width.items()}
+    given = {"ifov_rad": optics.ifov_known, "path_length_m": optics.path_length_m is not None}
+    if not optics.ifov_known:
+        qs = grid_q[sel.any(0)]
+        spans["unknown λ/(D·ifov) (give --param ifov_rad=…)"] = 1.2 * math.log(qs.max() / qs.min()) if len(qs) else 0
+    if optics.path_length_m is None:
+        rows_used = prior_rows[sel[prior_rows].any(1)]
+        per_f = [np.log(dr0[rows_used, qi].max() / dr0[rows_used, qi].min()) for qi in range(n_q) if len(rows_used)]
+        spans["unknown path length (give --param path_length_m=…)"] = float(max(per_f)) if per_f else 0.0
+    fit_best = np.unravel_index(best[fi_point], models.shape[1:4])
+    vi, di, bi = fit_best
+    q_est = float(grid_q[qi_best])
     out = {
-        "dr0": dr0,
-        "dr0_ci": [float(lo), float(hi)],
-        "dr0_log_sd": {"tiles": tiles_sd, "clip": clip_sd},
-        "tilt_var_px2": sig2,
+        "dr0": estimate,
+        "dr0_ci": [float(ci[0]), float(ci[1])],
+        "dr0_log_sd": {"tiles": float(tiles_sd[fi_point]), "clip": float(clip_sd[fi_point, qi_best]), **extra},
+        "widened_by": max(spans, key=spans.get),
+        "parameters": {
+            "given": [k for k, v in given.items() if v],
+            "marginalised": {
+                **(
+                    {}
+                    if optics.ifov_known
+                    else {
+                        "lambda_over_d_px": {
+                            "prior": list(Q_PRIOR),
+                            "range_used": [float(grid_q[sel.any(0)].min()), float(grid_q[sel.any(0)].max())],
+                            "from_blur": blur_used,
+                        }
+                    }
+                ),
+                **(
+                    {}
+                    if optics.path_length_m is not None
+                    else {"footprint_px": {"prior": list(FOOTPRINT_PRIOR_PX), "path_prior_km": [0.3, 20.0]}}
+                ),
+                "wind_and_boiling": {
+                    "wind_per_frame_D": [float(WIND_GRID[0]), float(WIND_GRID[-1])],
+                    "boil": [float(BOIL_GRID[0]), float(BOIL_GRID[-1])],
+                    "how": "fitted (profile)",
+                },
+            },
+        },
+        "lambda_over_d_px": q_est,
+        "tilt_var_px2": float(0.1816 * q_est**2 * estimate ** (5 / 3)),
         "fit": {
-            "footprint_per_px": float(footprints[fi]),
+            "footprint_px": float(fs[fi_point]),
+            "footprint_per_px": float(1.0 / fs[fi_point]),
             "wind_per_frame_D": float(WIND_GRID[vi]),
             "wind_dir_deg": float(DIR_GRID[di]),
             "boil": float(BOIL_GRID[bi]),
         },
     }
+    if blur is not None:
+        out["blur"] = blur
     if optics.fps is not None:
         out["fit"]["wind_m_s"] = float(WIND_GRID[vi] * optics.fps * optics.aperture_m)
     if optics.path_length_m is None:
-        out["fit"]["path_length_m_implied"] = float(footprints[fi] * optics.aperture_m / optics.ifov_rad)
-    out.update(r0_cn2_theta0(dr0, optics))
+        ifov = optics.wavelength_m / (optics.aperture_m * q_est)
+        out["fit"]["path_length_m_implied"] = float(optics.aperture_m / (fs[fi_point] * ifov))
+    out.update(r0_cn2_theta0(estimate, optics))
     return out
 
 
@@ -486,4 +694,5 @@ __all__ = [
     "register_measurable",
     "registration_gain",
     "clip_log_sd",
+    "short_exposure_width",
 ]

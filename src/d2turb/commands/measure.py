@@ -28,6 +28,12 @@ def register(sub):
     p.add_argument("--window", type=int, default=None, metavar="N", help="also estimate per window of N frames")
     p.add_argument("--plot", action="store_true", help="write DIR/measure.png: D/r0 per window with its band")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="use only the first N frames")
+    p.add_argument(
+        "--any-width",
+        action="store_true",
+        help="report the estimate even when its 90 %% interval spans more than 3x (refused by default, naming the "
+        "unknown parameter that widens it)",
+    )
     p.add_argument("--bootstrap", type=int, default=200, metavar="N", help="resamples for the interval (default 200)")
     add_max_pixels_arg(p)
     p.set_defaults(func=run)
@@ -105,7 +111,7 @@ def run(args):
         raise D2TurbError(f"--max-frames must be 1 or more, got {args.max_frames}")
     out = check_output_dir(args.out)
     frames = read_clip(src, args.max_frames)
-    result = measure_clip(frames, optics, window=args.window, bootstrap=args.bootstrap)
+    result = measure_clip(frames, optics, window=args.window, bootstrap=args.bootstrap, extrapolate=args.any_width)
     result["clip"] = str(src)
     given = {k for k in PARAM_KEYS if any(p.startswith(k + "=") for p in args.param)}
     result["inputs"]["params_given"] = sorted(given)
@@ -121,6 +127,9 @@ def run(args):
         line += f", Cn² = {result['cn2']:.2e} m^-2/3, θ0 = {result['theta0_urad']:.1f} µrad"
     else:
         line += " (no path_length_m: no Cn², θ0)"
+    marg = [k for k in result["parameters"]["marginalised"] if k != "wind_and_boiling"]
+    line += f"; given: {', '.join(result['parameters']['given']) or 'none'}"
+    line += f", marginalised: {', '.join(marg) or 'none'} (+ wind, boiling fitted)"
     if result.get("windows"):
         line += f", {len(result['windows'])} windows"
     print(line + f" -> {out / 'measure.json'}")

@@ -271,11 +271,11 @@ def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
         raise D2TurbError(f"--param: {exc}") from exc
 
 
-def _measured_dr0(head: list, params: dict) -> float:
-    """D/r0 measured on the clip's first frames ``head`` by ``d2turb measure``'s method, with its refusals (no
-    extrapolation: what ``restore`` calls measured, ``measure`` measures); D2TurbError if it cannot be."""
+def _measured_dr0(head: list, params: dict) -> dict:
+    """``d2turb measure``'s result on the clip's first frames ``head`` (the same estimate, interval and refusals: what
+    ``restore`` calls measured, ``measure`` measures); D2TurbError if it cannot be."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
-    return float(measure_clip(head, optics, bootstrap=50)["dr0"])
+    return measure_clip(head, optics, bootstrap=50)
 
 
 def clip_deblur(
@@ -301,22 +301,28 @@ def clip_deblur(
         blind = BlindDeblur()
         return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
     if choice in ("physics", "auto"):
-        source = "given (--dr0)"
+        source, measured = "given (--dr0)", None
+        optics = "from --param" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
         if dr0 is None:
             head = _clip_head(src)
             try:
-                dr0 = _measured_dr0(head, params)
+                measured = _measured_dr0(head, params)
             except D2TurbError as exc:
                 raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
-            source = f"measured on the clip's first {len(head)} frames (d2turb measure)"
+            dr0, (lo, hi) = measured["dr0"], measured["dr0_ci"]
+            source = f"measured on the clip's first {len(head)} frames (d2turb measure, 90 % [{lo:.3g}, {hi:.3g}])"
+            if "ifov_rad" not in params:  # the λ/(D·ifov) at which measure's estimate holds
+                a, w = params.get("aperture_m", 0.1), params.get("wavelength_m", 525e-9)
+                params["ifov_rad"] = w / (a * measured["lambda_over_d_px"])
+                optics = "λ/(D·ifov) of d2turb measure's estimate"
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
         deblur = PhysicsDeblur(deblur_dr0(p.dr0, fusion), p.lambda_over_d_px, balance=default_balance(p.dr0))
         model = "" if deblur.dr0 == p.dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
-        optics = "from --param" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
         record = {
             "method": "physics",
             "dr0": p.dr0,
             "dr0_source": source,
+            **({"dr0_ci": measured["dr0_ci"]} if measured else {}),
             "otf_dr0": deblur.dr0,
             "lambda_over_d_px": p.lambda_over_d_px,
             "optics": optics,

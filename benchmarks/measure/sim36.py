@@ -1,0 +1,56 @@
+# issue 36: simulated clips of known optics for the unknown-optics validation (docs/measure.md); run with
+# PYTHONPATH=src and ../shared/data present. `python3 sim36.py` measures three clips (none, path, ifov, all given).
+import glob
+import time
+
+import numpy as np
+import torch
+
+from d2turb import measure as M
+from d2turb.io import read_image
+from d2turb.sim import Simulator, TurbulenceParams
+
+
+def clip(img_path, dr0, q=2.0, L=1000.0, wind=2.0, frames=32, size=192, seed=0, boil=0.1, noise=0.0):
+    img = read_image(img_path)
+    _, h, w = img.shape
+    y0, x0 = (h - size) // 2, (w - size) // 2
+    img = img[:, y0 : y0 + size, x0 : x0 + size]
+    lam, D = 525e-9, 0.1
+    p = TurbulenceParams(aperture_m=D, wavelength_m=lam, path_length_m=L, dr0=dr0, ifov_rad=lam / (D * q))
+    sim = Simulator(p)
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    rng = np.random.default_rng(seed)
+    for r in sim.sequence(img, frames=frames, wind=wind, boil=boil, generator=g):
+        f = r.turb[0].clamp(0, 1).numpy()
+        if noise:
+            f = np.clip(f + rng.normal(0, noise / 255, f.shape), 0, 1).astype(np.float32)
+        out.append(torch.from_numpy(f))
+    return out, p
+
+
+if __name__ == "__main__":
+    imgs = sorted(glob.glob("/work/shared/data/clean/bsd100/*_HR.png"))
+    for k, (dr0, q, L) in enumerate([(2.0, 2.0, 1000.0), (4.0, 2.0, 1000.0), (2.0, 3.0, 3000.0)]):
+        t = time.time()
+        frames, p = clip(imgs[k], dr0, q, L, seed=k)
+        t1 = time.time()
+        for opt in (None, {"path_length_m": L}, {"ifov_rad": p.ifov_rad}, p):
+            try:
+                r = M.measure_clip(frames, opt, bootstrap=50, extrapolate=True)
+                print(
+                    dr0,
+                    q,
+                    L,
+                    "opt" if opt is None else type(opt).__name__,
+                    round(r["dr0"], 2),
+                    [round(x, 2) for x in r["dr0_ci"]],
+                    r["widened_by"],
+                    r.get("blur"),
+                    round(r["lambda_over_d_px"], 2),
+                    r["fit"]["footprint_px"],
+                )
+            except Exception as e:
+                print("ERR", e)
+        print("times", round(t1 - t, 1), round(time.time() - t1, 1), flush=True)

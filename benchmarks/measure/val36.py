@@ -1,0 +1,35 @@
+# issue 36: N simulated clips drawn in the acceptance ranges, measured with nothing and with the optics given
+# (docs/measure.md, "Validation (issue 36)"): python3 val36.py 12 > val36.jsonl
+import glob
+import json
+import sys
+
+import numpy as np
+
+sys.path.insert(0, __import__("os").path.dirname(__file__))
+from sim36 import clip
+
+from d2turb import measure as M
+from d2turb.errors import D2TurbError
+
+imgs = sorted(glob.glob("/work/shared/data/clean/bsd100/*_HR.png"))
+rng = np.random.default_rng(36)
+n = int(sys.argv[1])
+for i in range(n):
+    q = float(np.exp(rng.uniform(np.log(1), np.log(4))))
+    L = float(np.exp(rng.uniform(np.log(500), np.log(10000))))
+    dr0 = float(rng.uniform(1, 6))
+    wind = float(rng.uniform(0.5, 4))
+    boil = float(rng.uniform(0, 0.3))
+    noise = float(rng.uniform(0, 3))
+    frames, p = clip(
+        imgs[(7 * i) % len(imgs)], dr0, q, L, wind=wind, frames=32, size=160, seed=100 + i, boil=boil, noise=noise
+    )
+    row = {"i": i, "dr0": dr0, "q": q, "L": L, "wind": wind, "boil": boil, "noise": noise}
+    for label, opt in (("none", None), ("all", p)):
+        try:
+            r = M.measure_clip(frames, opt, bootstrap=50, extrapolate=True)
+            row[label] = {"dr0": r["dr0"], "ci": r["dr0_ci"]}
+        except D2TurbError as e:
+            row[label] = {"refused": str(e)}
+    print(json.dumps(row), flush=True)

@@ -1,0 +1,130 @@
+"""``measure`` with the optics the user does not know (issue 36), against an independent oracle: clips made by the
+simulator with a known D/r0, λ/(D·ifov) and path, measured without them. The interval marginalises what was not
+given, so it must cover the truth, a given parameter must only narrow it, and a stronger turbulence must give a larger
+estimate."""
+
+import numpy as np
+import pytest
+import torch
+
+from d2turb import measure as M
+from d2turb.errors import D2TurbError
+from d2turb.sim import Simulator, TurbulenceParams
+
+LAM, APERTURE = 525e-9, 0.1
+# (D/r0, λ/(D·ifov) px, path m, wind m/s, boil, scene): the ranges of the issue's acceptance, drawn by hand
+CASES = [
+    (1.5, 2.0, 800.0, 1.0, 0.1, "astronaut"),
+    (2.5, 3.0, 2500.0, 2.0, 0.0, "camera"),
+    (3.5, 1.5, 600.0, 3.0, 0.2, "coffee"),
+    (5.0, 2.5, 5000.0, 1.5, 0.1, "chelsea"),
+    (2.0, 4.0, 8000.0, 2.5, 0.3, "rocket"),
+    (4.0, 1.2, 1500.0, 0.8, 0.05, "astronaut"),
+    (1.2, 3.5, 1000.0, 2.0, 0.1, "camera"),
+    (3.0, 2.0, 3000.0, 1.0, 0.2, "coffee"),
+]
+
+
+def _scene(name: str, size: int = 136) -> torch.Tensor:
+    from skimage import data, transform
+
+    img = getattr(data, name)()
+    img = np.repeat(img[..., None], 3, 2) if img.ndim == 2 else img[..., :3]
+    s = min(img.shape[:2])
+    img = transform.resize(img[:s, :s], (2 * size, 2 * size), anti_aliasing=True)
+    return (
+        torch.from_numpy(img[size // 2 : size // 2 + size, size // 2 : size // 2 + size].copy())
+        .float()
+        .permute(2, 0, 1)
+    )
+
+
+def _clip(dr0, q, path, wind, boil, scene, seed, frames=16):
+    p = TurbulenceParams(
+        aperture_m=APERTURE, wavelength_m=LAM, path_length_m=path, dr0=dr0, ifov_rad=LAM / (APERTURE * q)
+    )
+    gen = torch.Generator().manual_seed(seed)
+    seq = Simulator(p).sequence(_scene(scene), frames=frames, wind=wind, boil=boil, generator=gen)
+    return [r.turb[0].clamp(0, 1) for r in seq], p
+
+
+@pytest.fixture(scope="module")
+def clips():
+    return [_clip(*case, seed=i) for i, case in enumerate(CASES)]
+
+
+@pytest.mark.slow
+def test_interval_without_optics_covers_the_simulated_truth(clips):
+    # 8 clips of 16 frames, nothing given (λ/(D·ifov) and the path marginalised). With a true coverage of 0.90 the
+    # chance of ≥ 7/8 is 0.81; the bar is all but one of the estimated clips and at most one refusal (sample size 8,
+    # standard error of a coverage estimate near 0.9: sqrt(0.9·0.1/8) = 0.11: a smoke check; the larger run is in
+    # docs/measure.md)
+    covered, refused = [], []
+    for (dr0, *_), (frames, _) in zip(CASES, clips):
+        try:
+            out = M.measure_clip(frames, None, bootstrap=20, extrapolate=True)
+        except D2TurbError as exc:  # too little texture after a strong blur: one line, counted
+            refused.append(str(exc))
+            continue
+        lo, hi = out["dr0_ci"]
+        covered.append(lo <= dr0 <= hi)
+        assert out["parameters"]["given"] == []
+        assert {"lambda_over_d_px", "footprint_px"} <= set(out["parameters"]["marginalised"])
+    assert len(refused) <= 1 and all(len(r.splitlines()) == 1 for r in refused), refused
+    assert sum(covered) >= len(covered) - 1, covered
+
+
+@pytest.mark.slow
+def test_a_given_parameter_narrows_but_never_leaves_the_interval(clips):
+    frames, p = clips[1]
+    wide = M.measure_clip(frames, None, bootstrap=20, extrapolate=True)["dr0_ci"]
+    for optics in (
+        {"path_length_m": p.path_length_m},
+        {"path_length_m": 300.0},  # a wrong guess too: inside the old bounds, never outside
+        {"path_length_m": 20000.0},
+        {"ifov_rad": p.ifov_rad},
+        {"ifov_rad": p.ifov_rad, "path_length_m": p.path_length_m},
+    ):
+        out = M.measure_clip(frames, optics, bootstrap=20, extrapolate=True)
+        lo, hi = out["dr0_ci"]
+        assert wide[0] <= lo <= out["dr0"] <= hi <= wide[1], (optics, wide, out["dr0_ci"])
+        assert hi / lo <= wide[1] / wide[0]
+        assert sorted(out["parameters"]["given"]) == sorted(optics)
+    full = M.measure_clip(frames, p, bootstrap=20)
+    assert full["dr0_ci"][0] <= 2.5 * 1.15 and full["dr0_ci"][1] >= 2.5 / 1.15  # the truth, with the optics given
+
+
+@pytest.mark.slow
+def test_stronger_simulated_turbulence_gives_a_larger_estimate():
+    # the same scene, optics, wind and random seed; only D/r0 differs
+    weak, p = _clip(2.0, 2.0, 1000.0, 2.0, 0.1, "camera", seed=11)
+    strong, _ = _clip(4.0, 2.0, 1000.0, 2.0, 0.1, "camera", seed=11)
+    for optics in (p, None):
+        a = M.measure_clip(weak, optics, bootstrap=0, extrapolate=True)["dr0"]
+        b = M.measure_clip(strong, optics, bootstrap=0, extrapolate=True)["dr0"]
+        assert b > 1.3 * a, (optics, a, b)
+
+
+@pytest.mark.slow
+def test_restore_reports_the_estimate_and_interval_of_measure(tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from d2turb.cli import main
+
+    frames, p = _clip(2.5, 2.0, 1000.0, 2.0, 0.1, "camera", seed=3, frames=16)
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    for i, f in enumerate(frames):
+        rgb = (f.permute(1, 2, 0).numpy()[..., ::-1] * 255 + 0.5).clip(0, 255).astype(np.uint8)
+        cv2.imwrite(str(clip / f"{i:03d}.png"), rgb)
+    params = ["--param", f"ifov_rad={p.ifov_rad}", "--param", "path_length_m=1000"]
+    assert main(["measure", str(clip), "--out", str(tmp_path / "m"), "--bootstrap", "50", *params]) == 0
+    args = ["--temporal", "16", "--deblur", "physics", "--out", str(tmp_path / "r"), *params]
+    assert main(["restore", str(clip), *args]) == 0
+    measured = json.loads((tmp_path / "m" / "measure.json").read_text())
+    record = json.loads((tmp_path / "r" / "restore.json").read_text())
+    text = json.dumps(record)
+    assert f"{measured['dr0']:.6f}"[:6] in text and "d2turb measure, 90 %" in text
+    assert "dr0_ci" in text and "given (--dr0)" not in text
