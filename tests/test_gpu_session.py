@@ -26,7 +26,8 @@ def rehearsal(tmp_path_factory):
     return proc, out, runs
 
 
-def test_rehearsal_runs_every_step_and_brings_back_what_fits(rehearsal):
+def test_rehearsal_runs_every_step_and_brings_back_what_fits(rehearsal, tmp_path):
+    """One test (xdist would run a module fixture once per worker): the steps, then the weights that came back."""
     proc, out, _ = rehearsal
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     files = [p for p in out.iterdir() if p.is_file()]
@@ -42,15 +43,14 @@ def test_rehearsal_runs_every_step_and_brings_back_what_fits(rehearsal):
         assert cand["iteration"] == cand["planned_iterations"]
         last = cand["validation"]["last"]
         assert {f"val_psnr_{b}" for b in ("weak", "medium", "strong")} <= set(last)
+    check_weights_load_strictly_and_restore(out, tmp_path)
 
 
-def test_rehearsal_weights_load_strictly_and_restore(rehearsal, tmp_path):
+def check_weights_load_strictly_and_restore(out, tmp_path):
     import torch
 
     from d2turb.models import load_pretrained
 
-    proc, out, _ = rehearsal
-    assert proc.returncode == 0
     report = json.loads((out / "gpu_session.json").read_text())
     for name in report["candidates"]:
         with tarfile.open(out / f"{name}.tar") as tar:

@@ -36,6 +36,7 @@ import numpy as np
 
 from d2turb.errors import D2TurbError
 from d2turb.registration import DenseFlow, global_shift_px, to_hwc
+from d2turb.sim.otf import turbulence_otf
 from d2turb.sim.params import cn2_spherical, isoplanatic_angle, positive_finite
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
@@ -289,8 +290,6 @@ def short_exposure_width(dr0: float) -> float:
     ``sim.otf.turbulence_otf`` (α = 1) where that falls to one half; σ_px = s·λ/(D·ifov). s(0) = 0.468 (Airy)."""
     import torch
 
-    from d2turb.sim.otf import turbulence_otf
-
     u = torch.linspace(0.0, 1.0, 4001, dtype=torch.float64)
     otf = turbulence_otf(u, max(float(dr0), 0.0), alpha=1.0).numpy()
     k = int(np.argmax(otf < 0.5))
@@ -451,7 +450,7 @@ def measure_clip(
     seps = separations_for(h, w)
     blur = None
     if blind and not optics.ifov_known:
-        from d2turb.restore.blur import estimate_blur
+        from d2turb.restore.blur import estimate_blur  # restore.files imports this module: at the top, a cycle
 
         if min(fused.shape) >= 32:
             est = estimate_blur(np.clip(fused / 255.0, 0, 1).astype(np.float32))
