@@ -204,9 +204,6 @@ class _Frame:
     raw: np.ndarray  # (H,W,C) uint8 when that holds the float32 frame exactly (8-bit input), else float32; see .image
     gray: np.ndarray  # (H,W) uint8
     flows: list = field(default_factory=list)  # per round: (H,W,2) backward flow onto that round's reference
-    raw: np.ndarray  # (H,W,C) uint8 when that holds the float32 frame exactly (8-bit input), else float32; see .image
-    gray: np.ndarray  # (H,W) uint8
-    flows: list = field(default_factory=list)  # per round: (H,W,2) backward flow onto that round's reference
     warped: list = field(default_factory=list)  # per round: the frame unwarped, (H,W,C) float32 (last: STORE_DTYPE)
     sharp: object = None  # fusion "sharpest": the last round's SharpCoefficients (as long as that round's image)
     coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
