@@ -196,6 +196,11 @@ def bench(s: Session, names: list[str], pack: Path, runs: Path, device: str, fal
     return results
 
 
+def _broken(result: dict) -> bool:
+    """A bench that exited with an error (not one stopped at its deadline: that one was only slow)."""
+    return "failed" in result and result["failed"] not in (None, -signal.SIGTERM, -signal.SIGKILL)
+
+
 def _config(name: str) -> dict:
     import yaml
 
@@ -280,7 +285,7 @@ def main(argv=None) -> int:
         pack = ensure_pack(s, (ROOT / pack).resolve(), Path(args.clean) if args.clean else None)
 
         rates = bench(s, names, pack, runs, device, fallback=False)
-        failed = [n for n in names if "failed" in rates[n] and rates[n]["failed"] not in (None, -15, -9)]
+        failed = [n for n in names if _broken(rates[n])]
         if failed and not s.rehearsal:
             s.log(f"bench failed for {failed} with bf16/channels_last: again in float32")
             for n, r in bench(s, failed, pack, runs, device, fallback=True).items():
@@ -293,7 +298,7 @@ def main(argv=None) -> int:
         jobs, logs = {}, {}
         for n in names:
             if "failed" in rates[n]:
-                if rates[n]["failed"] not in (None, -15, -9) or s.rehearsal:
+                if _broken(rates[n]) or s.rehearsal:
                     continue  # broken, not slow
                 rates[n] |= {"images_per_s": ASSUMED_RATE[n], "assumed": True}  # the bench ran out of time
             cfg = _config(n)
