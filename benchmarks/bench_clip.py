@@ -28,7 +28,7 @@ from skimage import data as skdata
 
 CHILD = """
 import sys, numpy as np
-from d2turb.restore.clip import ClipRestorer
+from d2turb.clip import ClipRestorer
 h, w, n, t = map(int, sys.argv[1:5])
 fusion = sys.argv[5]
 rng = np.random.default_rng(0)
@@ -65,8 +65,8 @@ def synthetic_clip(h: int, w: int, frames: int, seed: int = 0) -> list[np.ndarra
 
 
 def stage_times(h: int, w: int, frames: int, temporal: int, preset: str, passes: int, fusion: str = "mean") -> dict:
-    import d2turb.restore.clip as clip
-    from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
+    import d2turb.clip.pipeline as clip
+    from d2turb.clip import ClipRestorer, PhysicsDeblur
 
     data = synthetic_clip(h, w, frames)
     result = {}

@@ -35,10 +35,10 @@ import cv2
 import numpy as np
 from skimage.registration import phase_cross_correlation
 
+from d2turb.clip import ClipRestorer, PhysicsDeblur
+from d2turb.clip.fusion import sharpest_fusion
 from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
-from d2turb.restore.fusion import sharpest_fusion
 
 MARGIN = 8  # px cropped on every side before scoring
 
@@ -122,7 +122,7 @@ def score_clip(item, record, fusion, a, peer_dir=None) -> dict:
 
 def run_peer(a, peer_dir: Path, data, run_child: bool = True) -> dict:
     """Score the peer's fusions of the saved windows beside the mean and d2turb's sharpest fusion of the same frames
-    (at once: :func:`~d2turb.restore.fusion.sharpest_fusion`, the window's median as every frame's reference)."""
+    (at once: :func:`~d2turb.clip.fusion.sharpest_fusion`, the window's median as every frame's reference)."""
     files = sorted(str(p) for p in peer_dir.glob("*.npz"))
     child = peer_dir / "peer_child.py"
     child.write_text(PEER_CHILD)

@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from d2turb.clip import ClipRestorer
 from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for
 from d2turb.eval.metrics import psnr, quantise_8bit
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
-from d2turb.restore.clip import ClipRestorer
 
 ROWS = ("input", "fused", "restored", "single-frame filter", "clean")
 BINS = ("weak", "medium", "strong")

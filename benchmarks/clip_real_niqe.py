@@ -4,9 +4,9 @@
         [--fusion mean fba] [--deblur physics ...] [--temporal 32] [--frames 96] [--stride 6] [--dr0-cache FILE]
         [--controls] [--json FILE]
 
-For each clip: D/r0 as ``d2turb restore --deblur auto`` finds it: measured by ``d2turb.measure.measure_clip`` on its
-first 64 frames (default optics, 50 bootstrap resamples), or, for a clip the measurement refuses, estimated from the
-registered displacement of those frames (``d2turb.restore.clip.registration_dr0``; ``--refused none``: no deblur).
+For each clip: D/r0 as ``d2turb restore --deblur auto`` finds it: measured by ``d2turb.clip.strength.measure_clip``
+on its first 64 frames (default optics, 50 bootstrap resamples), or, for a clip the measurement refuses, estimated
+from the registered displacement of those frames (``d2turb.clip.registration_dr0``; ``--refused none``: no deblur).
 Then ``ClipRestorer(temporal, fusion=...)`` over the first ``--frames`` frames, and NIQE (``d2turb.eval.niqe``) of
 every ``--stride``-th frame: the input frame, the fused frame, the fused frame after each deblur variant
 (:func:`physics_variants`), and the same variant's filter on the single input frame (what single-frame ``restore``
@@ -29,11 +29,7 @@ import cv2
 import numpy as np
 import torch
 
-from d2turb.errors import D2TurbError
-from d2turb.eval.niqe import niqe
-from d2turb.io import to_uint8
-from d2turb.measure import measure_clip
-from d2turb.restore.clip import (
+from d2turb.clip import (
     ClipFrame,
     ClipRestorer,
     PhysicsDeblur,
@@ -41,6 +37,10 @@ from d2turb.restore.clip import (
     flow_variance_px2,
     registration_dr0,
 )
+from d2turb.clip.strength import measure_clip
+from d2turb.errors import D2TurbError
+from d2turb.eval.niqe import niqe
+from d2turb.io import to_uint8
 from d2turb.restore.files import MEASURE_FRAMES, clip_frames
 from d2turb.restore.single import Restorer
 

@@ -16,10 +16,10 @@ import cv2
 import torch
 from PIL import Image
 
+from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.eval.niqe import niqe
 from d2turb.eval.report import comparison_grid
 from d2turb.io import list_images, read_image, to_uint8
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
 
 ROOT = Path(__file__).resolve().parents[1]
 DR0, FRAME = 5.43, 24

@@ -15,8 +15,8 @@ import av
 import cv2
 import numpy as np
 
+from d2turb.clip import ClipRestorer
 from d2turb.io import list_images, read_image
-from d2turb.restore.clip import ClipRestorer
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAME, TEMPORAL, FRAMES = 20, 16, 40

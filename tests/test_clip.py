@@ -1,4 +1,4 @@
-"""Clip restoration (d2turb.restore.clip, d2turb.registration, d2turb.sim.otf) against known synthetic truths:
+"""Clip restoration (d2turb.clip, d2turb.clip.registration, d2turb.sim.otf) against known synthetic truths:
 frames that are known warps of one image, a pure translation, a moving square, identical frames; the OTF against
 Fried's formula by hand; the command's bad inputs."""
 
@@ -14,11 +14,11 @@ import torch
 from scipy import ndimage
 from skimage import data as skdata
 
+from d2turb.clip import FUSIONS, ClipRestorer, PhysicsDeblur, wiener_padding, window_start
+from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.fusion import fourier_burst_accumulation
+from d2turb.clip.registration import DenseFlow, global_shift_px, remap, to_gray_u8, to_hwc
 from d2turb.errors import D2TurbError
-from d2turb.registration import DenseFlow, global_shift_px, remap, to_gray_u8, to_hwc
-from d2turb.restore.blur import BlindDeblur
-from d2turb.restore.clip import FUSIONS, ClipRestorer, PhysicsDeblur, wiener_padding, window_start
-from d2turb.restore.fusion import fourier_burst_accumulation
 from d2turb.sim.otf import diffraction_otf, turbulence_otf
 
 
@@ -422,7 +422,7 @@ def test_registration_tilt_variance_scales_with_the_known_warps():
     per-axis variance (each frame's mean removed) grows like the square of the warps' amplitude (×2 → ×4, within
     25 %) and stays below the warps' own variance about their mean over the window (the fusion's geometry): the
     registration onto a fusion sees only part of it (what OBSERVED_TILT_SHARE calibrates on the simulated clips)."""
-    from d2turb.restore.clip import registration_tilt_variance
+    from d2turb.clip import registration_tilt_variance
 
     img = _scene(128)
     got, truth = [], []

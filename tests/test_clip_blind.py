@@ -1,4 +1,4 @@
-"""The blind deblur of clips (d2turb.restore.blur) and the default clip path, against independent oracles: a known
+"""The blind deblur of clips (d2turb.clip.blur) and the default clip path, against independent oracles: a known
 Gaussian blur (OpenCV), the simulator's known short-exposure OTF (its MTF50), identical sharp frames (nothing to
 deblur), a moving square (fallback to the frame), a count of the dense-flow computations, what the output folder's
 restore.json says."""
@@ -15,8 +15,8 @@ import torch
 from scipy import ndimage
 from skimage import data as skdata
 
-from d2turb.restore.blur import BlindDeblur, GaussianDeblur, estimate_blur, ringing_index
-from d2turb.restore.clip import ClipRestorer
+from d2turb.clip import ClipRestorer
+from d2turb.clip.blur import BlindDeblur, GaussianDeblur, estimate_blur, ringing_index
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 
 
@@ -47,7 +47,7 @@ def test_blur_estimate_recovers_a_known_gaussian_blur(sigma):
 
 
 def test_tabulated_ratio_table_is_the_computed_one():
-    from d2turb.restore.blur import RATIO_TABLE_R, RATIO_TABLE_SIGMA, compute_ratio_table
+    from d2turb.clip.blur import RATIO_TABLE_R, RATIO_TABLE_SIGMA, compute_ratio_table
 
     r, sigma = compute_ratio_table()
     n = len(RATIO_TABLE_R)
@@ -81,7 +81,7 @@ def test_blur_estimate_finds_the_simulators_short_exposure_blur_without_exceedin
 
 
 def test_tabulated_physics_response_is_the_computed_one():
-    from d2turb.restore.blur import PHYSICS_RESPONSE_LOD, PHYSICS_RESPONSE_SIGMA, compute_physics_response
+    from d2turb.clip.blur import PHYSICS_RESPONSE_LOD, PHYSICS_RESPONSE_SIGMA, compute_physics_response
 
     lod, sigma = compute_physics_response()
     np.testing.assert_allclose(PHYSICS_RESPONSE_LOD, lod, atol=2e-4)
@@ -96,7 +96,7 @@ def test_edge_estimate_is_calibrated_to_the_simulators_physics_blur(dr0, lambda_
     (``compute_physics_response`` at the true D/r0), the calibration the physics-shaped blind deblur inverts.
     Measured (astronaut, coffee, chelsea, rocket × 8 settings, D/r0 1–5, λ/(D·ifov) 1–4 px × 2 noise seeds,
     2026-11-27): 0.70–1.16, median 0.89 (the scenes move it most: rocket 0.78–0.84, chelsea 1.00–1.14)."""
-    from d2turb.restore.blur import compute_physics_response
+    from d2turb.clip.blur import compute_physics_response
 
     lod, sig = compute_physics_response(dr0)
     truth = float(np.interp(lambda_over_d_px, lod, sig))
@@ -189,8 +189,9 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
     """`restore CLIP --temporal N` with the default deblur: the dense flow runs passes × frames times (one restoring
     pass feeds the estimate and the fusion: no measuring pass, no second decode), and restore.json says which
     deblur was used and where its value came from."""
-    from d2turb import measure, registration
     from d2turb.cli import main
+    from d2turb.clip import registration
+    from d2turb.clip import strength as measure
     from d2turb.restore import files
 
     calls = {"flow": 0, "read": 0}
@@ -207,7 +208,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         return real_read(path)
 
     def no_measure(*args, **kwargs):
-        raise AssertionError("the default path must not run d2turb.measure")
+        raise AssertionError("the default path must not run d2turb.clip.strength")
 
     monkeypatch.setattr(registration.DenseFlow, "__call__", counting)
     monkeypatch.setattr(files, "read_image", counting_read)
@@ -230,10 +231,10 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
 
 
 def test_restore_never_calls_measured_what_measure_refuses(tmp_path, capsys):
-    """Frames of 56 px are too small for d2turb.measure: `--deblur physics` refuses in one line (give --dr0), the
+    """Frames of 56 px are too small for d2turb.clip.strength: `--deblur physics` refuses in one line (give --dr0), the
     default restores with the blind estimate and never says "measured"; with --dr0 the record says "given"."""
     from d2turb.cli import main
-    from d2turb.measure import measure_clip
+    from d2turb.clip.strength import measure_clip
 
     rng = np.random.default_rng(3)
     img = _crop("astronaut", 56)
@@ -298,7 +299,7 @@ def test_a_blur_that_varies_across_the_image_is_deblurred_only_where_all_of_it_i
 def test_eight_bit_frames_are_held_as_uint8_exactly():
     """A frame read from an 8-bit file (k/255 in float32, as d2turb.io.read_image divides) is held as uint8 and
     given back bit-identical; any other frame is held as it is."""
-    from d2turb.restore.clip import _compact, _Frame
+    from d2turb.clip.pipeline import _compact, _Frame
 
     k = np.random.default_rng(7).integers(0, 256, (8, 9, 3)).astype(np.uint8)
     frame = k.astype(np.float32)

@@ -1,4 +1,4 @@
-"""Sharpest-coefficient fusion (d2turb.restore.fusion, ``--fusion sharpest``) against known truths: frames of one
+"""Sharpest-coefficient fusion (d2turb.clip.fusion, ``--fusion sharpest``) against known truths: frames of one
 image blurred by different known kernels, identical frames, an outlier frame (a square that is there in one frame
 only), the streamed choice against the direct one."""
 
@@ -10,9 +10,8 @@ import torch
 from scipy import ndimage
 from skimage import data as skdata
 
-from d2turb.errors import D2TurbError
-from d2turb.restore.clip import ClipRestorer
-from d2turb.restore.fusion import (
+from d2turb.clip import ClipRestorer
+from d2turb.clip.fusion import (
     SharpestFusion,
     collapse_pyramid,
     laplacian_pyramid,
@@ -20,6 +19,7 @@ from d2turb.restore.fusion import (
     sharp_coefficients,
     sharpest_fusion,
 )
+from d2turb.errors import D2TurbError
 
 
 def _scene(size=128) -> np.ndarray:
@@ -123,7 +123,7 @@ def test_sharpest_errors_are_one_line():
 
 
 def test_the_physics_deblur_after_the_sharpest_fusion_models_a_weaker_blur():
-    from d2turb.restore.clip import SHARPEST_DR0_SCALE, deblur_dr0
+    from d2turb.clip import SHARPEST_DR0_SCALE, deblur_dr0
 
     assert deblur_dr0(3.0, "mean") == 3.0 and deblur_dr0(3.0, "fba") == 3.0
     assert 0 < SHARPEST_DR0_SCALE < 1 and deblur_dr0(3.0, "sharpest") == pytest.approx(3.0 * SHARPEST_DR0_SCALE)

@@ -1,5 +1,5 @@
-"""Turbulence measurement (d2turb.measure, docs/measure.md): the formula inversion against hand-computed values, the
-differential-tilt theory against the tested tilt correlation, a clip shifted by a known random field, camera shake
+"""Turbulence measurement (d2turb.clip.strength, docs/measure.md): the formula inversion against hand-computed values,
+the differential-tilt theory against the tested tilt correlation, a clip shifted by a known random field, camera shake
 cancelling for a pure global translation, the interval (quadrature sum by hand, coverage of a known log-normal), the
 registration-gain table's interpolation, and bad input through the command line as one ``error:`` line."""
 
@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from d2turb import measure as M
 from d2turb.cli import main
+from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
 from d2turb.sim.tilt import (
     differential_tilt_covariance,

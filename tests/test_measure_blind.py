@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
 from d2turb.sim import Simulator, TurbulenceParams
 

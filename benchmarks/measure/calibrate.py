@@ -1,5 +1,5 @@
 # Calibration statistics of the clips matching a pattern (default "clips/cal*"): for each clip, the differential
-# structure sums (d2turb.measure.lag_sums) of the DIS flows and of the simulator's true flow (--save-flow) on the
+# structure sums (d2turb.clip.strength.lag_sums) of the DIS flows and of the simulator's true flow (--save-flow) on the
 # same pairs, separations 8–64 px, saved to calib/NAME.npz with the clip's truth, optics and registration
 # diagnostics; and the same sums over windows of 16 and 32 frames of the clip's registration (keys num_dis_w32, …:
 # (windows, tiles, J, T); what measure_clip(window=N) fits), for the clip term's dependence on the window length.
@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.io import list_images, read_image
 
 WINDOWS = (16, 32)

@@ -3,7 +3,7 @@
 # 2. A smooth least-squares model of ln ε in ln r, ln footprint and D/r0 (quadratic, with interactions) over the
 #    clips that measure_clip would accept (valid area ≥ MIN_VALID_FRACTION); printed as GAIN_TABLE.
 # 3. Leave one clip out: refit the model without it, measure the clip with the predicted gains (the estimator of
-#    d2turb.measure on its DIS sums), compare ln(D̂/D) with the tile bootstrap's own spread. The clip term
+#    d2turb.clip.strength on its DIS sums), compare ln(D̂/D) with the tile bootstrap's own spread. The clip term
 #    CLIP_LOG_SD is the rms of ln(D̂/D) in quadrature minus the mean bootstrap variance.
 # 4. The same leave-one-out estimate on windows of 16 and 32 frames of each clip (calibrate.py's window sums): the
 #    clip term's growth for shorter windows, variance = a + b·D/r0 + c·(64/T − 1) (CLIP_WINDOW_VAR = c).
@@ -14,7 +14,7 @@ import sys
 import numpy as np
 from scipy import stats
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.sim.tilt import dr0_from_tilt_variance
 
 SEPS = (16, 32, 64)

@@ -3,8 +3,8 @@
 # only) and img/ (first 70 bsd100 and all 69 sunhays_outdoor images: the test folders of the fixed split, validation
 # only); img2/ (the other 30 bsd100 images: validation only, the fourth batch of gen.py); calt/ (fourth calibration:
 # the 32 least textured 256² centre crops of the train folders, by the textured fraction of the crop's inner area,
-# structure tensor as d2turb.measure; bsds500 only beyond the first 100, none of calo/); cal5/ (fifth calibration: the
-# next 64 bsds500 crops, none of calt/)
+# structure tensor as d2turb.clip.strength; bsds500 only beyond the first 100, none of calo/); cal5/ (fifth
+# calibration: the next 64 bsds500 crops, none of calt/)
 import glob
 import os
 import sys
@@ -12,7 +12,7 @@ import sys
 import numpy as np
 from PIL import Image
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 
 C = sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/clean"
 outdoor = [sorted(glob.glob(f"{C}/camvid/*"))[::22][:12], sorted(glob.glob(f"{C}/strecha_mvs/*"))[::3][:10],

@@ -3,7 +3,7 @@
 import json
 from pathlib import Path
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.commands.measure import read_clip
 from d2turb.errors import D2TurbError
 

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import torch
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.io import read_image
 from d2turb.sim import Simulator, TurbulenceParams
 

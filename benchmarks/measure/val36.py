@@ -9,7 +9,7 @@ import numpy as np
 sys.path.insert(0, __import__("os").path.dirname(__file__))
 from sim36 import clip
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
 
 imgs = sorted(glob.glob("/work/shared/data/clean/bsd100/*_HR.png"))

@@ -1,4 +1,4 @@
-# validation of d2turb.measure on simulated clips, with and without a ±3 px camera shake (docs/measure.md):
+# validation of d2turb.clip.strength on simulated clips, with and without a ±3 px camera shake (docs/measure.md):
 #   python3 validate.py OUT.jsonl "PATTERN" ["PATTERN" ...]   (default: val.jsonl "clips/val*")
 #   python3 validate.py --stats-only "PATTERN" ...   registers the clips into stats/ only (no estimate, no output):
 #   the slow part can run while the calibration is chosen, without looking at the validation clips' results
@@ -15,7 +15,7 @@ import zlib
 import cv2
 import numpy as np
 
-from d2turb import measure as M
+from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
 from d2turb.io import list_images, read_image
 

@@ -14,6 +14,6 @@ DEFAULT_DEPTH = "prior"
 # 512²): bounds the blur's FFT planes
 DEFAULT_BATCH = 8
 BATCH_PIXELS = 1 << 21
-# `--fusion` of clip restoration (d2turb.restore.clip): the plain mean is the default (chosen on the validation clips)
+# `--fusion` of clip restoration (d2turb.clip): the plain mean is the default (chosen on the validation clips)
 CLIP_FUSIONS = ("mean", "robust", "fba", "sharpest")
 DEFAULT_FUSION = "mean"

@@ -185,9 +185,9 @@ def restore_clip(sim, params, image, depth, modulation, seed: int, restorer, out
     import torch
     from PIL import Image
 
+    from d2turb.clip import ClipRestorer, PhysicsDeblur
     from d2turb.eval.metrics import KeyedMean, psnr, quantise_8bit, ssim
     from d2turb.io import atomic_path, write_image
-    from d2turb.restore.clip import ClipRestorer, PhysicsDeblur
     from d2turb.restore.compare import side_by_side
 
     n = len(LEVELS)

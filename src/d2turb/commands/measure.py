@@ -98,8 +98,8 @@ def plot(result: dict, path: Path) -> None:
 
 def run(args):
     # lazy: see d2turb.commands
+    from d2turb.clip.strength import Optics, measure_clip
     from d2turb.io import check_output_dir, write_json
-    from d2turb.measure import Optics, measure_clip
 
     src = Path(args.clip)
     if not src.exists():

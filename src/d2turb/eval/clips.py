@@ -17,14 +17,14 @@ import torch
 from scipy import ndimage
 from skimage.registration import phase_cross_correlation
 
+from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
+from d2turb.clip.blur import BlindDeblur
 from d2turb.data.sequence import SequenceDataset
 from d2turb.defaults import DEFAULT_FUSION
 from d2turb.errors import D2TurbError
 from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.io import write_json, write_text
 from d2turb.models.hub import resolve_weights
-from d2turb.restore.blur import BlindDeblur
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams, depth_modulation
 from d2turb.sim.params import BINS
@@ -81,7 +81,7 @@ def _deblurs(names: list[str], device: str) -> dict[str, Callable | str]:
 
 def physics_deblur_for(record: dict, depth: torch.Tensor, fusion: str = "mean") -> PhysicsDeblur:
     """The physics deblur at the clip's true D/r0 and optics, with the mean depth modulation of Eq. 4 (after the
-    sharpest fusion, the OTF of a weaker turbulence: :func:`~d2turb.restore.clip.deblur_dr0`)."""
+    sharpest fusion, the OTF of a weaker turbulence: :func:`~d2turb.clip.deblur_dr0`)."""
     params = TurbulenceParams(**{k: v for k, v in record.get("params", {}).items() if k in _PARAM_KEYS})
     m = depth_modulation(depth[None], params.modulation, params.offset_s)
     dr0 = float(record["dr0"])

@@ -1,5 +1,5 @@
 """d2turb.restore: remove turbulence. Single images of any size with a trained model (:class:`Restorer`, tiled);
-clips by registration across frames, fusion and deblurring (:func:`restore_clip`, ``d2turb.restore.clip``)."""
+clips by registration across frames, fusion and deblurring (:func:`restore_clip`, ``d2turb.clip``)."""
 
 from d2turb.models.hub import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
 from d2turb.restore.single import (

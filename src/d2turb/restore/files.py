@@ -19,6 +19,9 @@ import numpy as np
 from PIL import Image, ImageOps
 from tqdm import tqdm
 
+from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
+from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.strength import measure_clip
 from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
@@ -33,10 +36,7 @@ from d2turb.io import (
     write_json,
     write_npy,
 )
-from d2turb.measure import measure_clip
 from d2turb.ops.splat import backward_flow
-from d2turb.restore.blur import BlindDeblur
-from d2turb.restore.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams
@@ -287,12 +287,12 @@ def clip_deblur(
     Args:
         choice: ``none``; ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 that
             ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused when it refuses);
-            ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.restore.blur.BlindDeblur`,
+            ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blur.BlindDeblur`,
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
         fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
-            (:func:`~d2turb.restore.clip.deblur_dr0`).
+            (:func:`~d2turb.clip.deblur_dr0`).
     """
     if choice == "none":
         return None, "none", {"method": "none"}
@@ -355,7 +355,7 @@ def restore_clip_files(
     compare: bool = False,
 ) -> int:
     """Restore a clip across frames into the folder ``out`` (``d2turb restore --temporal``): registration to a
-    sliding window of ``temporal`` frames, fusion, deblurring (:class:`~d2turb.restore.clip.ClipRestorer`).
+    sliding window of ``temporal`` frames, fusion, deblurring (:class:`~d2turb.clip.ClipRestorer`).
 
     NAME is the video's stem or the folder's name. Writes FRAME_restored.png per frame (a folder's frames keep
     their stems; a video's are NAME_NNNNNN), NAME_restored.mp4 (video extra), FRAME_fused.png

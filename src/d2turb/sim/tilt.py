@@ -385,7 +385,7 @@ class PlaneWaveGrid:
         return field[:, plan["rows"]][:, :, plan["cols"]] * plan["deconv"]
 
 
-# ---- the theory that turbulence measurement inverts (d2turb.measure, docs/measure.md) -------------------------------
+# ---- the theory that turbulence measurement inverts (d2turb.clip.strength, docs/measure.md) ------------------------
 TILT_VARIANCE_COEF = 0.1816  # Z-tilt variance per axis in (λ/D)² (D/r0)^(5/3) rad² (docs/physics.md §2)
 
 

@@ -1,7 +1,7 @@
 """Turbulence strength from a clip of a static scene: D/r0, r0, Cn² and the isoplanatic angle θ0, with a 90 %
 interval (docs/measure.md).
 
-Method. Each frame is registered to the temporal mean (``d2turb.registration``: phase correlation for the global
+Method. Each frame is registered to the temporal mean (``d2turb.clip.registration``: phase correlation for the global
 shift, DIS for the dense flow). For pairs of image points r apart (several separations, along x and y) the
 *differential* displacement u(t) = d(x, t) − d(x + r, t) is formed, in which any global motion (camera shake,
 pointing drift) cancels exactly. Its temporal structure function D̂(τ) = ⟨(u(t+τ) − u(t))²⟩ is free of the
@@ -29,15 +29,18 @@ it. A correlation scale below the calibrated 4 px and little texture widen the i
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import torch
 
+from d2turb.clip.pipeline import ClipRestorer
+from d2turb.clip.registration import DenseFlow, global_shift_px, to_hwc
 from d2turb.errors import D2TurbError
-from d2turb.registration import DenseFlow, global_shift_px, to_hwc
 from d2turb.sim.otf import turbulence_otf
-from d2turb.sim.params import cn2_spherical, isoplanatic_angle, positive_finite
+from d2turb.sim.params import MAX_DR0, cn2_spherical, isoplanatic_angle, positive_finite
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
@@ -450,7 +453,7 @@ def measure_clip(
     seps = separations_for(h, w)
     blur = None
     if blind and not optics.ifov_known:
-        from d2turb.restore.blur import estimate_blur  # restore.files imports this module: at the top, a cycle
+        from d2turb.clip.blur import estimate_blur  # restore.files imports this module: at the top, a cycle
 
         if min(fused.shape) >= 32:
             est = estimate_blur(np.clip(fused / 255.0, 0, 1).astype(np.float32))
@@ -681,6 +684,40 @@ def estimate_from_sums(
     return out
 
 
+# Share of the tilt variance (Z-tilt per axis, docs/physics.md §2) that the registered flows of a window of
+# REGISTRATION_WINDOW frames carry (each frame's mean shift removed): the registration sees only the part that
+# changes within the window, and DIS smooths it. Median over the 24 validation clips (docs/clips.md).
+OBSERVED_TILT_SHARE = 0.13
+REGISTRATION_WINDOW = 32
+
+
+def flow_variance_px2(bwd_flow_px: torch.Tensor) -> float:
+    """Per-axis variance (px²) of one (2, H, W) flow about its own mean (the frame's global shift, camera shake)."""
+    f = bwd_flow_px.double()
+    return float(((f - f.mean((1, 2), keepdim=True)) ** 2).mean()) / 2
+
+
+def registration_tilt_variance(frames: Iterable, temporal: int = REGISTRATION_WINDOW, preset: str = "fast") -> float:
+    """Per-axis variance (px²) of the backward flows that register each frame of ``frames`` onto its window's
+    fusion (:class:`ClipRestorer`, no deblur), each frame's mean shift (camera shake) removed, averaged over the
+    frames."""
+    total, count = 0.0, 0
+    for out in ClipRestorer(temporal=temporal, preset=preset, fallback=False).restore(frames):
+        total += flow_variance_px2(out.bwd_flow_px)
+        count += 1
+    return total / max(count, 1)
+
+
+def registration_dr0(frames: Iterable, lambda_over_d_px: float = 2.0, preset: str = "fast") -> float:
+    """D/r0 from the clip's own registration, for a clip that ``d2turb measure`` cannot measure: the tilt variance
+    is the registered flows' variance over ``OBSERVED_TILT_SHARE`` (calibrated on the simulated validation clips at a
+    window of ``REGISTRATION_WINDOW`` frames; a rough estimate: 0.10–0.15 there, unknown on real footage), inverted by
+    the Z-tilt law σ² = 0.1816 (λ/D)² (D/r0)^(5/3) with λ/D in pixels. Clipped to [0.05, MAX_DR0]."""
+    var = registration_tilt_variance(frames, REGISTRATION_WINDOW, preset) / OBSERVED_TILT_SHARE
+    dr0 = float(dr0_from_tilt_variance(var, 1.0, lambda_over_d_px, 1.0))  # only λ/(D·ifov) matters
+    return min(max(dr0, 0.05), MAX_DR0)
+
+
 __all__ = [
     "Optics",
     "as_optics",
@@ -694,4 +731,7 @@ __all__ = [
     "registration_gain",
     "clip_log_sd",
     "short_exposure_width",
+    "flow_variance_px2",
+    "registration_dr0",
+    "registration_tilt_variance",
 ]

@@ -1,6 +1,6 @@
 """Registration of turbulent frames to a reference: a global shift (camera motion) and a dense displacement field
 (the tilt), both from OpenCV — phase correlation and DIS optical flow (Kroeger et al., ECCV 2016). Used by clip
-restoration (``d2turb.restore.clip``) and by turbulence measurement from a clip.
+restoration (``d2turb.clip``) and by turbulence measurement from a clip.
 
 Convention (the dataset's ``flow``, docs/flow.md): a *backward* flow ``bwd_flow_px`` maps a frame onto the
 reference, ``frame(x + bwd_flow_px(x)) ≈ ref(x)``, i.e. ``warp(frame, bwd_flow_px) ≈ ref``; (2, H, W), x then y,

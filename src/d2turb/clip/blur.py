@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 import torch
 
+from d2turb.clip.deblur import PhysicsDeblur, wiener_deconvolve, wiener_gain, wiener_padding
 from d2turb.errors import D2TurbError
-from d2turb.restore.clip import PhysicsDeblur, wiener_deconvolve, wiener_gain, wiener_padding
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 
 REBLUR_SIGMA_PX = 1.5  # σ0 of the re-blur: larger keeps R away from 1 for wide blurs, smaller resolves narrow ones

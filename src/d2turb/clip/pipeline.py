@@ -9,7 +9,7 @@ Each frame i is registered to a reference of its own window, in ``passes`` round
 2. round k: dense backward flow of frame i onto R^(k−1)_i (OpenCV DIS, started from the previous round),
    frame i unwarped; R^k_i = mean of the unwarped frames of W(i) (sharper, same geometry);
 3. output t = fusion of the last round's unwarped frames of W(t) (mean; robust: each pixel weighted by its
-   agreement with the reference; fba: Fourier burst accumulation, restore/fusion.py); where the frame's own
+   agreement with the reference; fba: Fourier burst accumulation, clip/fusion.py); where the frame's own
    residual stays high (a moving object) the single frame is used instead (no ghost); then deblurred (none, a
    physics Wiener filter, or a model).
 
@@ -27,37 +27,21 @@ import cv2
 import numpy as np
 import torch
 
+from d2turb.clip.fusion import SharpestFusion, coarse_grey, fourier_burst_accumulation, sharp_coefficients
+from d2turb.clip.registration import (
+    DenseFlow,
+    check_registrable,
+    global_shift_px,
+    remap,
+    shift_flow,
+    to_gray_u8,
+    to_hwc,
+)
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
-from d2turb.registration import DenseFlow, check_registrable, global_shift_px, remap, shift_flow, to_gray_u8, to_hwc
-from d2turb.restore.fusion import SharpestFusion, coarse_grey, fourier_burst_accumulation, sharp_coefficients
-from d2turb.sim.otf import image_otf, pixel_frequency_grid
-from d2turb.sim.params import MAX_DR0
-from d2turb.sim.tilt import dr0_from_tilt_variance
 
 FUSIONS = CLIP_FUSIONS
 DEFAULT_TEMPORAL = 24
-# Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
-# fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
-# (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md).
-BALANCE_AT_2 = 0.002
-
-
-def default_balance(dr0: float) -> float:
-    return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
-
-
-# The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
-# left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
-# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md).
-SHARPEST_DR0_SCALE = 0.3  # 0.6 / 0.5 / 0.4 / 0.3: 0.3 best in every bin (docs/clips.md), still below the mean + Wiener
-
-
-def deblur_dr0(dr0: float, fusion: str) -> float:
-    """The D/r0 at which the physics deblur of a clip fused by ``fusion`` models the fused frame's blur."""
-    return dr0 * SHARPEST_DR0_SCALE if fusion == "sharpest" else dr0
-
-
 # the last round's unwarped frames (what the fusion averages) are held as float16: half their memory, relative error
 # 2^-11 (< 0.13 grey levels of 255), far below the fusion's noise. Raw frames and earlier rounds stay float32: they
 # make the references that frames are registered onto, where a rounding that flips a grey level moves the flow
@@ -88,117 +72,6 @@ def window_start(index: int, temporal: int, length: int | None) -> int:
     return lo
 
 
-def laplacian_power(height: int, width: int) -> torch.Tensor:
-    """|L(f)|² of the 5-point discrete Laplacian on the rfft2 grid: the Wiener filter's smoothness prior (natural
-    images have a spectrum falling like 1/f², so noise amplification is penalised most where signal is weakest)."""
-    fy = torch.fft.fftfreq(height, dtype=torch.float64)[:, None]
-    fx = torch.fft.rfftfreq(width, dtype=torch.float64)[None, :]
-    return (4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)) ** 2
-
-
-def _smooth_size(n: int) -> int:
-    """The smallest 2·3·5-smooth integer >= n (sizes the FFT handles fast)."""
-    while True:
-        m = n
-        for p in (2, 3, 5):
-            while m % p == 0:
-                m //= p
-        if m == 1:
-            return n
-        n += 1
-
-
-def wiener_padding(height: int, width: int) -> tuple[int, int, int, int]:
-    """Mirror padding (top, bottom, left, right) that keeps the FFT's periodic wrap-around away from the image: an
-    eighth of the shorter side (at least 8 px), then up to an FFT-friendly size."""
-    pad = max(8, min(height, width) // 8)
-    top, left = min(height - 1, pad), min(width - 1, pad)
-    bottom = min(height - 1, _smooth_size(height + 2 * top) - height - top)
-    right = min(width - 1, _smooth_size(width + 2 * left) - width - left)
-    return top, bottom, left, right
-
-
-def wiener_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
-    """Apply a Wiener filter's gain G = H / (H² + balance·|L|²) (see :func:`wiener_gain`) to the rfft2 of the
-    mirror-padded image (the form of scikit-image's ``restoration.wiener``, here with the OTF given directly).
-
-    Shape:
-        image: (C, H, W); gain: the rfft2 grid of the image padded by ``wiener_padding(H, W)``.
-    """
-    top, bottom, left, right = wiener_padding(*image.shape[-2:])
-    h, w = image.shape[-2:]
-    out = torch.empty(image.shape, dtype=torch.float32)
-    for c in range(image.shape[0]):  # a channel at a time: a third of the FFT buffers (1080p: ~120 MB less)
-        padded = torch.nn.functional.pad(image[None, c : c + 1].float(), (left, right, top, bottom), mode="reflect")
-        full = torch.fft.irfft2(torch.fft.rfft2(padded[0, 0]) * gain, s=padded.shape[-2:])
-        out[c] = full[top : top + h, left : left + w]
-    return out.clamp_(0, 1)
-
-
-def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int]) -> torch.Tensor:
-    """G = H / (H² + balance·|L|²) on the rfft2 grid of ``shape``, float32."""
-    return (otf / (otf * otf + balance * laplacian_power(*shape))).float()
-
-
-class PhysicsDeblur:
-    """Wiener deconvolution with the short-exposure (tilt-removed) turbulence OTF at ``dr0`` (docs/physics.md §4).
-
-    With depth modulation M (paper Eq. 4: blurred = M·(I ⊛ PSF) + (1 − M)·I), the effective OTF is
-    M·T·H + (1 − M); ``modulation`` is the image's mean M (1: the whole path at ``dr0``). A fused frame is also
-    blurred by what the registration left: each frame of the window is off by a random residual shift, so their mean
-    is the frame convolved with the shifts' distribution, a Gaussian of ``jitter_px`` (σ per axis, px), whose OTF
-    exp(−2π²σ²|f|²) multiplies the short-exposure one.
-
-    Args:
-        dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
-        balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
-        modulation: mean depth modulation M in (0, 1].
-        jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
-    """
-
-    def __init__(
-        self,
-        dr0: float,
-        lambda_over_d_px: float = 2.0,
-        balance: float | None = None,
-        modulation: float = 1.0,
-        alpha: float = 1.0,
-        jitter_px: float = 0.0,
-    ):
-        if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
-            raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
-        balance = default_balance(dr0) if balance is None else balance
-        if not math.isfinite(balance) or balance <= 0:
-            raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
-        if not math.isfinite(lambda_over_d_px) or not 0.05 <= lambda_over_d_px <= 50:
-            raise D2TurbError(f"λ/(D·ifov) = {lambda_over_d_px:.3g} px is outside [0.05, 50] (check the optics)")
-        if not 0 < modulation <= 1:
-            raise D2TurbError(f"modulation must be in (0, 1], got {modulation!r}")
-        if not math.isfinite(jitter_px) or not 0 <= jitter_px <= 20:
-            raise D2TurbError(f"the residual registration jitter must be in [0, 20] px, got {jitter_px!r}")
-        self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
-        self.modulation, self.alpha, self.jitter_px = float(modulation), float(alpha), float(jitter_px)
-        self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
-
-    def otf(self, height: int, width: int) -> torch.Tensor:
-        """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding`` (float64)."""
-        top, bottom, left, right = wiener_padding(height, width)
-        shape = (height + top + bottom, width + left + right)
-        otf = self.modulation * image_otf(*shape, self.dr0, self.lambda_over_d_px, self.alpha) + (1 - self.modulation)
-        if self.jitter_px > 0:
-            otf = otf * torch.exp(-2 * math.pi**2 * self.jitter_px**2 * pixel_frequency_grid(*shape) ** 2)
-        return otf
-
-    def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        """Shape: (C, H, W) → (C, H, W), float32 in [0, 1]."""
-        size = tuple(image.shape[-2:])
-        if size not in self._gain:
-            top, bottom, left, right = wiener_padding(*size)
-            shape = (size[0] + top + bottom, size[1] + left + right)
-            self._gain[size] = wiener_gain(self.otf(*size), self.balance, shape)
-        return wiener_deconvolve(image, self._gain[size])
-
-
 @dataclass
 class _Frame:
     raw: np.ndarray  # (H,W,C) uint8 when that holds the float32 frame exactly (8-bit input), else float32; see .image
@@ -226,9 +99,9 @@ class ClipRestorer:
         temporal: frames per window (≥ 2).
         passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion.
         fusion: "mean", "robust" (pixels weighted by their agreement with the reference) or "fba" (Fourier burst
-            accumulation: each frequency mostly from the frames that kept it best, ``restore/fusion.py``).
+            accumulation: each frequency mostly from the frames that kept it best, ``clip/fusion.py``).
         deblur: "none", a :class:`PhysicsDeblur`, or any callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
-        preset: registration accuracy, a key of ``d2turb.registration.DIS_PRESETS`` (default "fast": the flow at
+        preset: registration accuracy, a key of ``d2turb.clip.registration.DIS_PRESETS`` (default "fast": the flow at
             half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
         stabilise: remove a global shift per frame (camera shake) before the dense registration.
         fallback: use the single frame where its residual against the fusion stays high (moving objects).
@@ -437,40 +310,6 @@ class ClipRestorer:
         return cv2.dilate(share, np.ones((_FALLBACK_BOX, _FALLBACK_BOX), np.uint8)) if share.any() else share
 
 
-# Share of the tilt variance (Z-tilt per axis, docs/physics.md §2) that the registered flows of a window of
-# REGISTRATION_WINDOW frames carry (each frame's mean shift removed): the registration sees only the part that
-# changes within the window, and DIS smooths it. Median over the 24 validation clips (docs/clips.md).
-OBSERVED_TILT_SHARE = 0.13
-REGISTRATION_WINDOW = 32
-
-
-def flow_variance_px2(bwd_flow_px: torch.Tensor) -> float:
-    """Per-axis variance (px²) of one (2, H, W) flow about its own mean (the frame's global shift, camera shake)."""
-    f = bwd_flow_px.double()
-    return float(((f - f.mean((1, 2), keepdim=True)) ** 2).mean()) / 2
-
-
-def registration_tilt_variance(frames: Iterable, temporal: int = REGISTRATION_WINDOW, preset: str = "fast") -> float:
-    """Per-axis variance (px²) of the backward flows that register each frame of ``frames`` onto its window's
-    fusion (:class:`ClipRestorer`, no deblur), each frame's mean shift (camera shake) removed, averaged over the
-    frames."""
-    total, count = 0.0, 0
-    for out in ClipRestorer(temporal=temporal, preset=preset, fallback=False).restore(frames):
-        total += flow_variance_px2(out.bwd_flow_px)
-        count += 1
-    return total / max(count, 1)
-
-
-def registration_dr0(frames: Iterable, lambda_over_d_px: float = 2.0, preset: str = "fast") -> float:
-    """D/r0 from the clip's own registration, for a clip that ``d2turb measure`` cannot measure: the tilt variance
-    is the registered flows' variance over ``OBSERVED_TILT_SHARE`` (calibrated on the simulated validation clips at a
-    window of ``REGISTRATION_WINDOW`` frames; a rough estimate: 0.10–0.15 there, unknown on real footage), inverted by
-    the Z-tilt law σ² = 0.1816 (λ/D)² (D/r0)^(5/3) with λ/D in pixels. Clipped to [0.05, MAX_DR0]."""
-    var = registration_tilt_variance(frames, REGISTRATION_WINDOW, preset) / OBSERVED_TILT_SHARE
-    dr0 = float(dr0_from_tilt_variance(var, 1.0, lambda_over_d_px, 1.0))  # only λ/(D·ifov) matters
-    return min(max(dr0, 0.05), MAX_DR0)
-
-
 def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:
     """``ClipRestorer(**kwargs).restore(frames)``: see :class:`ClipRestorer`."""
     return ClipRestorer(**kwargs).restore(frames)
@@ -479,11 +318,6 @@ def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:
 __all__ = [
     "ClipRestorer",
     "ClipFrame",
-    "PhysicsDeblur",
-    "flow_variance_px2",
-    "registration_dr0",
-    "registration_tilt_variance",
     "restore_clip",
     "window_start",
-    "wiener_deconvolve",
 ]

@@ -1,0 +1,64 @@
+"""d2turb.clip: restore and measure a clip of a static scene seen through turbulence (docs/clips.md, docs/measure.md).
+
+One room for the multi-frame work, ground floor up: ``registration`` (global shift and dense flow onto a
+reference), ``fusion`` (mean, robust, FBA, sharpest), ``deblur`` (the Wiener filter with the short-exposure OTF),
+``blur`` (the blind blur estimate and deblur of a fused frame), ``pipeline`` (:class:`ClipRestorer`: the sliding
+window), ``strength`` (D/r0, r0, Cn² and θ0 from the image motion, :func:`measure_clip`). The commands ``restore
+--temporal`` and ``measure`` call it.
+"""
+
+from d2turb.clip.blur import BlindDeblur, BlurEstimate, GaussianDeblur, estimate_blur, ringing_index
+from d2turb.clip.deblur import (
+    BALANCE_AT_2,
+    SHARPEST_DR0_SCALE,
+    PhysicsDeblur,
+    deblur_dr0,
+    default_balance,
+    laplacian_power,
+    wiener_deconvolve,
+    wiener_gain,
+    wiener_padding,
+)
+from d2turb.clip.fusion import fourier_burst_accumulation, sharpest_fusion
+from d2turb.clip.pipeline import DEFAULT_TEMPORAL, FUSIONS, ClipFrame, ClipRestorer, restore_clip, window_start
+from d2turb.clip.registration import DenseFlow, global_shift_px, remap
+from d2turb.clip.strength import (
+    Optics,
+    flow_variance_px2,
+    measure_clip,
+    registration_dr0,
+    registration_tilt_variance,
+)
+
+__all__ = [
+    "BALANCE_AT_2",
+    "DEFAULT_TEMPORAL",
+    "FUSIONS",
+    "SHARPEST_DR0_SCALE",
+    "BlindDeblur",
+    "BlurEstimate",
+    "ClipFrame",
+    "ClipRestorer",
+    "DenseFlow",
+    "GaussianDeblur",
+    "Optics",
+    "PhysicsDeblur",
+    "deblur_dr0",
+    "default_balance",
+    "estimate_blur",
+    "flow_variance_px2",
+    "fourier_burst_accumulation",
+    "global_shift_px",
+    "laplacian_power",
+    "measure_clip",
+    "registration_dr0",
+    "registration_tilt_variance",
+    "remap",
+    "restore_clip",
+    "ringing_index",
+    "sharpest_fusion",
+    "window_start",
+    "wiener_deconvolve",
+    "wiener_gain",
+    "wiener_padding",
+]

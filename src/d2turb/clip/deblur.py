@@ -1,0 +1,144 @@
+"""Deconvolution of a fused frame: the Wiener filter with the short-exposure turbulence OTF (docs/physics.md §4,
+docs/clips.md). The blind deblur (``d2turb.clip.blur``) chooses its OTF; the pipeline (``d2turb.clip.pipeline``)
+applies either after fusion."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from d2turb.errors import D2TurbError
+from d2turb.sim.otf import image_otf, pixel_frequency_grid
+from d2turb.sim.params import MAX_DR0
+
+# Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
+# fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
+# (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md).
+BALANCE_AT_2 = 0.002
+
+
+def default_balance(dr0: float) -> float:
+    return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
+
+
+# The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
+# left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
+# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md).
+SHARPEST_DR0_SCALE = 0.3  # 0.6 / 0.5 / 0.4 / 0.3: 0.3 best in every bin (docs/clips.md), still below the mean + Wiener
+
+
+def deblur_dr0(dr0: float, fusion: str) -> float:
+    """The D/r0 at which the physics deblur of a clip fused by ``fusion`` models the fused frame's blur."""
+    return dr0 * SHARPEST_DR0_SCALE if fusion == "sharpest" else dr0
+
+
+def laplacian_power(height: int, width: int) -> torch.Tensor:
+    """|L(f)|² of the 5-point discrete Laplacian on the rfft2 grid: the Wiener filter's smoothness prior (natural
+    images have a spectrum falling like 1/f², so noise amplification is penalised most where signal is weakest)."""
+    fy = torch.fft.fftfreq(height, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(width, dtype=torch.float64)[None, :]
+    return (4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)) ** 2
+
+
+def _smooth_size(n: int) -> int:
+    """The smallest 2·3·5-smooth integer >= n (sizes the FFT handles fast)."""
+    while True:
+        m = n
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 1
+
+
+def wiener_padding(height: int, width: int) -> tuple[int, int, int, int]:
+    """Mirror padding (top, bottom, left, right) that keeps the FFT's periodic wrap-around away from the image: an
+    eighth of the shorter side (at least 8 px), then up to an FFT-friendly size."""
+    pad = max(8, min(height, width) // 8)
+    top, left = min(height - 1, pad), min(width - 1, pad)
+    bottom = min(height - 1, _smooth_size(height + 2 * top) - height - top)
+    right = min(width - 1, _smooth_size(width + 2 * left) - width - left)
+    return top, bottom, left, right
+
+
+def wiener_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """Apply a Wiener filter's gain G = H / (H² + balance·|L|²) (see :func:`wiener_gain`) to the rfft2 of the
+    mirror-padded image (the form of scikit-image's ``restoration.wiener``, here with the OTF given directly).
+
+    Shape:
+        image: (C, H, W); gain: the rfft2 grid of the image padded by ``wiener_padding(H, W)``.
+    """
+    top, bottom, left, right = wiener_padding(*image.shape[-2:])
+    h, w = image.shape[-2:]
+    out = torch.empty(image.shape, dtype=torch.float32)
+    for c in range(image.shape[0]):  # a channel at a time: a third of the FFT buffers (1080p: ~120 MB less)
+        padded = torch.nn.functional.pad(image[None, c : c + 1].float(), (left, right, top, bottom), mode="reflect")
+        full = torch.fft.irfft2(torch.fft.rfft2(padded[0, 0]) * gain, s=padded.shape[-2:])
+        out[c] = full[top : top + h, left : left + w]
+    return out.clamp_(0, 1)
+
+
+def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int]) -> torch.Tensor:
+    """G = H / (H² + balance·|L|²) on the rfft2 grid of ``shape``, float32."""
+    return (otf / (otf * otf + balance * laplacian_power(*shape))).float()
+
+
+class PhysicsDeblur:
+    """Wiener deconvolution with the short-exposure (tilt-removed) turbulence OTF at ``dr0`` (docs/physics.md §4).
+
+    With depth modulation M (paper Eq. 4: blurred = M·(I ⊛ PSF) + (1 − M)·I), the effective OTF is
+    M·T·H + (1 − M); ``modulation`` is the image's mean M (1: the whole path at ``dr0``). A fused frame is also
+    blurred by what the registration left: each frame of the window is off by a random residual shift, so their mean
+    is the frame convolved with the shifts' distribution, a Gaussian of ``jitter_px`` (σ per axis, px), whose OTF
+    exp(−2π²σ²|f|²) multiplies the short-exposure one.
+
+    Args:
+        dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
+        balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
+        modulation: mean depth modulation M in (0, 1].
+        jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
+    """
+
+    def __init__(
+        self,
+        dr0: float,
+        lambda_over_d_px: float = 2.0,
+        balance: float | None = None,
+        modulation: float = 1.0,
+        alpha: float = 1.0,
+        jitter_px: float = 0.0,
+    ):
+        if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
+            raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
+        balance = default_balance(dr0) if balance is None else balance
+        if not math.isfinite(balance) or balance <= 0:
+            raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
+        if not math.isfinite(lambda_over_d_px) or not 0.05 <= lambda_over_d_px <= 50:
+            raise D2TurbError(f"λ/(D·ifov) = {lambda_over_d_px:.3g} px is outside [0.05, 50] (check the optics)")
+        if not 0 < modulation <= 1:
+            raise D2TurbError(f"modulation must be in (0, 1], got {modulation!r}")
+        if not math.isfinite(jitter_px) or not 0 <= jitter_px <= 20:
+            raise D2TurbError(f"the residual registration jitter must be in [0, 20] px, got {jitter_px!r}")
+        self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
+        self.modulation, self.alpha, self.jitter_px = float(modulation), float(alpha), float(jitter_px)
+        self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
+
+    def otf(self, height: int, width: int) -> torch.Tensor:
+        """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding`` (float64)."""
+        top, bottom, left, right = wiener_padding(height, width)
+        shape = (height + top + bottom, width + left + right)
+        otf = self.modulation * image_otf(*shape, self.dr0, self.lambda_over_d_px, self.alpha) + (1 - self.modulation)
+        if self.jitter_px > 0:
+            otf = otf * torch.exp(-2 * math.pi**2 * self.jitter_px**2 * pixel_frequency_grid(*shape) ** 2)
+        return otf
+
+    def __call__(self, image: torch.Tensor) -> torch.Tensor:
+        """Shape: (C, H, W) → (C, H, W), float32 in [0, 1]."""
+        size = tuple(image.shape[-2:])
+        if size not in self._gain:
+            top, bottom, left, right = wiener_padding(*size)
+            shape = (size[0] + top + bottom, size[1] + left + right)
+            self._gain[size] = wiener_gain(self.otf(*size), self.balance, shape)
+        return wiener_deconvolve(image, self._gain[size])
