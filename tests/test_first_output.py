@@ -97,11 +97,16 @@ def no_wait_policy(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "command", [["make-dataset", "--clean", "c", "--out", "o", "--pairs", "1"], ["simulate-video", "x", "--out", "o"]]
+    "command",
+    [
+        ["make-dataset", "--clean", "c", "--out", "o", "--pairs", "1"],
+        ["simulate-video", "x", "--out", "o"],
+        ["restore", "clip", "--temporal", "8", "--out", "o"],
+    ],
 )
 def test_simulator_commands_wait_passively(command, no_wait_policy, monkeypatch):
-    """make-dataset and simulate-video set OMP_WAIT_POLICY=PASSIVE before torch would load OpenMP; a policy the
-    user set is kept; other commands are left as they were."""
+    """make-dataset, simulate-video and clip restoration set OMP_WAIT_POLICY=PASSIVE before torch would load OpenMP;
+    a policy the user set is kept; other commands are left as they were."""
     apply_wait_policy(build_parser().parse_args(command))
     assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
     monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
@@ -109,8 +114,9 @@ def test_simulator_commands_wait_passively(command, no_wait_policy, monkeypatch)
     assert os.environ["OMP_WAIT_POLICY"] == "ACTIVE"
 
 
-def test_other_commands_keep_the_openmp_default(no_wait_policy):
-    apply_wait_policy(build_parser().parse_args(["simulate", "x", "--out", "o"]))
+@pytest.mark.parametrize("command", [["simulate", "x", "--out", "o"], ["restore", "x.png", "--out", "o"]])
+def test_other_commands_keep_the_openmp_default(command, no_wait_policy):
+    apply_wait_policy(build_parser().parse_args(command))
     assert "OMP_WAIT_POLICY" not in os.environ
 
 

@@ -5,9 +5,12 @@ Frames (3,H,W) float32 in [0, 1]; the command line and the page both read and wr
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import contextlib
 import os
 from collections.abc import Iterator
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -117,8 +120,15 @@ def can_write_mp4() -> bool:
     return True
 
 
+# x264's speed preset: "veryfast" encodes 1080p at about half the CPU of the default "medium" with files of the same
+# size at the default quality (CRF 23) on the real street clip (benchmarks/RESULTS.md, issue 35)
+X264_PRESET = "veryfast"
+
+
 class Mp4Writer:
-    """Streams frames into an H.264 mp4 (yuv420p: odd sizes are padded by one edge row/column).
+    """Streams frames into an H.264 mp4 (PyAV, libx264 ``X264_PRESET``, yuv420p: odd sizes are padded by one edge
+    row/column), encoding in a thread of its own (at most two frames wait: the caller computes the next frame while
+    the last one is encoded; the encoder releases the GIL).
 
     The file is written under a temporary name and renamed onto ``path`` by :meth:`close`; :meth:`abort` (or an
     exception inside ``with``) leaves no file. Frames: (3,H,W) float tensors in [0,1] or (H,W,3) uint8 arrays.
@@ -126,39 +136,63 @@ class Mp4Writer:
 
     def __init__(self, path: str | os.PathLike, fps: float):
         try:
-            import imageio.v3 as iio
+            import av
         except ImportError as exc:
-            raise D2TurbError(f"{path}: writing video needs imageio; {VIDEO_HINT}") from exc
+            raise D2TurbError(f"{path}: writing video needs PyAV; {VIDEO_HINT}") from exc
         self.path = Path(path)
         self._stack = contextlib.ExitStack()
         tmp = self._stack.enter_context(atomic_path(self.path))
         try:
-            self._file = iio.imopen(tmp, "w", plugin="pyav", extension=".mp4")
-            self._file.init_video_stream("libx264", fps=fps)
+            self._container = av.open(str(tmp), "w", format="mp4")
+            self._stream = self._container.add_stream("libx264", rate=Fraction(fps).limit_denominator(65535))
+            self._stream.pix_fmt = "yuv420p"
+            self._stream.options = {"preset": X264_PRESET}
         except Exception as exc:  # noqa: BLE001 - e.g. a PyAV without libx264: one line, no temp file left
             self._stack.__exit__(type(exc), exc, exc.__traceback__)
             raise D2TurbError(f"cannot write {self.path}: {_first_line(exc)} ({VIDEO_HINT})") from exc
+        self._av = av
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-mp4")
+        self._pending: collections.deque = collections.deque()
         self.frames = 0
 
+    def _encode(self, arr) -> None:
+        for packet in self._stream.encode(None if arr is None else self._av.VideoFrame.from_ndarray(arr, "rgb24")):
+            self._container.mux(packet)
+
+    def _wait(self, keep: int) -> None:
+        while len(self._pending) > keep:
+            self._pending.popleft().result()  # an encoder error is raised here, in the caller
+
     def write(self, frame) -> None:
-        arr = to_uint8(frame) if isinstance(frame, torch.Tensor) else np.asarray(frame)
+        arr = to_uint8(frame) if isinstance(frame, torch.Tensor) else np.asarray(frame, dtype=np.uint8)
         h, w = arr.shape[:2]
-        self._file.write_frame(np.pad(arr, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        arr = np.ascontiguousarray(np.pad(arr, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        if self.frames == 0:
+            self._stream.height, self._stream.width = arr.shape[:2]
+        self._wait(1)
+        self._pending.append(self._pool.submit(self._encode, arr))
         self.frames += 1
 
     def close(self) -> None:
         """Finish the stream and rename the file into place."""
         try:
-            self._file.close()
+            self._wait(0)
+            self._encode(None)  # flush the encoder's delayed frames
+            self._container.close()
         except Exception as exc:  # noqa: BLE001 - an encoder that fails to flush: one line, no temp file left
-            self._stack.__exit__(type(exc), exc, exc.__traceback__)
+            self.abort()
             raise D2TurbError(f"cannot write {self.path}: {_first_line(exc)}") from exc
+        finally:
+            self._pool.shutdown(wait=True)
         self._stack.close()
 
     def abort(self) -> None:
         """Drop the file (nothing is left at ``path`` or under a temporary name)."""
+        for job in self._pending:
+            job.cancel()
+        self._pool.shutdown(wait=True)
         with contextlib.suppress(Exception):
-            self._file.close()
+            self._container.close()
         self._stack.__exit__(D2TurbError, D2TurbError("aborted"), None)
 
     def __enter__(self):

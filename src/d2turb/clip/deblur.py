@@ -53,10 +53,16 @@ def _smooth_size(n: int) -> int:
         n += 1
 
 
+# The Wiener filter's response decays within a few widths of the blur it inverts (a few px, rarely 10), so 64 px of
+# mirror padding keeps the wrap-around off large frames as well as an eighth of their side did (1080p: 135 px), with
+# 18 % fewer FFT samples
+MAX_PAD_PX = 64
+
+
 def wiener_padding(height: int, width: int) -> tuple[int, int, int, int]:
     """Mirror padding (top, bottom, left, right) that keeps the FFT's periodic wrap-around away from the image: an
-    eighth of the shorter side (at least 8 px), then up to an FFT-friendly size."""
-    pad = max(8, min(height, width) // 8)
+    eighth of the shorter side (at least 8 px, at most ``MAX_PAD_PX``), then up to an FFT-friendly size."""
+    pad = min(MAX_PAD_PX, max(8, min(height, width) // 8))
     top, left = min(height - 1, pad), min(width - 1, pad)
     bottom = min(height - 1, _smooth_size(height + 2 * top) - height - top)
     right = min(width - 1, _smooth_size(width + 2 * left) - width - left)

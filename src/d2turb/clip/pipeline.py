@@ -19,6 +19,8 @@ static or slowly moving camera; moving objects fall back to the single frame (no
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -32,6 +34,7 @@ from d2turb.clip.registration import (
     DenseFlow,
     check_registrable,
     global_shift_px,
+    luma,
     remap,
     shift_flow,
     to_gray_u8,
@@ -76,8 +79,11 @@ def window_start(index: int, temporal: int, length: int | None) -> int:
 class _Frame:
     raw: np.ndarray  # (H,W,C) uint8 when that holds the float32 frame exactly (8-bit input), else float32; see .image
     gray: np.ndarray  # (H,W) uint8
-    flows: list = field(default_factory=list)  # per round: (H,W,2) backward flow onto that round's reference
-    warped: list = field(default_factory=list)  # per round: the frame unwarped, (H,W,C) float32 (last: STORE_DTYPE)
+    flows: list = field(default_factory=list)  # the last round's (H,W,2) backward flow onto its reference
+    # per round: the frame unwarped; rounds before the last only feed the next round's reference, which DIS reads as
+    # 8-bit grey, so they hold the unwarped luma as (H,W,1) uint8 (a twelfth of the memory, a third of the remap);
+    # the last round, which the fusion averages, the colour frame (H,W,C) as STORE_DTYPE
+    warped: list = field(default_factory=list)
     sharp: object = None  # fusion "sharpest": the last round's SharpCoefficients (as long as that round's image)
     coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
 
@@ -135,7 +141,34 @@ class ClipRestorer:
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
         """Restored frames in order, one per input frame ((3,H,W) tensors or (H,W,3) arrays in [0,1]), computed
-        with a bounded lookahead. Raises ``D2TurbError`` for frames of different sizes or a clip of < 2 frames."""
+        with a bounded lookahead. Raises ``D2TurbError`` for frames of different sizes or a clip of < 2 frames.
+
+        The deblur of frame t runs in a thread of its own while frame t + 1 is registered and fused (one frame in
+        flight, in order): the two stages' single-threaded parts then share the cores (docs/clips.md, speed)."""
+        fused = self._fused(frames)
+        if self.deblur is None:
+            yield from fused
+            return
+        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-deblur") as pool:
+            pending: collections.deque = collections.deque()
+            try:
+                for frame in fused:
+                    pending.append((frame, pool.submit(self.deblur, frame.fused)))
+                    if len(pending) > 1:
+                        yield self._deblurred(*pending.popleft())
+                while pending:
+                    yield self._deblurred(*pending.popleft())
+            finally:
+                for _, job in pending:
+                    job.cancel()
+
+    @staticmethod
+    def _deblurred(frame: ClipFrame, job) -> ClipFrame:
+        frame.restored = job.result()
+        return frame
+
+    def _fused(self, frames: Iterable) -> Iterator[ClipFrame]:
+        """The stream of :meth:`restore` before the deblur (``restored`` is ``fused``)."""
         source = iter(frames)
         passes = self.passes
         buf: dict[int, _Frame] = {}
@@ -199,8 +232,10 @@ class ClipRestorer:
             if level == 0:
                 first = min(first, emitted, done[passes])
             readers.append(min(first, guard))
-        for j in [j for j in buf if j < max(readers)]:
+        for j in [j for j in buf if j < max(*readers, emitted)]:
             frame = buf[j]
+            if j < emitted:
+                frame.flows = []  # read by its next round and its own output only (1080p: 16.6 MB a frame)
             if j < readers[0]:
                 frame.raw = None
             for level in range(1, passes + 1):
@@ -229,8 +264,8 @@ class ClipRestorer:
         lo, hi = members[0], members[-1] + 1
         cached = self._sums.get(level)
 
-        def image(j):
-            return buf[j].image() if level == 0 else buf[j].warped[level - 1]
+        def image(j):  # levels before the last only feed a round's reference, which DIS reads as 8-bit grey
+            return buf[j].gray[..., None] if level == 0 else buf[j].warped[level - 1]
 
         if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
             total = image(members[0]).astype(np.float32)  # summed in place: no stack of the window in memory
@@ -245,7 +280,7 @@ class ClipRestorer:
                 total -= image(j)
             count += 1
         self._sums[level] = (lo, hi, total, count)
-        return total / np.float32(hi - lo)
+        return total / np.float32((hi - lo) * (255 if level < self.passes else 1))
 
     def _register(self, buf: dict, index: int, k: int, length: int | None) -> None:
         frame = buf[index]
@@ -256,14 +291,19 @@ class ClipRestorer:
         else:
             init = frame.flows[-1]
         flow = self.flow(ref_gray, frame.gray, init)
-        frame.flows = [flow]  # the last round's flow: the output's and the next round's start
+        # held as float16 (1080p: 8.3 MB instead of 16.6 a frame, up to two windows of them; 0.004 px resolution below
+        # 8 px): it starts the next round's search and becomes the output's bwd_flow_px (float32 again)
+        frame.flows = [flow.astype(np.float16)]
+        if k < self.passes:
+            frame.warped.append(to_gray_u8(remap(luma(frame.image()), flow))[..., None])
+            return
         warped = remap(frame.image(), flow)
-        frame.warped.append(warped.astype(STORE_DTYPE) if k == self.passes else warped)
-        if k == self.passes and self.fusion == "sharpest":  # outliers against the median of the window's frames
+        frame.warped.append(warped.astype(STORE_DTYPE))
+        if self.fusion == "sharpest":  # outliers against the median of the window's frames
             members = [buf[j] for j in self._window(buf, index, length)]
             for f in members:
                 if f.coarse is None:
-                    f.coarse = coarse_grey(f.image() if k == 1 else f.warped[k - 2])
+                    f.coarse = coarse_grey(f.image() if k == 1 else f.warped[k - 2] / np.float32(255))
             median = np.median(np.stack([f.coarse for f in members]), axis=0)
             frame.sharp = sharp_coefficients(warped, median)
 
@@ -282,9 +322,8 @@ class ClipRestorer:
             if blend.any():
                 fused = fused + blend[..., None] * (frame.image() - fused)
         fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1).transpose(2, 0, 1)))
-        restored = fused_t if self.deblur is None else self.deblur(fused_t)
-        flow = torch.from_numpy(np.ascontiguousarray(frame.flows[-1].transpose(2, 0, 1)))
-        return ClipFrame(index, restored, fused_t, flow, torch.from_numpy(blend))
+        flow = torch.from_numpy(frame.flows[-1].transpose(2, 0, 1).astype(np.float32))
+        return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend))
 
     @staticmethod
     def _robust(stack: list[np.ndarray], mean: np.ndarray) -> np.ndarray:
@@ -302,12 +341,23 @@ class ClipRestorer:
     @staticmethod
     def _fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
         """Share of the single frame per pixel: 0 where the registered frame agrees with the fusion within a few
-        robust scales of its residual (box-averaged), rising to 1 where it stays far above (a moving object)."""
-        r = cv2.blur(np.abs(warped - fused).mean(axis=2), (_FALLBACK_BOX, _FALLBACK_BOX))
-        scale = max(1.4826 * float(np.median(r)), 1e-3)
+        robust scales of its residual (box-averaged), rising to 1 where it stays far above (a moving object).
+        On frames of ≥ 1 MP the box average is taken at half resolution (the box and the dilation span 15 px:
+        the decision is smooth at that scale) and the robust scale from every 4th residual."""
+        r = np.abs(warped - fused, dtype=np.float32).mean(axis=2)
+        h, w = r.shape
+        half = h * w >= 1 << 20
+        box = _FALLBACK_BOX // 2 + 1 if half else _FALLBACK_BOX
+        if half:
+            r = cv2.resize(r, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+        r = cv2.blur(r, (box, box))
+        scale = max(1.4826 * float(np.median(r[::2, ::2] if half else r)), 1e-3)
         z = (r / scale - _FALLBACK_LOW) / (_FALLBACK_HIGH - _FALLBACK_LOW)
         share = np.clip(z, 0, 1).astype(np.float32)
-        return cv2.dilate(share, np.ones((_FALLBACK_BOX, _FALLBACK_BOX), np.uint8)) if share.any() else share
+        if not share.any():
+            return np.zeros((h, w), np.float32) if half else share
+        share = cv2.dilate(share, np.ones((box, box), np.uint8))
+        return cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR) if half else share
 
 
 def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:

@@ -52,6 +52,13 @@ def to_hwc(frame) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+def luma(frame_hwc: np.ndarray) -> np.ndarray:
+    """(H,W,C) float → (H,W,1) float32 luma (BT.601; a one-channel frame as it is)."""
+    if frame_hwc.shape[2] == 1:
+        return np.ascontiguousarray(frame_hwc, dtype=np.float32)
+    return (frame_hwc[..., :3] @ _LUMA)[..., None]
+
+
 def to_gray_u8(frame_hwc: np.ndarray) -> np.ndarray:
     """(H,W,C) float in [0,1] → (H,W) uint8 luma (what DIS and phase correlation take)."""
     gray = frame_hwc[..., 0] if frame_hwc.shape[2] == 1 else frame_hwc[..., :3] @ _LUMA

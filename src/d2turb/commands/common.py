@@ -83,9 +83,10 @@ def add_motion_args(p) -> None:
     )
 
 
-def wait_passively(p) -> None:
-    """Mark a command whose CPU work should run with ``OMP_WAIT_POLICY=PASSIVE`` (see :func:`apply_wait_policy`)."""
-    p.set_defaults(passive_openmp=True)
+def wait_passively(p, when=None) -> None:
+    """Mark a command whose CPU work should run with ``OMP_WAIT_POLICY=PASSIVE`` (see :func:`apply_wait_policy`);
+    ``when(args)``: only for the parsed arguments it accepts."""
+    p.set_defaults(passive_openmp=when or True)
 
 
 def apply_wait_policy(args) -> None:
@@ -98,7 +99,8 @@ def apply_wait_policy(args) -> None:
     first pair instead of 4 (medians; benchmarks/RESULTS.md, "Time to first output"). Waiting threads sleep; the
     outputs are the same (the work is split among the threads as before). Once torch is loaded (``main`` called
     in a process that imported it) the setting could no longer act, and the environment is left as it is."""
-    if getattr(args, "passive_openmp", False) and "torch" not in sys.modules:
+    passive = getattr(args, "passive_openmp", False)
+    if (passive(args) if callable(passive) else passive) and "torch" not in sys.modules:
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 

@@ -9,6 +9,7 @@ from d2turb.commands.common import (
     add_param_arg,
     add_png_level_arg,
     parse_params,
+    wait_passively,
 )
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
 from d2turb.errors import D2TurbError
@@ -95,6 +96,8 @@ def register(sub):
     add_png_level_arg(p)
     add_max_pixels_arg(p)
     add_fail_fast_arg(p)
+    # clips: torch runs only the deblur's FFTs, beside OpenCV's and the writers' threads (a spinning team slows them)
+    wait_passively(p, when=lambda args: args.temporal is not None)
     p.set_defaults(func=run)
 
 
