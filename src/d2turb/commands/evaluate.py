@@ -1,4 +1,5 @@
-"""`d2turb evaluate`: metrics on a synthetic test set (--data, with ground truth) or on real images (--real)."""
+"""`d2turb evaluate`: metrics on a synthetic test set (--data, --clips: with ground truth), on real images (--real) or
+real clips (--real-clips)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,10 @@ def register(sub):
         help="evaluate restoration models (PSNR/SSIM/LPIPS with ground truth, NIQE/PIQE without)",
         description="With --data: full-reference metrics of each model on a synthetic dataset. With --real: "
         "no-reference metrics (NIQE, PIQE) of real images, after restoring them with each --weights "
-        "model ('input' = unrestored). Writes OUT/results.json and OUT/results.md. Unreadable images "
-        "(samples) are reported, skipped and listed in results.json; the exit status is then 1.",
+        "model ('input' = unrestored). With --clips: clip restoration per bin (PSNR/SSIM, offset-removed, CW-SSIM). "
+        "With --real-clips: the real clips report (contact sheets, NIQE/PIQE, residual motion, blind estimate). "
+        "Writes OUT/results.json and OUT/results.md. Unreadable images (samples, clips) are reported, skipped and "
+        "listed in results.json; the exit status is then 1.",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", metavar="DATASET_DIR", help="synthetic dataset folder (from make_dataset)")

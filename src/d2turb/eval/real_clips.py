@@ -159,6 +159,16 @@ def crop_side(height: int, width: int) -> int:
     return max(8, min(CROP_PX, min(height, width) // 2))
 
 
+def _font(size: int):
+    """DejaVu Sans from matplotlib (a dependency; it has λ and σ), else Pillow's default font."""
+    try:
+        import matplotlib
+
+        return ImageFont.truetype(str(Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSans.ttf"), size)
+    except (ImportError, OSError):
+        return ImageFont.load_default(size=size)
+
+
 def contact_sheet(images: dict[str, torch.Tensor], window: tuple[int, int, int], title: str = "") -> np.ndarray:
     """Columns input | --deblur none | default: the whole frame (scaled to ``PANEL_PX`` wide, the crop outlined)
     above its crop ``window`` = (y, x, side) zoomed ×``ZOOM`` or more (nearest neighbour), labelled → (H, W, 3)
@@ -166,7 +176,7 @@ def contact_sheet(images: dict[str, torch.Tensor], window: tuple[int, int, int],
     y, x, side = window
     zoom = max(ZOOM, PANEL_PX // side)  # small frames: the crop fills the column
     panel = max(PANEL_PX, side * zoom)
-    font = ImageFont.load_default(size=18)
+    font = _font(18)
     band, gap = 30, 8
     columns = []
     for key in COLUMNS:
