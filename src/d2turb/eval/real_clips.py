@@ -332,6 +332,8 @@ def evaluate_real_clips(
     temporal = DEFAULT_TEMPORAL if temporal is None else temporal
     if not isinstance(temporal, int) or temporal < 2:
         raise D2TurbError(f"--temporal must be an integer >= 2, got {temporal!r}")
+    if not isinstance(stride, int) or stride < 1:
+        raise D2TurbError(f"stride must be a positive integer, got {stride!r}")
     if not isinstance(max_frames, int) or max_frames <= temporal:
         raise D2TurbError(f"--max-frames must be larger than --temporal ({temporal}), got {max_frames!r}")
     clips, not_clips = find_clips(root)
