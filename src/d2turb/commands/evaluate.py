@@ -196,11 +196,13 @@ def _run_real_clips(args) -> int:
     """``--real-clips DIR``: the real clips report (d2turb.eval.real_clips)."""
     # lazy: the clip pipeline (OpenCV) and the no-reference metrics load only here
     from d2turb.eval.real_clips import evaluate_real_clips, markdown
-    from d2turb.io import check_output_dir
+    from d2turb.io import check_output_dir, remove_stale_temp_files
 
+    out = check_output_dir(args.out)
+    remove_stale_temp_files(out / "sheets", recursive=True)  # sheets/<folder>/ for clips in sub-folders
     results = evaluate_real_clips(
         args.real_clips,
-        check_output_dir(args.out),
+        out,
         temporal=args.temporal,
         max_frames=DEFAULT_REAL_CLIP_FRAMES if args.max_frames is None else args.max_frames,
         fail_fast=args.fail_fast,
