@@ -43,6 +43,16 @@ def test_report_writes_sheets_and_results_from_one_registration_pass(tmp_path, m
         return real_call(self, *args, **kwargs)
 
     monkeypatch.setattr(registration.DenseFlow, "__call__", counting)
+    from d2turb.eval import real_clips
+
+    built = []
+    real_builder = real_clips.clip_restorer  # restore --temporal's own builder of the restorer and its deblur
+
+    def builder(*args, **kwargs):
+        built.append(kwargs)
+        return real_builder(*args, **kwargs)
+
+    monkeypatch.setattr(real_clips, "clip_restorer", builder)
     root = tmp_path / "real"
     _write_clip(root / "clipA", jitter=True)
     for i in range(2):  # two frames: not a clip, listed
@@ -50,6 +60,7 @@ def test_report_writes_sheets_and_results_from_one_registration_pass(tmp_path, m
     out = tmp_path / "out"
     assert main(["evaluate", "--real-clips", str(root), "--temporal", "6", "--out", str(out)]) == 0
     assert calls["flow"] == 2 * 12 + 2 * 11
+    assert len(built) == 1 and "deblur" not in built[0]  # restore's default deblur (auto: the blind one)
     res = json.loads((out / "results.json").read_text())
     entry = res["clips"]["clipA"]
     assert entry["frames"] == 12 and entry["temporal"] == 6 and entry["size"] == [192, 96]
