@@ -10,7 +10,8 @@ new dependency for the ~40 lines of one pyramid level. The pyramid is matlabPyrT
 frequency-domain complex steerable pyramid that Sampat's ``cwssim_index.m`` calls), only its coarsest oriented
 level (the only one the index reads); the index is ``cwssim_index.m``'s: per orientation, over a 7×7 window,
 (2|Σ c₁c₂*| + K) / (Σ|c₁|² + Σ|c₂|² + K), averaged with a Gaussian weight of σ = side/4, then the mean over
-orientations. Checked against pyiqa 0.1.16's ``CW_SSIM`` (tests/test_metrics_cwssim.py).
+orientations. The luma is not rounded to 8-bit levels (pyiqa rounds it). Checked against pyiqa 0.1.16's ``CW_SSIM`` and
+pyrtools (tests/test_metrics_cwssim.py, benchmarks/cwssim_oracle.py).
 """
 
 from __future__ import annotations
