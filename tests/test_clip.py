@@ -371,6 +371,7 @@ def test_evaluate_clips_averages_frames_then_clips_per_bin(tmp_path, monkeypatch
         got = {k: res["bins"][b][k] for k in list(want) + ["clips"]}
         assert got == pytest.approx(want | {"clips": len(members)}, rel=1e-6)
         assert {f"{row} psnr_aligned" for row in rows} <= set(res["bins"][b])
+        assert {f"{row} cwssim" for row in rows} <= set(res["bins"][b])
     assert list(res["bins"]) == ["weak", "strong"]  # bins in their order, only those with clips
 
 

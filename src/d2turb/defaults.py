@@ -17,3 +17,7 @@ BATCH_PIXELS = 1 << 21
 # `--fusion` of clip restoration (d2turb.clip): the plain mean is the default (chosen on the validation clips)
 CLIP_FUSIONS = ("mean", "robust", "fba", "sharpest")
 DEFAULT_FUSION = "mean"
+# the clip pipeline's window (d2turb.clip.DEFAULT_TEMPORAL), the default of `evaluate --real-clips --temporal`
+DEFAULT_TEMPORAL = 24
+# `evaluate --real-clips --max-frames`: frames read per clip (the 1080p clip costs about 1 s of CPU per frame)
+DEFAULT_REAL_CLIP_FRAMES = 48

@@ -40,11 +40,10 @@ from d2turb.clip.registration import (
     to_gray_u8,
     to_hwc,
 )
-from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, DEFAULT_TEMPORAL
 from d2turb.errors import D2TurbError
 
 FUSIONS = CLIP_FUSIONS
-DEFAULT_TEMPORAL = 24
 # the last round's unwarped frames (what the fusion averages) are held as float16: half their memory, relative error
 # 2^-11 (< 0.13 grey levels of 255), far below the fusion's noise. Raw frames and earlier rounds stay float32: they
 # make the references that frames are registered onto, where a rounding that flips a grey level moves the flow

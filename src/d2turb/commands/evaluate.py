@@ -1,4 +1,5 @@
-"""`d2turb evaluate`: metrics on a synthetic test set (--data, with ground truth) or on real images (--real)."""
+"""`d2turb evaluate`: metrics on a synthetic test set (--data, --clips: with ground truth), on real images (--real) or
+real clips (--real-clips)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import os
 import sys
 
 from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
-from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, DEFAULT_REAL_CLIP_FRAMES, DEFAULT_TEMPORAL
 from d2turb.errors import D2TurbError, print_error, summary
 
 
@@ -16,8 +17,10 @@ def register(sub):
         help="evaluate restoration models (PSNR/SSIM/LPIPS with ground truth, NIQE/PIQE without)",
         description="With --data: full-reference metrics of each model on a synthetic dataset. With --real: "
         "no-reference metrics (NIQE, PIQE) of real images, after restoring them with each --weights "
-        "model ('input' = unrestored). Writes OUT/results.json and OUT/results.md. Unreadable images "
-        "(samples) are reported, skipped and listed in results.json; the exit status is then 1.",
+        "model ('input' = unrestored). With --clips: clip restoration per bin (PSNR/SSIM, offset-removed, CW-SSIM). "
+        "With --real-clips: the real clips report (contact sheets, NIQE/PIQE, residual motion, blind estimate). "
+        "Writes OUT/results.json and OUT/results.md. Unreadable images (samples, clips) are reported, skipped and "
+        "listed in results.json; the exit status is then 1.",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", metavar="DATASET_DIR", help="synthetic dataset folder (from make_dataset)")
@@ -27,7 +30,28 @@ def register(sub):
         metavar="DATASET_DIR",
         help="sequence dataset (make-dataset --frames N): clip restoration per bin (docs/clips.md)",
     )
-    p.add_argument("--temporal", type=int, default=32, metavar="N", help="with --clips: window (default 32)")
+    src.add_argument(
+        "--real-clips",
+        metavar="DIR",
+        help="folder of real clips (videos, folders of frames): each restored once with the defaults of restore "
+        "--temporal; contact sheets, blind estimate, residual motion, NIQE/PIQE of input | --deblur none | default "
+        "(docs/clips.md)",
+    )
+    p.add_argument(
+        "--temporal",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"with --clips: window (default 32); with --real-clips: the restoration's window (default "
+        f"{DEFAULT_TEMPORAL}, must be shorter than each clip)",
+    )
+    p.add_argument(
+        "--max-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"with --real-clips: frames read per clip, from its start (default {DEFAULT_REAL_CLIP_FRAMES})",
+    )
     p.add_argument(
         "--preset", default="fast", choices=["fast", "medium", "fine"], help="with --clips: registration (default fast)"
     )
@@ -95,6 +119,10 @@ def run(args):
         raise D2TurbError("--data needs --weights (model files/names, or 'input' for the unrestored baseline)")
     if args.recursive and not args.real:
         raise D2TurbError("--recursive goes with --real (a synthetic dataset is one folder)")
+    if args.max_frames is not None and not args.real_clips:
+        raise D2TurbError("--max-frames goes with --real-clips")
+    if args.real_clips:
+        return _run_real_clips(args)
     device = str(resolve_device(args.device))
     remove_stale_temp_files(check_output_dir(args.out) / "grids", recursive=True)  # grids/<folder>/ with --recursive
     if args.clips:
@@ -105,7 +133,7 @@ def run(args):
             args.clips,
             args.out,
             deblur=args.deblur,
-            temporal=args.temporal,
+            temporal=32 if args.temporal is None else args.temporal,
             preset=args.preset,
             fusion=args.fusion,
             max_samples=args.max_samples,
@@ -162,3 +190,24 @@ def run(args):
         total = results.get("samples_evaluated", 0) + len(results.get("skipped", []))
     print(f"wrote {os.path.join(args.out, 'results.json')}")
     return summary("evaluate", total, len(results.get("skipped", [])))
+
+
+def _run_real_clips(args) -> int:
+    """``--real-clips DIR``: the real clips report (d2turb.eval.real_clips)."""
+    # lazy: the clip pipeline (OpenCV) and the no-reference metrics load only here
+    from d2turb.eval.real_clips import evaluate_real_clips, markdown
+    from d2turb.io import check_output_dir, remove_stale_temp_files
+
+    out = check_output_dir(args.out)
+    remove_stale_temp_files(out / "sheets", recursive=True)  # sheets/<folder>/ for clips in sub-folders
+    results = evaluate_real_clips(
+        args.real_clips,
+        out,
+        temporal=args.temporal,
+        max_frames=DEFAULT_REAL_CLIP_FRAMES if args.max_frames is None else args.max_frames,
+        fail_fast=args.fail_fast,
+        on_skip=print_error,
+    )
+    print(markdown(results))
+    print(f"wrote {os.path.join(args.out, 'results.json')}")
+    return summary("evaluate", len(results["clips"]) + len(results["skipped"]), len(results["skipped"]))

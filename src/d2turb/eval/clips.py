@@ -3,8 +3,8 @@ frame, the plain temporal mean, the registered fusion and the fusion after each 
 the estimated displacement against the observable flow (the simulator's flow minus its temporal mean: a clip
 cannot see its own mean tilt) and against zero. Beside the plain PSNR/SSIM, the same with each frame's global
 sub-pixel offset against the clean image removed (``remove_global_offset``): a clip sees no tilt that stays put over
-it, so its output keeps the window's mean tilt, which plain PSNR punishes as if it were a restoration error.
-docs/clips.md."""
+it, so its output keeps the window's mean tilt, which plain PSNR punishes as if it were a restoration error. And
+CW-SSIM (:mod:`d2turb.eval.cwssim`), the field's shift-tolerant score, of the plain frames. docs/clips.md."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from d2turb.clip.blur import BlindDeblur
 from d2turb.data.sequence import SequenceDataset
 from d2turb.defaults import DEFAULT_FUSION
 from d2turb.errors import D2TurbError
+from d2turb.eval.cwssim import cw_ssim
 from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.io import write_json, write_text
 from d2turb.models.hub import resolve_weights
@@ -94,8 +95,8 @@ _PARAM_KEYS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "modul
 
 
 def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestorer, stride: int) -> dict[str, float]:
-    """Means over one clip's frames: ``epe``, ``epe_zero`` (every frame) and ``"<row> psnr"``, ``"<row> ssim"`` of
-    each row (every ``stride``-th frame)."""
+    """Means over one clip's frames: ``epe``, ``epe_zero`` (every frame) and ``"<row> psnr"``, ``"<row> ssim"``, their
+    ``_aligned`` versions and ``"<row> cwssim"`` of each row (every ``stride``-th frame)."""
     frames, gt = item["turb"], item["gt"]
     observable = item["bwd_flow_px"] - item["bwd_flow_px"].mean(0, keepdim=True)
     temporal_mean = frames.mean(0)
@@ -117,6 +118,7 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
                     f"{row} ssim": float(ssim(img[None], gt[None])),
                     f"{row} psnr_aligned": float(psnr(moved[None], ref[None])),
                     f"{row} ssim_aligned": float(ssim(moved[None], ref[None])),
+                    f"{row} cwssim": cw_ssim(img, gt),
                 }
             )
     return mean.compute()
@@ -217,6 +219,12 @@ def markdown(results: dict) -> str:
             t = results["bins"]
             cells = [f"{t[b][row + ' psnr_aligned']:.2f} | {t[b][row + ' ssim_aligned']:.3f}" for b in bins]
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    if all(row + " cwssim" in results["bins"][b] for b in bins for row in results["rows"]):
+        lines += ["", "CW-SSIM (Sampat et al. 2009; shift-tolerant, no offset removed):", ""]
+        lines.append("| | " + " | ".join(bins) + " |")
+        lines.append("|---|" + "---:|" * len(bins))
+        for row in results["rows"]:
+            lines.append(f"| {row} | " + " | ".join(f"{results['bins'][b][row + ' cwssim']:.4f}" for b in bins) + " |")
     lines.append("")
     lines.append("| | " + " | ".join(bins) + " |")
     lines.append("|---|" + "---:|" * len(bins))

@@ -333,6 +333,40 @@ def clip_deblur(
     return restorer.restore, restorer.name, {"method": "model", "weights": restorer.name}
 
 
+def clip_restorer(
+    src,
+    temporal: int,
+    *,
+    deblur: str = "auto",
+    dr0: float | None = None,
+    params: dict | None = None,
+    passes: int = 2,
+    preset: str = "fast",
+    fusion: str = DEFAULT_FUSION,
+    device="cpu",
+    tile: int = 512,
+    overlap: int = 64,
+) -> tuple[ClipRestorer, str, dict | None]:
+    """The :class:`~d2turb.clip.ClipRestorer` of ``d2turb restore CLIP --temporal N`` with its deblur: the one place
+    that builds it (``restore --temporal`` and ``evaluate --real-clips`` both call it, so their defaults agree).
+
+    Args:
+        src: the clip (a video file or a folder of frames; read here only when the physics deblur measures D/r0).
+        temporal: frames per window.
+        deblur, dr0, params, device, tile, overlap: see :func:`clip_deblur`.
+        passes, preset, fusion: registration rounds, DIS preset, fusion (restore's defaults).
+
+    Returns:
+        (the restorer, its deblur already set; the deblur's description; its record for restore.json, None for the
+        blind deblur until it has seen a fused frame: then ``restorer.deblur.record``).
+    """
+    restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
+    restorer.deblur, name, record = clip_deblur(
+        deblur, Path(src), dr0=dr0, params=params, device=device, tile=tile, overlap=overlap, fusion=fusion
+    )
+    return restorer, name, record
+
+
 def restore_clip_files(
     src,
     out,
@@ -377,12 +411,22 @@ def restore_clip_files(
         raise D2TurbError(f"{src}: no such file or directory")
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise D2TurbError(f"--fps must be positive, got {fps}")
-    restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
+    ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)  # bad settings first, in one line
     files = list_images(src) if src.is_dir() else []
     check_frame_sizes(src, files)
     device = resolve_device(device)
-    restorer.deblur, deblur_name, record = clip_deblur(
-        deblur, src, dr0=dr0, params=params, device=device, tile=tile, overlap=overlap, fusion=fusion
+    restorer, deblur_name, record = clip_restorer(
+        src,
+        temporal,
+        deblur=deblur,
+        dr0=dr0,
+        params=params,
+        passes=passes,
+        preset=preset,
+        fusion=fusion,
+        device=device,
+        tile=tile,
+        overlap=overlap,
     )
     out_dir = check_output_dir(out, inputs=files or [src])
     errors = FileErrors(2, fail_fast)  # per frame: a bad one is reported and skipped
