@@ -294,3 +294,22 @@ def test_file_name_not_utf8_is_one_error_line_and_nothing_written(tmp_path, caps
     assert rc == 2
     one_error_line(err, "caf\\xe9.png", "not valid UTF-8")
     assert not out.exists()
+
+
+def test_library_errors_name_the_parameter_the_command_line_its_flag(tmp_path, capsys):
+    from d2turb.data.pack import make_pack
+    from d2turb.errors import D2TurbError
+    from d2turb.sim import TurbulenceParams
+
+    with pytest.raises(D2TurbError, match=r"^quality must be between 1 and 100, got 0$"):
+        make_pack([tmp_path], tmp_path / "pack", quality=0)
+    with pytest.raises(D2TurbError, match=r"^ifov_rad = 1 rad"):
+        TurbulenceParams(ifov_rad=1.0)
+    image = rgb(tmp_path / "clean" / "a.png", 64, 64)
+    argv = ["make-pack", "--clean", str(image.parent), "--out", str(tmp_path / "pack"), "--quality", "0"]
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, "--quality must be between 1 and 100, got 0")
+    rc, _, err = run_cli(capsys, ["simulate", str(image), "--out", str(tmp_path / "o"), "--ifov", "1"])
+    assert rc == 2
+    assert one_error_line(err).startswith("error: ifov_rad (--ifov) = 1 rad")

@@ -111,7 +111,7 @@ class PhysicsDeblur:
         jitter_px: float = 0.0,
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
-            raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
+            raise D2TurbError(f"dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}", param="dr0")
         balance = default_balance(dr0) if balance is None else balance
         if not math.isfinite(balance) or balance <= 0:
             raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")

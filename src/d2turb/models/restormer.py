@@ -58,7 +58,8 @@ class TransformerBlock(nn.Module):
         return x + self.ffn(self.norm2(x))
 
 
-def _stage(dim, heads, n, expansion, bias, norm_bias):
+def transformer_stage(dim, heads, n, expansion, bias, norm_bias):
+    """``n`` transformer blocks of width ``dim`` in a row (one level of the encoder, decoder or refinement)."""
     return nn.Sequential(*[TransformerBlock(dim, heads, expansion, bias, norm_bias) for _ in range(n)])
 
 
@@ -92,7 +93,8 @@ class Restormer(nn.Module):
             raise ValueError("restormer: num_blocks and heads need 4 entries (levels 1-4)")
 
         def stage(d, level, n=None):
-            return _stage(d, heads[level], num_blocks[level] if n is None else n, ffn_expansion, bias, norm_bias)
+            n = num_blocks[level] if n is None else n
+            return transformer_stage(d, heads[level], n, ffn_expansion, bias, norm_bias)
 
         self.patch_embed = nn.Conv2d(in_channels, dim, 3, padding=1, bias=bias)  # overlapped patch embedding
         self.encoder_level1 = stage(dim, 0)

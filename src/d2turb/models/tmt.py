@@ -21,8 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from d2turb.models.common import ChannelLayerNorm, pad_to_multiple, transposed_attention
-from d2turb.models.d2turb import _check_input
+from d2turb.models.common import ChannelLayerNorm, check_input, pad_to_multiple, transposed_attention
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
 from d2turb.models.restormer import GDFN
@@ -128,7 +127,7 @@ class TMT(nn.Module):
         self.guide_channels = dim * 2
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         x, (h, w) = pad_to_multiple(image, self.multiple)
         hp, wp = x.shape[-2:]
         x2 = F.interpolate(x, size=(hp // 2, wp // 2), mode="bilinear", align_corners=False)

@@ -15,11 +15,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from d2turb.models.common import pad_to_multiple
-from d2turb.models.d2turb import _check_input
+from d2turb.models.common import check_input, pad_to_multiple
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
-from d2turb.models.restormer import Restormer, _stage
+from d2turb.models.restormer import Restormer, transformer_stage
 
 
 def restormer_decoder_feature(net: Restormer, x: torch.Tensor) -> torch.Tensor:
@@ -53,14 +52,14 @@ class TurbNet(Restormer):
         in_channels: int = 3,
     ):
         super().__init__(dim, num_blocks, heads, num_refinement_blocks, ffn_expansion, bias, norm_bias, in_channels)
-        self.refinement_t = _stage(dim * 2, heads[0], num_refinement_blocks, ffn_expansion, bias, norm_bias)
+        self.refinement_t = transformer_stage(dim * 2, heads[0], num_refinement_blocks, ffn_expansion, bias, norm_bias)
         self.output_t = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
         self.epsilon = nn.Sequential(  # ε: a per-pixel network of the turbulent input
             nn.Conv2d(in_channels, 8 * in_channels, 1), nn.ReLU(), nn.Conv2d(8 * in_channels, in_channels, 1)
         )
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         x, (h, w) = pad_to_multiple(image, self.multiple)
         d1 = restormer_decoder_feature(self, x)
         guide = self.refinement(d1)

@@ -149,10 +149,11 @@ class TurbulenceParams:
         ratio = [self.ifov_rad / n for n in nyquist]
         if min(ratio) < lo or max(ratio) > hi:
             raise D2TurbError(
-                f"ifov_rad (--ifov) = {self.ifov_rad:.3g} rad is {min(ratio) if min(ratio) < lo else max(ratio):.3g}× "
+                f"ifov_rad = {self.ifov_rad:.3g} rad is {min(ratio) if min(ratio) < lo else max(ratio):.3g}× "
                 f"the Nyquist pixel λ/(2D); the simulator supports {lo:g}× to {hi:g}×: ifov_rad from "
                 f"{lo * max(nyquist):.3g} to {hi * min(nyquist):.3g} rad for this aperture and wavelength "
-                f"(docs/cli.md, physical parameters)"
+                f"(docs/cli.md, physical parameters)",
+                param="ifov_rad",
             )
 
     @property
@@ -205,7 +206,7 @@ def make_params(
     """
     wl = list(wavelength_m) if isinstance(wavelength_m, (list, tuple)) else [wavelength_m]
     if len(wl) not in (1, 3):
-        raise D2TurbError(f"--wavelength takes one or three values, got {len(wl)}")
+        raise D2TurbError(f"wavelength_m takes one or three values, got {len(wl)}", param="wavelength_m")
     return TurbulenceParams(
         aperture_m=aperture_m,
         wavelength_m=tuple(wl) if len(wl) == 3 else wl[0],
