@@ -40,19 +40,13 @@ class TurbNet(Restormer):
 
     alpha = 0.9  # TurbNet's weight of the reconstruction term; the re-degradation term has 1 − α
 
-    def __init__(
-        self,
-        dim: int = 48,
-        num_blocks=(4, 6, 6, 8),
-        heads=(1, 2, 4, 8),
-        num_refinement_blocks: int = 4,
-        ffn_expansion: float = 2.66,
-        bias: bool = False,
-        norm_bias: bool = True,
-        in_channels: int = 3,
-    ):
-        super().__init__(dim, num_blocks, heads, num_refinement_blocks, ffn_expansion, bias, norm_bias, in_channels)
-        self.refinement_t = transformer_stage(dim * 2, heads[0], num_refinement_blocks, ffn_expansion, bias, norm_bias)
+    def __init__(self, **config):  # the fields of RestormerConfig
+        super().__init__(**config)
+        a = self.arch
+        dim, bias, in_channels = a.dim, a.bias, a.in_channels
+        self.refinement_t = transformer_stage(
+            dim * 2, a.heads[0], a.num_refinement_blocks, a.ffn_expansion, bias, a.norm_bias
+        )
         self.output_t = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
         self.epsilon = nn.Sequential(  # ε: a per-pixel network of the turbulent input
             nn.Conv2d(in_channels, 8 * in_channels, 1), nn.ReLU(), nn.Conv2d(8 * in_channels, in_channels, 1)
