@@ -262,7 +262,7 @@ def test_files_written_before_format_2_load_with_their_old_defaults(tmp_path):
     rectifier and the cosine ASPI, and it must load as exactly that model."""
     from safetensors.torch import save_file
 
-    from d2turb.models.hub import tensors_sha256
+    from d2turb.models.weights import tensors_sha256
 
     old = {"backbone": "restormer", "injection": "aspi", "backbone_cfg": TINY_RESTORMER, "rectifier_cfg": TINY_UNET}
     then = dict(old, injection="aspi_cosine", rectifier="unet", backbone_cfg=dict(TINY_RESTORMER, norm_bias=False))
