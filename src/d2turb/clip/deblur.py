@@ -98,7 +98,13 @@ class PhysicsDeblur:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
         balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
         modulation: mean depth modulation M in (0, 1].
+        alpha: exponent of the tilt removal in the short-exposure OTF (1: all of the tilt removed).
         jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
+
+    Example:
+        >>> deblur = PhysicsDeblur(dr0=2.0)
+        >>> deblur(torch.rand(3, 48, 64)).shape
+        torch.Size([3, 48, 64])
     """
 
     def __init__(
@@ -135,7 +141,18 @@ class PhysicsDeblur:
         return otf
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        """Shape: (C, H, W) → (C, H, W), float32 in [0, 1]."""
+        """The deblurred image.
+
+        Args:
+            image: float in [0, 1].
+
+        Returns:
+            The Wiener estimate, float32 in [0, 1].
+
+        Shape:
+            - image: :math:`(C, H, W)`.
+            - Output: :math:`(C, H, W)`.
+        """
         size = tuple(image.shape[-2:])
         if size not in self._gain:
             top, bottom, left, right = wiener_padding(*size)
