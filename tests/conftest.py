@@ -25,35 +25,11 @@ def pytest_xdist_auto_num_workers(config):
     return None
 
 
-# Tests over ~2 s of CPU (measured: per-test getrusage deltas of the whole suite, children included). Under xdist
+# Tests marked `@pytest.mark.slow` take over ~2 s of CPU (measured: per-test getrusage deltas of the whole suite,
+# children included). They still run everywhere (nothing deselects them unless you pass `-m "not slow"`); under xdist
 # they are handed out first, so that the workers finish together instead of one starting a 10 s test at the end.
-# Ordering only: a name missing from here still runs, later.
-HEAVY_TESTS = {
-    "test_bench_all_writes_markdown_table",
-    "test_ddp_two_processes_equal_one_process",
-    "test_ddp_stop_right_after_a_checkpoint_does_not_hang",
-    "test_two_ranks_match_single_process",
-    "test_make_dataset_frames_restarts_byte_identically",
-    "test_ddp_all_reduce_equals_single_process",
-    "test_diverging_training_stops_in_one_line_not_a_segfault",
-    "test_detached_training_status_and_guard",
-    "test_temporal_correlation_path_matches_theory",
-    "test_clip_video_in_video_out",
-    "test_sigkill_then_rerun_matches_clean_run",
-    "test_generated_dataset_is_valid_and_consistent",
-    "test_every_frame_has_single_frame_statistics",
-    "test_coefficient_variances_and_cross_covariances_match_noll",
-    "test_depth_anything_tiny_model",
-    "test_compile_matches_eager_and_checkpoints_plain_names",
-    "test_unreadable_things_are_one_line",
-    "test_read_only_out_is_one_line",
-    "test_rehearsal_runs_every_step_and_brings_back_what_fits",
-    "test_demo_end_to_end",
-}
-
-
 def pytest_collection_modifyitems(config, items):
-    items.sort(key=lambda item: getattr(item, "originalname", item.name) not in HEAVY_TESTS)  # stable: heavy first
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: slow first
 
 
 @pytest.fixture(autouse=True)

@@ -270,7 +270,7 @@ def test_preset_files_written_before_format_2_load_with_their_old_defaults(tmp_p
     from safetensors.torch import save_file
 
     from d2turb.models import load_pretrained
-    from d2turb.models.hub import tensors_sha256
+    from d2turb.models.weights import tensors_sha256
 
     backbone_cfg = TINY_FOCALNET if preset == "d2turb_focalnet" else TINY_ADAIR
     rect = {"width": 8, "mults": [1, 1, 2, 2], "depth": 3}

@@ -280,6 +280,7 @@ def test_clip_errors_are_one_line(tmp_path, capsys):
     assert len(flows) == 4 and np.load(flows[0]).shape == (2, 64, 64) and np.load(flows[0]).dtype == np.float32
 
 
+@pytest.mark.slow
 def test_clip_video_in_video_out(tmp_path):
     pytest.importorskip("av")
     from d2turb.video import Mp4Writer

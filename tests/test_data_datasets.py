@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from hostile_input import error_lines, one_error_line, rgb, run_cli, tiny_config, tiny_pairs
 from PIL import Image
 from scipy import stats
 
+from d2turb.cli import main
 from d2turb.data import CleanCropDataset, OnTheFlySynthesis, PairDataset, crop_sample, flip_sample
 from d2turb.data.layout import BIN_NAMES, write_depth_png
 from d2turb.errors import D2TurbError
@@ -182,3 +184,80 @@ def test_on_the_fly_synthesis(clean_dir):
     assert err_flow < 0.8 * err_none  # the returned flow is the backward flow: it undoes the tilt
     again = OnTheFlySynthesis(simulator, bins=("strong",), device="cpu", seed=3)(batch)
     assert torch.equal(again["turb"], a["turb"])  # seeded: reproducible
+
+
+@pytest.mark.parametrize("bad_id", ["/etc/passwd", "a/b", "..", ".hidden", "", 7, None])
+def test_meta_ids_must_be_plain_names(bad_id, tmp_path):
+    from d2turb.data import PairDataset
+    from d2turb.errors import D2TurbError
+
+    root = tiny_pairs(tmp_path / "ds", n=1, size=16)
+    (root / "meta.jsonl").write_text(json.dumps({"id": bad_id, "index": 0, "dr0": 2.0, "bin": "weak"}) + "\n")
+    with pytest.raises(D2TurbError, match="meta.jsonl line 1"):
+        PairDataset(root)
+
+
+def test_a_meta_id_that_leaves_the_dataset_is_refused(tmp_path, capsys):
+    root = tmp_path / "deep" / "ds"
+    tiny_pairs(root, n=2, size=16, split="test")
+    assert main(["check-dataset", str(root)]) == 0
+    # root/turb/../../secret.png, root/flow/../../secret.npy: the files a traversal would read
+    rgb(tmp_path / "deep" / "secret.png", 16, 16, seed=9)
+    np.save(tmp_path / "deep" / "secret.npy", np.zeros((2, 16, 16), np.float16))
+    good = {"id": "0000000", "index": 0, "dr0": 2.0, "bin": "weak", "split": "test"}
+    evil = {"id": "../../secret", "index": 1, "dr0": 2.0, "bin": "weak", "split": "test"}
+    (root / "meta.jsonl").write_text(json.dumps(good) + "\n" + json.dumps(evil) + "\n")
+    argv = ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "psnr", "--out", str(tmp_path / "o")]
+    rc, _, err = run_cli(capsys, argv)
+    # the record is refused (never read) and skipped with its error line, the good one evaluated (issue 37)
+    assert rc == 1 and "Traceback" not in err
+    (line,) = error_lines(err)
+    assert "meta.jsonl line 2" in line and "../../secret" in line
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert [s["id"] for s in results["per_sample"]] == ["0000000"] and len(results["skipped"]) == 1
+    rc, out, err = run_cli(capsys, ["check-dataset", str(root)])
+    assert rc == 1 and "../../secret" in err and "ok" not in out.split()
+
+
+GOOD_RECORD = {"id": "0000000", "index": 0, "dr0": 2.0, "bin": "weak", "split": "test"}
+
+
+@pytest.mark.parametrize(
+    "damage, words",
+    [
+        ({"meta": {k: v for k, v in GOOD_RECORD.items() if k != "index"}}, ["meta.jsonl line 1", "index"]),
+        ({"meta": {k: v for k, v in GOOD_RECORD.items() if k != "dr0"}}, ["meta.jsonl line 1", "dr0"]),
+        ({"meta": {**GOOD_RECORD, "index": "zero"}}, ["meta.jsonl line 1", "index"]),
+        ({"meta": {**GOOD_RECORD, "index": 1.5}}, ["meta.jsonl line 1", "index"]),
+        ({"meta": {**GOOD_RECORD, "dr0": "strong"}}, ["meta.jsonl line 1", "dr0"]),
+        ({"meta": [1, 2]}, ["meta.jsonl line 1"]),
+        ({"config": {"version": 1, "pairs": 2, "patch": "16", "split": "test"}}, ["dataset.json", "patch"]),
+        ({"config": {"version": 1, "pairs": 2, "patch": 16.5, "split": "test"}}, ["dataset.json", "patch"]),
+        ({"config": [1, 2, 3]}, ["dataset.json", "object"]),
+    ],
+)
+def test_damaged_dataset_files_are_one_line_everywhere(damage, words, tmp_path, capsys):
+    root = tiny_pairs(tmp_path / "ds", n=2, size=16, split="test")
+    if "meta" in damage:
+        second = {**GOOD_RECORD, "id": "0000001", "index": 1}
+        (root / "meta.jsonl").write_text(json.dumps(damage["meta"]) + "\n" + json.dumps(second) + "\n")
+    else:
+        (root / "dataset.json").write_text(json.dumps(damage["config"]))
+    argv = ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "psnr", "--out", str(tmp_path / "o")]
+    rc, _, err = run_cli(capsys, argv)
+    if "meta" in damage:  # evaluate skips a bad record with its error line and evaluates the others (issue 37)
+        assert rc == 1 and "Traceback" not in err
+        (line,) = error_lines(err)
+        assert all(word in line for word in words), line
+        assert json.loads((tmp_path / "o" / "results.json").read_text())["samples_evaluated"] == 1
+    else:
+        assert rc == 2
+        one_error_line(err, *words)
+    config = tiny_config(tmp_path)  # training with this folder as val.pairs
+    argv = ["train", "--config", str(config), "--out", str(tmp_path / "run"), "--set", f"val.pairs={root}"]
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, *words)
+    rc, out, err = run_cli(capsys, ["check-dataset", str(root)])  # the same checks: never "ok"
+    assert rc in (1, 2) and "ok" not in out.split() and "Traceback" not in err
+    assert words[0] in err

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hostile_input import CHILD_ENV, make_dataset_args, one_error_line, png_bomb, rgb, run_cli
 from PIL import Image
 from scipy import stats
 
@@ -125,6 +126,7 @@ def test_small_images_are_resized_up_and_crops_stay_inside():
 
 
 # --------------------------------------------------------------------------------------- generation
+@pytest.mark.slow
 def test_generated_dataset_is_valid_and_consistent(reference, clean_dir, capsys):
     assert main(["check-dataset", str(reference)]) == 0
     out = capsys.readouterr().out
@@ -183,6 +185,7 @@ def test_interrupted_state_is_repaired_byte_identically(reference, clean_dir, tm
     assert_same_tree(reference, out)
 
 
+@pytest.mark.slow
 def test_sigkill_then_rerun_matches_clean_run(clean_dir, tmp_path, capsys):
     """A generation process killed with SIGKILL part-way leaves a dataset check-dataset calls broken; the same
     command run again (here in this process: what it resumes from is on disk) finishes it byte-identically."""
@@ -217,6 +220,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_two_ranks_match_single_process(reference, clean_dir, tmp_path):
     out = tmp_path / "ds"
     port = str(_free_port())
@@ -359,3 +363,102 @@ def test_meta_has_one_dr0_the_sample_s(tmp_path, capsys):
         assert "dr0" not in rec["params"] and "r0_m" not in rec["params"]
     record = json.loads((tmp_path / "ds" / "dataset.json").read_text())
     assert "dr0" not in record["params"]
+
+
+def test_make_dataset_skips_a_bomb_like_other_unreadable_sources(tmp_path, capsys):
+    clean = tmp_path / "clean"
+    rgb(clean / "a.png", 40, 48)
+    png_bomb(clean / "b_bomb.png")
+    rc, _, err = run_cli(capsys, make_dataset_args(clean, tmp_path / "ds"))
+    assert rc == 0, err
+    assert "b_bomb.png" in err and "100000x100000" in err and "Traceback" not in err
+    meta = [json.loads(line) for line in (tmp_path / "ds" / "meta.jsonl").read_text().splitlines()]
+    assert len(meta) == 2 and all(m["source"].endswith("a.png") for m in meta)
+
+
+def test_failed_make_dataset_does_not_lock_the_folder(tmp_path, capsys):
+    clean = tmp_path / "clean"
+    rgb(clean / "a.png", 40, 48)
+    (tmp_path / "no_maps").mkdir()
+    out = tmp_path / "ds"
+    rc, _, err = run_cli(capsys, make_dataset_args(clean, out, depth=str(tmp_path / "no_maps")))
+    assert rc == 2
+    one_error_line(err, "no depth file")
+    assert not (out / "dataset.json").exists()
+    assert main(make_dataset_args(clean, out)) == 0  # the corrected run, same --out
+    # a config left by a run killed before its first sample does not lock the folder either
+    killed = tmp_path / "killed"
+    assert main(make_dataset_args(clean, killed, "--seed", "5")) == 0
+    (killed / "meta.jsonl").unlink()  # as if killed before any sample's meta line was written
+    (killed / "turb" / "0000000.png").unlink()
+    assert main(make_dataset_args(clean, killed)) == 0
+    assert json.loads((killed / "dataset.json").read_text())["seed"] == 0
+    assert main(["check-dataset", str(killed)]) == 0
+    capsys.readouterr()
+
+
+def test_patch_larger_than_every_source_is_refused(tmp_path, capsys):
+    clean = tmp_path / "clean"
+    rgb(clean / "a.png", 96, 96)
+    rgb(clean / "b.png", 64, 90)
+    argv = make_dataset_args(clean, tmp_path / "ds")
+    argv[argv.index("--patch") + 1] = "4096"
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, "--patch 4096", "96 px")
+    assert not (tmp_path / "ds").exists()
+
+
+def test_small_sources_are_reported(tmp_path, capsys):
+    clean = tmp_path / "clean"
+    rgb(clean / "a.png", 40, 48)
+    rgb(clean / "b.png", 12, 14)
+    rc, _, err = run_cli(capsys, make_dataset_args(clean, tmp_path / "ds", "--split", "train", "--pairs", "6"))
+    assert rc == 0
+    assert err.count("b.png is 14x12, smaller than the 16-px patch: resized up") == 1
+
+
+def test_two_make_dataset_runs_into_one_folder(tmp_path, capsys):
+    """The second run is refused in one line naming the first one's process; a lock left by a killed run
+    (its process gone) is taken over."""
+    clean = tmp_path / "clean"
+    rgb(clean / "a.png", 40, 48)
+    out = tmp_path / "ds"
+    first = subprocess.Popen(
+        [sys.executable, "-m", "d2turb", *make_dataset_args(clean, out, "--pairs", "4000")],
+        env=CHILD_ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and first.poll() is None and not (out / "dataset.json").is_file():
+            time.sleep(0.01)
+        assert first.poll() is None, "the first run ended before the second started"
+        rc, _, err = run_cli(capsys, make_dataset_args(clean, out))
+        assert first.poll() is None, "the first run ended before the second was refused"
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+    assert rc == 2
+    one_error_line(err, str(out), f"process {first.pid}")
+    assert first.returncode == -signal.SIGKILL
+    # the killed run's lock stays (docs/cli.md: DIR/.d2turb.lock); the rest is cleared to start a small dataset
+    for p in out.iterdir():
+        if p.name != ".d2turb.lock":
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    assert str(first.pid) in (out / ".d2turb.lock").read_text()
+    rc, _, err = run_cli(capsys, make_dataset_args(clean, out))  # the dead process's lock is taken over
+    assert rc == 0, err
+    assert main(["check-dataset", str(out)]) == 0
+    assert not (out / ".d2turb.lock").exists()  # released at the end
+    capsys.readouterr()
+
+
+def test_make_dataset_patch_is_bounded(tmp_path, capsys):
+    rgb(tmp_path / "clean" / "a.png", 40, 48)
+    argv = make_dataset_args(tmp_path / "clean", tmp_path / "ds")
+    argv[argv.index("--patch") + 1] = "100000"
+    rc, _, err = run_cli(capsys, argv)
+    assert rc == 2
+    one_error_line(err, "--patch", "4096")

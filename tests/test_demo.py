@@ -19,6 +19,7 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 LEVELS = ("weak", "medium", "strong")
 
 
+@pytest.mark.slow
 def test_demo_end_to_end(tmp_path, capsys):
     """One demo run (about a minute of CPU), three checks; one test, so that xdist runs the demo once."""
     out = tmp_path / "demo_out"

@@ -233,6 +233,7 @@ def tiny_depth_anything(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_depth_anything_tiny_model(tiny_depth_anything):
     from d2turb.depth import DepthAnything
 

@@ -6,12 +6,14 @@ import math
 import numpy as np
 import pytest
 import torch
+from hostile_input import error_lines, run_cli, tiny_pairs
 from PIL import Image
 from skimage.metrics import structural_similarity
 from torch import nn
 
 from d2turb.errors import D2TurbError
 from d2turb.eval.synthetic import evaluate_synthetic
+from d2turb.io import write_image
 
 SIZE = 40
 OFFSETS = {"weak": 2, "medium": 5, "strong": 10}  # turb = gt + k/255 exactly (gt in [0.2, 0.8]): MSE = (k/255)^2
@@ -204,3 +206,44 @@ def test_record_without_dr0_is_skipped_with_one_error_line(tmp_path, no_lpips, c
     assert res["bin_counts"] == {"weak": 2, "medium": 0, "strong": 2}
     assert res["table"]["input"]["psnr"]["strong"] == pytest.approx(-20 * math.log10(10 / 255), abs=1e-3)
     assert len(res["skipped"]) == 1 and "line 3" in res["skipped"][0]["error"]
+
+
+def test_evaluate_data_skips_a_broken_sample(tmp_path, capsys):
+    root = tmp_path / "ds"
+    meta = []
+    for i in range(3):
+        sid = f"{i:07d}"
+        image = torch.rand(3, 16, 16, generator=torch.Generator().manual_seed(i))
+        for kind in ("turb", "tilt", "gt"):
+            write_image(root / kind / f"{sid}.png", image)
+        write_image(root / "depth" / f"{sid}.png", image[:1])
+        (root / "flow").mkdir(exist_ok=True)
+        np.save(root / "flow" / f"{sid}.npy", np.zeros((2, 16, 16), np.float16))
+        meta.append({"id": sid, "index": i, "dr0": 3.0, "bin": "medium", "split": "test"})
+    (root / "meta.jsonl").write_text("".join(json.dumps(m) + "\n" for m in meta))
+    (root / "dataset.json").write_text(json.dumps({"version": 1, "pairs": 3, "patch": 16, "split": "test"}))
+    (root / "turb" / "0000001.png").write_bytes(b"\x89PNG\r\n\x1a\ncut")
+    out = tmp_path / "out"
+    rc, _, err = run_cli(
+        capsys, ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "psnr", "--out", str(out)]
+    )
+    assert rc == 1
+    lines = error_lines(err)
+    assert len(lines) == 1 and "0000001" in lines[0]
+    results = json.loads((out / "results.json").read_text())
+    assert results["samples_evaluated"] == 2 and [s["id"] for s in results["skipped"]] == ["0000001"]
+
+
+def test_evaluate_epe_skips_a_flow_of_the_wrong_size(tmp_path, capsys):
+    root = tiny_pairs(tmp_path / "ds", n=3, size=16, split="test")
+    np.save(root / "flow" / "0000001.npy", np.zeros((2, 8, 8), np.float16))
+    out = tmp_path / "o"
+    rc, _, err = run_cli(
+        capsys, ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "epe", "--out", str(out)]
+    )
+    assert rc == 1
+    lines = error_lines(err)
+    assert len(lines) == 1 and "0000001" in lines[0] and "flow" in lines[0] and "Traceback" not in err
+    results = json.loads((out / "results.json").read_text())
+    assert results["samples_evaluated"] == 2 and [s["id"] for s in results["skipped"]] == ["0000001"]
+    assert results["table"]["input"]["epe"]["avg"] == 0.0  # zero flow against zero flow

@@ -7,6 +7,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from hostile_input import error_lines, png_bomb, run_cli
 from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.cli import main
@@ -264,3 +265,21 @@ def test_run_folders_weights_are_named_by_their_config_model_and_folder(tmp_path
     assert weights_label(own) == "sharp" and weights_label("input") == "input"
     assert weights_label("d2turb-nafnet") == "d2turb-nafnet"
     assert weights_label(tmp_path / "gone" / "model.safetensors") == "gone/model"  # unreadable: folder/stem
+
+
+def test_evaluate_real_folder_with_bad_files_lists_them(tmp_path, capsys, astronaut):
+    folder = tmp_path / "real"
+    write_image(folder / "a.png", astronaut[0, :, :192, :160])
+    write_image(folder / "b.png", astronaut[0, :, 40:, 30:])
+    (folder / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\nno")
+    png_bomb(folder / "bomb.png")
+    out = tmp_path / "out"
+    rc, _, err = run_cli(capsys, ["evaluate", "--real", str(folder), "--metrics", "piqe", "--out", str(out)])
+    assert rc == 1
+    lines = error_lines(err)
+    assert len(lines) == 2 and "bomb.png" in lines[0] and "corrupt.png" in lines[1]
+    results = json.loads((out / "results.json").read_text())
+    assert results["images"] == ["a.png", "b.png"]
+    assert [s["file"] for s in results["skipped"]] == ["bomb.png", "corrupt.png"]
+    assert set(results["piqe"]["per_image"]) == {"a.png", "b.png"}
+    assert "corrupt.png" in (out / "results.md").read_text()

@@ -26,6 +26,7 @@ def rehearsal(tmp_path_factory):
     return proc, out, runs
 
 
+@pytest.mark.slow
 def test_rehearsal_runs_every_step_and_brings_back_what_fits(rehearsal, tmp_path):
     """One test (xdist would run a module fixture once per worker): the steps, then the weights that came back."""
     proc, out, _ = rehearsal

@@ -50,6 +50,7 @@ def _ddp_worker(rank, world_size, init_file, out_file):
     torch.distributed.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_ddp_all_reduce_equals_single_process(tmp_path):
     out = tmp_path / "result"
     mp.spawn(_ddp_worker, args=(2, str(tmp_path / "init"), str(out)), nprocs=2, join=True)

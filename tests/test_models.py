@@ -87,11 +87,34 @@ def test_every_registered_model_is_covered():
     assert set(list_backbones()) <= set(list_models())  # plain backbones are standalone restorers too
 
 
+def _bilinear_oracle(image: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 9 by hand: out(x) = image(x + flow(x)), bilinear from the four neighbours (float64, no grid_sample), and
+    where the sample point lies inside the image (there the model's padded canvas and the cropped image agree)."""
+    image, flow = image.double(), flow.double()
+    b, c, h, w = image.shape
+    xs = torch.arange(w, dtype=torch.float64) + flow[:, 0]
+    ys = torch.arange(h, dtype=torch.float64)[:, None] + flow[:, 1]
+    inside = (xs >= 0) & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1)
+    x0 = xs.floor().clamp(0, w - 2).long()
+    y0 = ys.floor().clamp(0, h - 2).long()
+    fx, fy = (xs - x0).clamp(0, 1)[:, None], (ys - y0).clamp(0, 1)[:, None]
+
+    def at(yi, xi):
+        return image.flatten(2).gather(2, (yi * w + xi).flatten(1)[:, None].expand(b, c, -1)).view(b, c, h, w)
+
+    top = at(y0, x0) * (1 - fx) + at(y0, x0 + 1) * fx
+    bottom = at(y0 + 1, x0) * (1 - fx) + at(y0 + 1, x0 + 1) * fx
+    return top * (1 - fy) + bottom * fy, inside[:, None].expand(b, c, h, w)
+
+
 @pytest.mark.parametrize("case_id", CASES)
 def test_forward_odd_size(case_id):
     model = build(case_id)
+    if hasattr(model, "rectifier"):  # a flow that moves pixels (the flow head starts at zero)
+        torch.nn.init.normal_(model.rectifier.flow_head.weight, std=2.0)
     x = torch.rand(2, 3, 67, 93)
-    out = model(x)
+    with torch.no_grad():
+        out = model(x)
     assert set(out) == KEYS and model.config["name"] == CASES[case_id][0]
     for key in ("deblurred", "restored"):
         assert out[key].shape == x.shape and torch.isfinite(out[key]).all()
@@ -100,7 +123,10 @@ def test_forward_odd_size(case_id):
         assert out["bwd_flow_px"] is None and out["restored"] is out["deblurred"]
     else:
         assert out["bwd_flow_px"].shape == (2, 2, 67, 93)
-        assert out["pixel_flow"] is out["bwd_flow_px"] and out["bwd_flow_px"] is out["bwd_flow_px"]  # deprecated names
+        assert out["pixel_flow"] is out["bwd_flow_px"] and out["flow"] is out["bwd_flow_px"]  # deprecated names
+        expected, inside = _bilinear_oracle(out["deblurred"], out["bwd_flow_px"])
+        assert out["bwd_flow_px"].abs().amax() > 0.5 and inside.float().mean() > 0.1
+        assert torch.allclose(out["restored"].double()[inside], expected[inside], atol=1e-5)
 
 
 @pytest.mark.parametrize("size", [(5, 7), (33, 17)])
@@ -236,7 +262,7 @@ def test_files_written_before_format_2_load_with_their_old_defaults(tmp_path):
     rectifier and the cosine ASPI, and it must load as exactly that model."""
     from safetensors.torch import save_file
 
-    from d2turb.models.hub import tensors_sha256
+    from d2turb.models.weights import tensors_sha256
 
     old = {"backbone": "restormer", "injection": "aspi", "backbone_cfg": TINY_RESTORMER, "rectifier_cfg": TINY_UNET}
     then = dict(old, injection="aspi_cosine", rectifier="unet", backbone_cfg=dict(TINY_RESTORMER, norm_bias=False))

@@ -106,6 +106,7 @@ def test_flops_of_a_single_conv_match_the_formula():
     assert flop_counts(conv, (12, 20))["aten.convolution"] == 2 * 3 * 5 * 9 * 12 * 20
 
 
+@pytest.mark.slow
 def test_bench_all_writes_markdown_table(tmp_path):
     """The paper's efficiency table, its values beside ours, then the project's other models."""
     from d2turb.models.complexity import PAPER_EFFICIENCY

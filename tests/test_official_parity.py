@@ -11,8 +11,9 @@ import torch
 
 from d2turb.errors import D2TurbError
 from d2turb.models import count_parameters, create_model, load_pretrained
-from d2turb.models.hub import convert_official_state_dict, load_state_dict_strict, read_state_dict
+from d2turb.models.convert import convert_official_state_dict
 from d2turb.models.rectifier import TiltRectifier
+from d2turb.models.weights import load_state_dict_strict, read_state_dict
 
 FIXTURE = Path(__file__).resolve().parents[1] / ".." / "shared" / "fixtures" / "official_d2turb"
 

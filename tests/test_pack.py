@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hostile_input import one_error_line, rgb, run_cli
 from PIL import Image
 
 from d2turb.data.pack import MANIFEST, PackCrops, decode_pack, make_pack, read_pack
@@ -205,3 +206,29 @@ def test_pack_crops_in_memory(pack):
     centre = with_depth.center_crops(32)
     assert [c["id"] for c in centre] == ["mcmaster/d", "set14/c"] and centre[1]["gt"].shape == (3, 32, 32)
     assert torch.equal(centre[1]["gt"], with_depth.images[1][:, 9:41, 9:41].float() / 255)  # (50 − 32) / 2 = 9
+
+
+def test_a_pack_entry_that_leaves_the_pack_is_refused(tmp_path):
+    from d2turb.data.pack import make_pack, read_pack
+    from d2turb.errors import D2TurbError
+
+    for i in range(2):
+        rgb(tmp_path / "clean" / "folder" / f"{i}.png", 64, 64, seed=i)
+    make_pack([tmp_path / "clean" / "folder"], tmp_path / "pack", patch=32, progress=False)
+    manifest = json.loads((tmp_path / "pack" / "pack.json").read_text())
+    manifest["images"][0]["file"] = "../clean/folder/0.png"
+    (tmp_path / "pack" / "pack.json").write_text(json.dumps(manifest))
+    with pytest.raises(D2TurbError, match=r"pack\.json.*\.\./clean/folder/0\.png"):
+        read_pack(tmp_path / "pack", verify=False)
+
+
+@pytest.mark.parametrize(
+    "option, value", [("--max-mib", "nan"), ("--max-mib", "inf"), ("--max-mib", "-1"), ("--max-side", "-5")]
+)
+def test_make_pack_limits_are_checked(option, value, tmp_path, capsys):
+    rgb(tmp_path / "clean" / "folder" / "a.png", 64, 64)
+    argv = ["make-pack", "--clean", str(tmp_path / "clean" / "folder"), "--out", str(tmp_path / "pack")]
+    rc, _, err = run_cli(capsys, [*argv, "--patch", "32", "--no-progress", option, value])
+    assert rc == 2
+    one_error_line(err, option, value)
+    assert not (tmp_path / "pack").exists()

@@ -157,3 +157,55 @@ def test_bad_arguments_raise_one_line_errors(tmp_path, monkeypatch):
     if not torch.cuda.is_available():
         with pytest.raises(D2TurbError, match="CUDA is not available"):
             Restorer("input", device="cuda")
+
+
+def _oracle_warp(canvas: torch.Tensor, flow: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """out(x) = canvas(x + flow(x)) for the top-left h×w pixels, bilinear with the canvas edge clamped, written
+    with grid_sample in float64 (align_corners=True: -1 and +1 are the centres of the first and last pixels)."""
+    hc, wc = canvas.shape[-2:]
+    ys, xs = torch.meshgrid(torch.arange(hc, dtype=torch.float64), torch.arange(wc, dtype=torch.float64), indexing="ij")
+    gx = (xs + flow[0, 0].double()) / (wc - 1) * 2 - 1
+    gy = (ys + flow[0, 1].double()) / (hc - 1) * 2 - 1
+    grid = torch.stack((gx, gy), -1)[None]
+    out = torch.nn.functional.grid_sample(canvas.double(), grid, padding_mode="border", align_corners=True)
+    return out[..., :h, :w].float()
+
+
+def _flowing_model():
+    """A small D²Turb whose flow points 2.5 px right and 3.5 px down everywhere (the flow head's bias)."""
+    from d2turb.models import create_model
+
+    torch.manual_seed(0)
+    model = create_model("d2turb_lite", backbone_cfg={"width": 8, "enc_blocks": [1], "dec_blocks": [1]}).eval()
+    with torch.no_grad():
+        model.rectifier.flow_head.bias.copy_(torch.tensor([2.5, 3.5]))
+    return model
+
+
+def test_restorer_warps_the_padded_canvas_as_the_authors_model_does():
+    """The authors pad the input at the bottom/right to a multiple of 32 (reflect), run backbone, rectifier and the
+    warp on that canvas, and crop: a flow pointing past the bottom/right edge samples the canvas there."""
+    from d2turb.restore import Restorer
+
+    model = _flowing_model()
+    image = torch.rand(3, 100, 116, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        canvas = torch.nn.functional.pad(image[None], (0, 128 - 116, 0, 128 - 100), mode="reflect")
+        deblurred, guide = model.backbone(canvas)
+        flow = model.rectifier(deblurred, guide, size=(100, 116))
+    expected = _oracle_warp(deblurred, flow, 100, 116).clamp(0, 1)[0]
+    cropped_then_clamped = _oracle_warp(deblurred[..., :100, :116], flow[..., :100, :116], 100, 116).clamp(0, 1)[0]
+    assert (cropped_then_clamped - expected).abs().amax() > 0.01  # the two conventions differ at the edges
+    restored = Restorer(model, tile=512).restore(image)
+    assert torch.allclose(restored, expected, atol=1e-5), (restored - expected).abs().amax()
+
+
+def test_tiled_warp_samples_the_padded_canvas_too():
+    from d2turb.restore.single import warp_in_strips
+
+    g = torch.Generator().manual_seed(2)
+    image, flow = torch.rand(1, 3, 100, 116, generator=g), torch.randn(1, 2, 100, 116, generator=g) * 4
+    canvas = torch.nn.functional.pad(image, (0, 128 - 116, 0, 128 - 100), mode="reflect")
+    padded_flow = torch.nn.functional.pad(flow, (0, 12, 0, 28))
+    expected = _oracle_warp(canvas, padded_flow, 100, 116)
+    assert torch.allclose(warp_in_strips(image, flow, pad_to=32), expected, atol=1e-5)

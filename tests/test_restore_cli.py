@@ -1,8 +1,14 @@
 """`d2turb restore` end to end: outputs, odd inputs (16-bit grey, alpha, EXIF), videos, errors."""
 
+import signal
+import subprocess
+import sys
+import time
+
 import numpy as np
 import pytest
 import torch
+from hostile_input import CHILD_ENV, bad_files, error_lines, rgb, run_cli, temp_files
 from PIL import Image
 
 from d2turb.cli import main
@@ -125,3 +131,85 @@ def test_mp4_in_mp4_out_with_the_input_frame_count_and_fps(tmp_path):
     assert len(decoded) == len(levels) and decoded[0].shape == (32, 48, 3)
     for frame, level in zip(decoded, levels):  # identity restorer, two lossy encodes
         assert abs(frame.astype(float).mean() - level) < 4
+
+
+@pytest.fixture
+def tiny_weights(tmp_path_factory):
+    """A tiny NAFNet whose (finite, checksummed) weights overflow to inf/NaN in its forward pass."""
+    from d2turb.models import create_model, save_pretrained
+
+    torch.manual_seed(0)
+    model = create_model("nafnet", width=8, enc_blocks=[1], dec_blocks=[1])
+    with torch.no_grad():
+        model.backbone.intro.weight.fill_(1e30)
+    path = tmp_path_factory.mktemp("weights") / "overflow.safetensors"
+    save_pretrained(model, path)
+    return path
+
+
+def test_non_finite_model_output_is_refused(tiny_weights, tmp_path, capsys):
+    for name in ("a", "b"):
+        rgb(tmp_path / "in" / f"{name}.png", 32, 32)
+    out = tmp_path / "out"
+    rc, _, err = run_cli(capsys, ["restore", str(tmp_path / "in"), "--weights", str(tiny_weights), "--out", str(out)])
+    assert rc == 2  # nothing could be restored
+    lines = error_lines(err)
+    assert len(lines) == 2 and all("NaN or infinite" in line for line in lines)
+    assert "a.png" in lines[0] and "b.png" in lines[1] and "Traceback" not in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_restore_folder_with_each_kind_of_bad_file_then_sigkill_and_rerun(tmp_path, capsys):
+    """Acceptance 2: every good output, one error line per bad file, non-zero exit; then a run killed by
+    SIGKILL and re-run finishes cleanly with no temp files left."""
+    folder = tmp_path / "in"
+    bad = bad_files(folder)
+    good = [f"g{i}" for i in range(4)]
+    for i, name in enumerate(good):
+        rgb(folder / f"{name}.png", 300, 400, seed=i)  # noise: slow to compress, so writes take a while
+    out = tmp_path / "out"
+    argv = ["restore", str(folder), "--weights", "input", "--out"]
+    rc, _, err = run_cli(capsys, [*argv, str(out)])
+    assert rc == 1
+    lines = error_lines(err)
+    assert len(lines) == len(bad), err
+    for name, word in bad.items():
+        assert any(name in line and word in line for line in lines), (name, lines)
+    assert "Traceback" not in err and f"restore: 4 of {len(bad) + 4} inputs done" in err
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{n}_restored.png" for n in good)
+    reference = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    killed = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "d2turb", *argv, str(killed), "--png-compression", "9"]
+    proc = subprocess.Popen(cmd, env=CHILD_ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None and not (killed.is_dir() and any(killed.iterdir())):
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL, "the run finished before it could be killed"
+    rc, _, err = run_cli(capsys, [*argv, str(killed)])
+    assert rc == 1 and len(error_lines(err)) == len(bad), err
+    assert not temp_files(killed)
+    assert {p.name: p.read_bytes() for p in killed.iterdir()} == reference
+
+
+def test_interrupted_line_is_not_inside_the_progress_bar(tmp_path, capsys, monkeypatch):
+    from d2turb.restore import Restorer
+
+    for i in range(3):
+        rgb(tmp_path / "in" / f"{i}.png", seed=i)
+    calls = []
+    original = Restorer.restore_with_details
+
+    def interrupt_second(self, image):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return original(self, image)
+
+    monkeypatch.setattr(Restorer, "restore_with_details", interrupt_second)
+    rc, _, err = run_cli(capsys, ["restore", str(tmp_path / "in"), "--weights", "input", "--out", str(tmp_path / "o")])
+    assert rc == 130
+    assert "restore:" in err  # the bar was drawn
+    assert err.split("\n")[-2] == "interrupted", repr(err[-200:])
+    assert not temp_files(tmp_path / "o")

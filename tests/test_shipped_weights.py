@@ -15,6 +15,7 @@ from d2turb.cli import main
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image, write_image
 from d2turb.models import create_model, save_pretrained
+from d2turb.models.weights import weights_info
 
 
 @pytest.fixture
@@ -71,13 +72,13 @@ def test_recommended_weights_only_from_the_package(shipped, tmp_path):
 
 
 def test_weights_info_reads_model_and_parameter_count(shipped, recommended):
-    info = hub.weights_info(shipped / f"{hub.RECOMMENDED_WEIGHTS}.safetensors")
+    info = weights_info(shipped / f"{hub.RECOMMENDED_WEIGHTS}.safetensors")
     assert info["model"] == "nafnet"
     assert info["params"] == sum(t.numel() for t in recommended.state_dict().values())
     bad = shipped / "bad.safetensors"
     bad.write_bytes(b"garbage")
     with pytest.raises(D2TurbError, match="corrupt weights file"):
-        hub.weights_info(bad)
+        weights_info(bad)
 
 
 def test_restore_without_weights_uses_the_recommended_model(recommended, image_png, tmp_path, capsys):

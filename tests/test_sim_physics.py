@@ -83,6 +83,7 @@ def _pointwise_coefficients(sim, n, dr0, seed):
     return torch.cat(chunks).numpy()
 
 
+@pytest.mark.slow
 def test_coefficient_variances_and_cross_covariances_match_noll():
     """Test 1. N = 100k independent samples: relative standard error of a variance sqrt(2/N) = 0.45 %;
     of cov(a2,a8): sqrt(var2·var8·(1+ρ²)/N)/|cov| = 1.2 %; of cov(a4,a11): 1.9 %. Tolerance 5 %."""

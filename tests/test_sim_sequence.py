@@ -89,6 +89,7 @@ def test_temporal_correlation_single_layer_matches_table():
         assert np.all(np.abs(mean - table[:3]) < 4 * se + 0.01), (name, mean.round(3), se.round(4))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wind", [0.75, [0.5, 3.0]])
 def test_temporal_correlation_path_matches_theory(wind, published_tilt):
     """(a), constant-Cn² path: the layer at t = z/L moves s = v(t)·Δt/(D(1 − t)) per frame; the oracle is
@@ -116,6 +117,7 @@ def test_temporal_correlation_path_matches_theory(wind, published_tilt):
         assert np.all(np.abs(mean - theory[:4]) < 4 * se + 0.01), (name, mean.round(3), se.round(4))
 
 
+@pytest.mark.slow
 def test_every_frame_has_single_frame_statistics():
     """(b) D/r0 = 2, boiling 0.3, a fast wind: a2 … a11 at every pixel of 8×8 frames of 200 sequences ×
     12 frames. The path is 5000 km long (D/r0 given, so only the pixel spacing changes): neighbouring
@@ -334,6 +336,7 @@ def _make_args(clean, out, frames=8, pairs=8):
     ]
 
 
+@pytest.mark.slow
 def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     """make-dataset --frames 8: filmstrip samples pass check-dataset and load as sequences; killed with
     SIGKILL part-way and rerun, the dataset is byte-identical to an uninterrupted run."""

@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from hostile_input import dead_pid, one_error_line, run_cli, run_d2turb, tiny_config
 
+from d2turb.cli import main
 from d2turb.errors import D2TurbError
 from d2turb.train import Config, MultiStageLoss, PerceptualLoss, Trainer, build_loss, load_config, psnr_loss
 from d2turb.train.losses import native_loss_name
@@ -448,6 +450,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_ddp_two_processes_equal_one_process(pairs, tmp_path):
     """Two gloo processes with 2 samples each = one process with the batch of 4 (EMA included); so is validation on
     3 images shared unevenly (2 + 1) between the ranks."""
@@ -487,6 +490,7 @@ def test_ddp_two_processes_equal_one_process(pairs, tmp_path):
         assert vals[1][k] == pytest.approx(v, rel=1e-9 if "input" in k or "zero" in k else 1e-4), k
 
 
+@pytest.mark.slow
 def test_ddp_stop_right_after_a_checkpoint_does_not_hang(pairs, tmp_path):
     """A time budget spent at a checkpoint step: no rank saves again (rank 1 used to wait in the final save's
     collective while rank 0 had left: a hang)."""
@@ -554,3 +558,78 @@ def test_cli_one_line_errors(capsys, tmp_path, pairs):
         == 2
     )
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith("error: --resume: no checkpoint")
+
+
+@pytest.mark.slow
+def test_diverging_training_stops_in_one_line_not_a_segfault(tmp_path):
+    """A learning rate that makes the loss inf/NaN: before, the NaN flow reached grid_sample's backward and the
+    process died by SIGSEGV with status.json still "running"."""
+    config = tiny_config(tmp_path)
+    run = tmp_path / "run"
+    proc = run_d2turb("train", "--config", config, "--out", run, "--set", "train.lr=1e6")
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+    line = one_error_line(proc.stderr, "loss became non-finite at iteration", "train.lr")
+    iteration = int(line.split("at iteration ")[1].split()[0])
+    status = json.loads((run / "status.json").read_text())
+    assert status["state"] == "failed" and "non-finite" in status["error"]
+    logged = [json.loads(s) for s in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["iter"] for r in logged] == list(range(1, iteration))  # the failed step is not logged
+    assert all(np.isfinite(r["loss"]) for r in logged)
+
+
+@pytest.mark.parametrize(
+    "setting, words",
+    [
+        ("train.lr_min=.inf", ["train.lr_min", "finite"]),
+        ("train.lr=.nan", ["train.lr", "finite"]),
+        ("train.lr=0", ["train.lr", "positive"]),
+        ("train.lr_min=1e-2", ["train.lr_min", "train.lr"]),  # above lr: the schedule would rise
+        ("train.seed=1.5", ["train.seed", "integer"]),
+        ("train.seed=abc", ["train.seed", "integer"]),
+        ("train.seed=-1", ["train.seed", "2**63"]),
+        ("val.seed=1.5", ["val.seed", "integer"]),
+        ("data.patch=100000", ["data.patch", "4096"]),
+    ],
+)
+def test_impossible_training_settings_are_one_line(setting, words, tmp_path, capsys):
+    config = tiny_config(tmp_path)
+    rc, _, err = run_cli(capsys, ["train", "--config", str(config), "--out", str(tmp_path / "run"), "--set", setting])
+    assert rc == 2
+    one_error_line(err, *words)
+    assert not (tmp_path / "run").exists()
+
+
+def test_train_removes_the_temp_checkpoint_a_killed_run_left(tmp_path, capsys):
+    config = tiny_config(tmp_path, iterations=2)
+    run = tmp_path / "run"
+    run.mkdir()
+    stale = run / f".last.pt.{dead_pid()}-0123abcd.tmp.pt"
+    stale.write_bytes(b"\0" * 1000)
+    live = run / f".last.pt.{os.getppid()}-0123abcd.tmp.pt"  # a process that still runs may be writing it
+    live.write_bytes(b"")
+    assert main(["train", "--config", str(config), "--out", str(run)]) == 0
+    capsys.readouterr()
+    assert not stale.exists() and live.exists()
+
+
+def test_resume_after_a_kill_does_not_repeat_log_lines(tmp_path):
+    """A kill -9 between checkpoints leaves log lines of iterations the checkpoint does not hold; the resumed
+    run trains those iterations again, and the log must say each once (the state of such a kill is made
+    exactly: the checkpoint of iteration 2 put back after iterations 3 and 4 were logged)."""
+    import shutil
+
+    from d2turb.train import Trainer, load_config
+
+    cfg = load_config(tiny_config(tmp_path, iterations=6))
+    cfg.val.every = 1000
+    run = tmp_path / "run"
+    trainer = Trainer(cfg, run)
+    trainer.fit(max_steps=2)
+    shutil.copy(run / "last.pt", tmp_path / "at2.pt")
+    trainer.fit(max_steps=2)
+    shutil.copy(tmp_path / "at2.pt", run / "last.pt")  # what the kill left: log to 4, checkpoint at 2
+    assert [json.loads(s)["iter"] for s in (run / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4]
+    trainer = Trainer(cfg, run)
+    assert trainer.iteration == 2
+    trainer.fit()
+    assert [json.loads(s)["iter"] for s in (run / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5, 6]

@@ -128,6 +128,7 @@ def test_init_from_file_and_name(pairs, tmp_path, monkeypatch):
         Trainer(tiny_cfg(pairs, init_from="no-such-weights"), tmp_path / "missing")
 
 
+@pytest.mark.slow
 def test_compile_matches_eager_and_checkpoints_plain_names(pairs, tmp_path):
     plain = Trainer(tiny_cfg(pairs, iterations=2), tmp_path / "plain")
     plain.fit()
@@ -157,6 +158,7 @@ def test_sigterm_checkpoints_and_stops(pairs, tmp_path):
     assert Trainer(tiny_cfg(pairs, iterations=4), tmp_path / "run").iteration == 1
 
 
+@pytest.mark.slow
 def test_detached_training_status_and_guard(pairs, tmp_path, capsys, monkeypatch):
     import yaml
 

@@ -52,7 +52,32 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"d2turb.commands.{name}").register(sub)
+    parser.commands = sub.choices  # name -> the command's parser
     return parser
+
+
+# parameters named with their unit, whose flag has the short name: the message keeps the name, the flag beside it
+UNIT_PARAMS = {
+    "wavelength_m": "wavelength",
+    "ifov_rad": "ifov",
+    "aperture_m": "aperture",
+    "path_length_m": "path_length",
+}
+
+
+def flag_words(exc: D2TurbError, command: argparse.ArgumentParser | None) -> str:
+    """The message of a library error with the parameter it starts with (``exc.param``) named by the command's flag
+    for it: ``patch must be…`` → ``--patch must be…``, ``ifov_rad = …`` → ``ifov_rad (--ifov) = …``; as it is when
+    the command has no such flag."""
+    message, param = str(exc), getattr(exc, "param", None)
+    if command is None or param is None or not message.startswith(param):
+        return message
+    flags = {action.dest: max(action.option_strings, key=len) for action in command._actions if action.option_strings}
+    if param in flags:
+        return flags[param] + message[len(param) :]
+    if UNIT_PARAMS.get(param) in flags:
+        return f"{param} ({flags[UNIT_PARAMS[param]]})" + message[len(param) :]
+    return message
 
 
 def _end_progress_bars() -> None:
@@ -94,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except D2TurbError as exc:
         _end_progress_bars()
-        print("error: " + " ".join(str(exc).split()), file=sys.stderr)
+        message = flag_words(exc, parser.commands.get(args.command))
+        print("error: " + " ".join(message.split()), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         _end_progress_bars()

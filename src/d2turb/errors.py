@@ -13,7 +13,15 @@ class D2TurbError(ValueError):
     A ``ValueError``, so callers that already catch bad values catch it too. The CLI prints its message as
     one line (``error: ...``) and exits with status 2; library code raises it ``from`` the underlying
     exception so the cause stays in the traceback.
+
+    Messages name parameters as a Python caller types them (``patch must be at least 16``). ``param`` says which
+    parameter the message starts with; the command line puts the flag of that parameter in its place
+    (``--patch must be at least 16``).
     """
+
+    def __init__(self, *args, param: str | None = None):
+        super().__init__(*args)
+        self.param = param
 
 
 def print_error(message: str) -> None:

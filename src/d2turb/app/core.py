@@ -38,11 +38,11 @@ from d2turb.io import IMAGE_SUFFIXES, image_size, read_image, write_image, write
 from d2turb.models.hub import (
     IDENTITY_NAME,
     RECOMMENDED_WEIGHTS,
-    WEIGHTS_SUFFIX,
     resolve_weights,
     shipped_weights_dir,
     weights_search_path,
 )
+from d2turb.models.weights import WEIGHTS_SUFFIX
 from d2turb.restore.files import restore_clip_files, restore_files
 from d2turb.sim import MODULATIONS, depth_modulation, derived_quantities, make_params
 from d2turb.video import VIDEO_SUFFIXES, iter_video, video_size

@@ -104,7 +104,13 @@ class PhysicsDeblur:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
         balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
         modulation: mean depth modulation M in (0, 1].
+        alpha: exponent of the tilt removal in the short-exposure OTF (1: all of the tilt removed).
         jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
+
+    Example:
+        >>> deblur = PhysicsDeblur(dr0=2.0)
+        >>> deblur(torch.rand(3, 48, 64)).shape
+        torch.Size([3, 48, 64])
     """
 
     def __init__(
@@ -117,7 +123,7 @@ class PhysicsDeblur:
         jitter_px: float = 0.0,
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
-            raise D2TurbError(f"--dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}")
+            raise D2TurbError(f"dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}", param="dr0")
         balance = default_balance(dr0) if balance is None else balance
         if not math.isfinite(balance) or balance <= 0:
             raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
@@ -141,7 +147,18 @@ class PhysicsDeblur:
         return otf
 
     def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        """Shape: (C, H, W) → (C, H, W), float32 in [0, 1]."""
+        """The deblurred image.
+
+        Args:
+            image: float in [0, 1].
+
+        Returns:
+            The Wiener estimate, float32 in [0, 1].
+
+        Shape:
+            - image: :math:`(C, H, W)`.
+            - Output: :math:`(C, H, W)`.
+        """
         size = tuple(image.shape[-2:])
         if size not in self._gain:
             top, bottom, left, right = wiener_padding(*size)

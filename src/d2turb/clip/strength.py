@@ -440,7 +440,14 @@ def measure_clip(
         bootstrap: resamples for the 90 % interval. max_size: the centre crop analysed (px per side).
         extrapolate: give a number even when the 90 % interval spans more than ``MAX_SPAN`` (a rough strength).
         blind: narrow λ/(D·ifov) by the blur of the fused frame when ifov_rad is not given.
-    Raises ``D2TurbError`` (one line) for input that cannot be measured.
+
+    Returns:
+        A dict: ``dr0``, its 90 % interval ``dr0_ci``, ``r0_m``, ``cn2`` and ``theta0_urad`` (None without a path
+        length), ``parameters`` (given, marginalised), ``widened_by``, ``windows``, ``inputs``, the diagnostics.
+    Shape:
+        - frames: N ≥ 8 (``MIN_FRAMES``) frames of :math:`(3, H, W)`, :math:`(H, W)` or :math:`(H, W, C)`.
+    Raises:
+        D2TurbError: input that cannot be measured, or an interval wider than ``MAX_SPAN`` without ``extrapolate``.
     """
     optics = as_optics(optics)
     gray = _gray_frames(frames)

@@ -65,7 +65,8 @@ def run(args):
     import torch
 
     from d2turb.models import create_backbone, list_backbones, list_models, parameter_count
-    from d2turb.models.hub import RECOMMENDED_WEIGHTS, shipped_weights, shipped_weights_dir, weights_info
+    from d2turb.models.hub import RECOMMENDED_WEIGHTS, shipped_weights, shipped_weights_dir
+    from d2turb.models.weights import weights_info
 
     models = [{"name": n, "params": parameter_count(n)} for n in list_models()]
     backbones = []

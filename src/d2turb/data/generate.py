@@ -103,16 +103,16 @@ PATCH_MAX = 4096  # as train's data.patch: one 4096² sample already holds ~0.5 
 
 def validate(cfg: DatasetConfig) -> None:
     if cfg.pairs < 1:
-        raise D2TurbError(f"--pairs must be at least 1, got {cfg.pairs}")
+        raise D2TurbError(f"pairs must be at least 1, got {cfg.pairs}", param="pairs")
     if not 16 <= cfg.patch <= PATCH_MAX:
-        raise D2TurbError(f"--patch must be from 16 to {PATCH_MAX} px, got {cfg.patch}")
+        raise D2TurbError(f"patch must be from 16 to {PATCH_MAX} px, got {cfg.patch}", param="patch")
     if cfg.split not in SPLITS:
-        raise D2TurbError(f"--split must be one of {', '.join(SPLITS)}, got {cfg.split!r}")
+        raise D2TurbError(f"split must be one of {', '.join(SPLITS)}, got {cfg.split!r}", param="split")
     bin_spans(cfg.bins)
     if cfg.batch < 1:
-        raise D2TurbError(f"--batch must be at least 1, got {cfg.batch}")
+        raise D2TurbError(f"batch must be at least 1, got {cfg.batch}", param="batch")
     if not 0 <= cfg.seed < 2**63:
-        raise D2TurbError(f"--seed must be between 0 and 2**63 - 1, got {cfg.seed}")
+        raise D2TurbError(f"seed must be between 0 and 2**63 - 1, got {cfg.seed}", param="seed")
     if cfg.frames != 1 or cfg.sequence:
         cfg.sequence = sequence_settings(cfg.frames, cfg.sequence)
     for key, (lo_ok, hi_ok) in {"noise": (0.0, 50.0), "jpeg": (1, 100)}.items():
@@ -161,8 +161,9 @@ def check_patch_fits(sources: list[Path], patch: int) -> None:
         largest = max(largest, short)
     if largest:
         raise D2TurbError(
-            f"--patch {patch} is larger than every source image (largest short side {largest} px); "
-            f"use --patch {largest} or less, or larger images"
+            f"patch {patch} is larger than every source image (largest short side {largest} px); "
+            f"use a patch of {largest} or less, or larger images",
+            param="patch",
         )
 
 

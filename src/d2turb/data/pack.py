@@ -252,13 +252,17 @@ def make_pack(
     """
     out = Path(out)
     if not 1 <= quality <= 100:
-        raise D2TurbError(f"--quality must be between 1 and 100, got {quality}")
+        raise D2TurbError(f"quality must be between 1 and 100, got {quality}", param="quality")
     if patch < 16:
-        raise D2TurbError(f"--patch must be at least 16, got {patch}")
+        raise D2TurbError(f"patch must be at least 16, got {patch}", param="patch")
     if not (isinstance(max_mib, (int, float)) and math.isfinite(max_mib) and 0 < max_mib <= MAX_MIB):
-        raise D2TurbError(f"--max-mib must be a number above 0 and at most {MAX_MIB} (1 TiB), got {max_mib}")
+        raise D2TurbError(
+            f"max_mib must be a number above 0 and at most {MAX_MIB} (1 TiB), got {max_mib}", param="max_mib"
+        )
     if max_side is not None and not (isinstance(max_side, int) and patch <= max_side <= 65535):
-        raise D2TurbError(f"--max-side must be an integer from --patch ({patch}) to 65535, got {max_side}")
+        raise D2TurbError(
+            f"max_side must be an integer from patch ({patch}) to 65535, got {max_side}", param="max_side"
+        )
     if out.exists() and not (out / MANIFEST).is_file() and (not out.is_dir() or any(out.iterdir())):
         raise D2TurbError(f"{out}: exists and is not a d2turb pack; choose another --out")
     sources, excluded = collect_sources(clean)

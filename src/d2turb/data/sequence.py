@@ -33,7 +33,7 @@ SEQUENCE_DEFAULTS = {"fps": 30.0, "wind": 1.0, "wind_dir": 0.0, "boil": 0.0}
 def sequence_settings(frames: int, sequence: dict) -> dict:
     """Checked sequence settings (fps, wind m/s or list from aperture to object, wind_dir deg, boil)."""
     if not isinstance(frames, int) or frames < 1:
-        raise D2TurbError(f"--frames must be a positive integer, got {frames!r}")
+        raise D2TurbError(f"frames must be a positive integer, got {frames!r}", param="frames")
     unknown = sorted(set(sequence) - set(SEQUENCE_DEFAULTS))
     if unknown:
         raise D2TurbError(f"unknown sequence setting {unknown[0]!r}; choose from {', '.join(SEQUENCE_DEFAULTS)}")

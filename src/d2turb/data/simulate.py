@@ -97,7 +97,7 @@ def simulate_files(
         The exit status: 0 all done, 1 some inputs failed, 2 all failed.
     """
     if batch < 1:
-        raise D2TurbError(f"--batch must be at least 1, got {batch}")
+        raise D2TurbError(f"batch must be at least 1, got {batch}", param="batch")
     paths = expand_inputs(inputs)
     check_unique_stems(paths)
     check_depth_spec(depth)

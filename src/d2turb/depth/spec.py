@@ -30,9 +30,13 @@ def check_depth_spec(spec: str) -> None:
     if spec.startswith("anything:"):
         folder = Path(spec[len("anything:") :])
         if not (folder / "config.json").is_file():
-            raise D2TurbError(f"--depth {spec}: {folder} is not a Depth Anything model folder (no config.json)")
+            raise D2TurbError(
+                f"depth {spec}: {folder} is not a Depth Anything model folder (no config.json)", param="depth"
+            )
     elif not Path(spec).exists():
-        raise D2TurbError(f"--depth {spec}: no such depth file or folder (or use none, prior, anything:PATH)")
+        raise D2TurbError(
+            f"depth {spec}: no such depth file or folder (or use none, prior, anything:PATH)", param="depth"
+        )
 
 
 def depth_for_image(

@@ -8,7 +8,8 @@ import json
 import os
 from pathlib import Path
 
-from d2turb.models.hub import CONFIG_KEY, IDENTITY_NAME, WEIGHTS_SUFFIX
+from d2turb.models.hub import IDENTITY_NAME
+from d2turb.models.weights import CONFIG_KEY, WEIGHTS_SUFFIX
 
 GENERIC_STEMS = {"model", "best", "last", "ema", "weights", "checkpoint"}  # the names a run folder gives its files
 

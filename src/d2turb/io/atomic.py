@@ -22,7 +22,8 @@ from d2turb.errors import D2TurbError
 _TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<token>[A-Za-z0-9_-]+)\.tmp(?P<suffix>\.[^.]+)?$")
 
 
-def _reason(exc: OSError) -> str:
+def reason(exc: OSError) -> str:
+    """What went wrong, in the words of the OS (``Permission denied``), for a one-line error."""
     return exc.strerror or str(exc) or exc.__class__.__name__
 
 
@@ -73,14 +74,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         os.close(fd)
         mode = stat.S_IMODE(tmp.stat().st_mode)  # 0666 minus the umask, as the kernel applied it
     except OSError as exc:
-        raise D2TurbError(f"cannot write {path}: {_reason(exc)}") from exc
+        raise D2TurbError(f"cannot write {path}: {reason(exc)}") from exc
     try:
         yield tmp
         if stat.S_IMODE(tmp.stat().st_mode) != mode:  # a writer that replaced the file (safetensors: 0600)
             os.chmod(tmp, mode)
         os.replace(tmp, path)
     except OSError as exc:
-        raise D2TurbError(f"cannot write {path}: {_reason(exc)}") from exc
+        raise D2TurbError(f"cannot write {path}: {reason(exc)}") from exc
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
@@ -97,7 +98,7 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp, fd = _open_temp(path)
     except OSError as exc:
-        raise D2TurbError(f"cannot write {path}: {_reason(exc)}") from exc
+        raise D2TurbError(f"cannot write {path}: {reason(exc)}") from exc
     try:
         with open(fd, "wb") as f:
             f.write(data)
@@ -106,7 +107,7 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if isinstance(exc, OSError):
-            raise D2TurbError(f"cannot write {path}: {_reason(exc)}") from exc
+            raise D2TurbError(f"cannot write {path}: {reason(exc)}") from exc
         raise
 
 
@@ -270,7 +271,7 @@ class FolderLock:
                         os.link(stale, self.path)  # give it back
                 os.unlink(stale)
         except OSError as exc:
-            raise D2TurbError(f"cannot lock {self.folder}: {_reason(exc)}") from exc
+            raise D2TurbError(f"cannot lock {self.folder}: {reason(exc)}") from exc
         raise D2TurbError(f"cannot lock {self.folder}: the lock file {self.path} keeps changing")
 
     def release(self) -> None:

@@ -14,7 +14,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from d2turb.defaults import DEFAULT_MAX_PIXELS
 from d2turb.errors import D2TurbError
-from d2turb.io.atomic import _reason
+from d2turb.io.atomic import reason
 from d2turb.io.png import decode_plain_png
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
@@ -35,7 +35,7 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     try:
         entries = list(folder.rglob("*") if recursive else folder.iterdir())
     except OSError as exc:
-        raise D2TurbError(f"{folder}: cannot read folder ({_reason(exc)})") from exc
+        raise D2TurbError(f"{folder}: cannot read folder ({reason(exc)})") from exc
     found = []
     for p in entries:
         hidden = any(part.startswith(".") for part in p.relative_to(folder).parts)
@@ -151,7 +151,7 @@ def set_max_pixels(limit: int | None) -> None:
     pixels). The CLI sets it from ``--max-pixels``; the default is Pillow's own limit.
     """
     if limit is not None and limit < 0:
-        raise D2TurbError(f"--max-pixels must be >= 0 (0 = no limit), got {limit}")
+        raise D2TurbError(f"set_max_pixels: limit must be >= 0 (0 = no limit), got {limit}")
     _limits["max_pixels"] = limit or None
 
 

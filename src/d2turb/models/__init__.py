@@ -14,7 +14,6 @@ from d2turb.models.complexity import (
     parameter_count,
 )
 from d2turb.models.d2turb import BackboneRestorer, D2Turb
-from d2turb.models.hub import load_pretrained, save_pretrained
 from d2turb.models.injection import ASPI, CosineASPI
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.rectifier import TiltRectifier, UNetRectifier
@@ -26,6 +25,7 @@ from d2turb.models.registry import (
     register_backbone,
     register_model,
 )
+from d2turb.models.weights import load_pretrained, save_pretrained
 
 __all__ = [
     "ModelOutput",

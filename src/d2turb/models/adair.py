@@ -123,21 +123,11 @@ class AdaIR(Restormer):
     """Restormer (``norm_bias=True``, AdaIR's WithBias LayerNorm) + three AFLBs with ``heads[2]`` heads.
     ``freq_div``: the mask's half-size is at most ⌊size / freq_div⌋ frequency bins (AdaIR: 128)."""
 
-    def __init__(
-        self,
-        dim: int = 48,
-        num_blocks=(4, 6, 6, 8),
-        heads=(1, 2, 4, 8),
-        num_refinement_blocks: int = 4,
-        ffn_expansion: float = 2.66,
-        bias: bool = False,
-        norm_bias: bool = True,
-        freq_div: int = 128,
-        in_channels: int = 3,
-    ):
-        super().__init__(dim, num_blocks, heads, num_refinement_blocks, ffn_expansion, bias, norm_bias, in_channels)
+    def __init__(self, freq_div: int = 128, **config):  # config: the fields of RestormerConfig
+        super().__init__(**config)
         if freq_div < 1:
             raise ValueError("adair: freq_div must be >= 1")
+        dim, heads, bias = self.arch.dim, self.arch.heads, self.arch.bias
         self.fre1 = AFLB(dim * 8, heads[2], bias, freq_div)
         self.fre2 = AFLB(dim * 4, heads[2], bias, freq_div)
         self.fre3 = AFLB(dim * 2, heads[2], bias, freq_div)

@@ -23,8 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from d2turb.models.common import pad_to_multiple
-from d2turb.models.d2turb import _check_input
+from d2turb.models.common import check_input, pad_to_multiple
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
 
@@ -170,7 +169,7 @@ class ATNet(nn.Module):
         self.guide_channels = 16
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         x, (h, w) = pad_to_multiple(image, 2)
         x_half = F.interpolate(x, scale_factor=0.5)  # nearest, as AT-Net
         out = {}

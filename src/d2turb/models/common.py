@@ -1,10 +1,20 @@
-"""Small building blocks shared by the backbones and the rectifier."""
+"""Small building blocks shared by the backbones and the rectifier, and the input check of every model."""
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from d2turb.errors import D2TurbError
+from d2turb.ops.checks import check_shape
+
+
+def check_input(image: torch.Tensor) -> None:
+    """Refuse what no restoration model takes: anything but a floating (B, 3, H, W) batch at least 2 px a side."""
+    check_shape(image, "B 3 H W", "model input", floating=True)
+    if min(image.shape[-2:]) < 2:
+        raise D2TurbError(f"model input is too small: {tuple(image.shape[-2:])}")
 
 
 def pad_to_size(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

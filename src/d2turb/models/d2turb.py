@@ -7,18 +7,11 @@ import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
-from d2turb.models.common import pad_to_multiple
+from d2turb.models.common import check_input, pad_to_multiple
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.rectifier import create_rectifier
 from d2turb.models.registry import create_backbone, register_model, register_standalone
-from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
-
-
-def _check_input(image: torch.Tensor) -> None:
-    check_shape(image, "B 3 H W", "model input", floating=True)
-    if min(image.shape[-2:]) < 2:
-        raise D2TurbError(f"model input is too small: {tuple(image.shape[-2:])}")
 
 
 @register_model("d2turb")
@@ -61,7 +54,7 @@ class D2Turb(nn.Module):
             raise D2TurbError(f"d2turb: bad rectifier/injection config ({exc})") from exc
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         h, w = image.shape[-2:]
         x, _ = pad_to_multiple(image, self.multiple)
         deblurred, guide = self.backbone(x)  # Eq. 8
@@ -83,7 +76,7 @@ class BackboneRestorer(nn.Module):
         self.backbone = create_backbone(backbone, **backbone_cfg)
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         out, guide = self.backbone(image)
         return model_output(out, out, None, guide)
 

@@ -1,7 +1,7 @@
 """Name → constructor registries for complete models and for deblurring backbones.
 
 ``create_model(name, **cfg)`` builds a model and records ``model.config = {"name": name, **cfg}`` so
-:func:`d2turb.models.hub.save_pretrained` can rebuild it. Adding a backbone is a one-file job: decorate
+:func:`d2turb.models.weights.save_pretrained` can rebuild it. Adding a backbone is a one-file job: decorate
 its class with ``@register_backbone("name")`` (and import the file in ``d2turb/models/__init__.py``).
 """
 

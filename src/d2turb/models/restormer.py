@@ -6,6 +6,9 @@ FFN expansion 2.66, LayerNorm with bias (Restormer's "WithBias", as in the autho
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -58,7 +61,8 @@ class TransformerBlock(nn.Module):
         return x + self.ffn(self.norm2(x))
 
 
-def _stage(dim, heads, n, expansion, bias, norm_bias):
+def transformer_stage(dim, heads, n, expansion, bias, norm_bias):
+    """``n`` transformer blocks of width ``dim`` in a row (one level of the encoder, decoder or refinement)."""
     return nn.Sequential(*[TransformerBlock(dim, heads, expansion, bias, norm_bias) for _ in range(n)])
 
 
@@ -72,27 +76,48 @@ class Upsample(nn.Sequential):  # conv doubles channels, pixel-shuffle: (C, H, W
         super().__init__(nn.Conv2d(dim, dim * 2, 3, padding=1, bias=False), nn.PixelShuffle(2))
 
 
+@dataclass
+class RestormerConfig:
+    """The shape of a Restormer-style transformer U-Net, shared by Restormer, AdaIR, TurbNet and TMT (the paper's
+    Restormer by default). Their constructors take these fields as keywords, as ``create_model`` passes a config.
+
+    Args:
+        dim: channels of level 1 (levels 2-4: 2, 4, 8 times as many).
+        num_blocks: transformer blocks of levels 1-4 (the decoder repeats levels 1-3).
+        heads: attention heads of levels 1-4.
+        num_refinement_blocks: transformer blocks of the refinement stage (whose output is F_guide).
+        ffn_expansion: hidden channels of the gated feed-forward network, per channel.
+        bias: biases of the convolutions.
+        norm_bias: LayerNorm with bias (Restormer's "WithBias"); False: "BiasFree".
+        in_channels: channels of the image.
+    """
+
+    dim: int = 48
+    num_blocks: Sequence[int] = (4, 6, 6, 8)
+    heads: Sequence[int] = (1, 2, 4, 8)
+    num_refinement_blocks: int = 4
+    ffn_expansion: float = 2.66
+    bias: bool = False
+    norm_bias: bool = True
+    in_channels: int = 3
+
+
 @register_backbone("restormer")
 class Restormer(nn.Module):
+    """Restormer(**config): the fields of :class:`RestormerConfig` as keywords; ``self.arch`` holds them."""
+
     multiple = 8  # three 2× downsamples
 
-    def __init__(
-        self,
-        dim: int = 48,
-        num_blocks=(4, 6, 6, 8),
-        heads=(1, 2, 4, 8),
-        num_refinement_blocks: int = 4,
-        ffn_expansion: float = 2.66,
-        bias: bool = False,
-        norm_bias: bool = True,
-        in_channels: int = 3,
-    ):
+    def __init__(self, **config):
         super().__init__()
-        if len(num_blocks) != 4 or len(heads) != 4:
+        arch = self.arch = RestormerConfig(**config)
+        dim, heads, bias, in_channels = arch.dim, arch.heads, arch.bias, arch.in_channels
+        if len(arch.num_blocks) != 4 or len(heads) != 4:
             raise ValueError("restormer: num_blocks and heads need 4 entries (levels 1-4)")
 
         def stage(d, level, n=None):
-            return _stage(d, heads[level], num_blocks[level] if n is None else n, ffn_expansion, bias, norm_bias)
+            n = arch.num_blocks[level] if n is None else n
+            return transformer_stage(d, heads[level], n, arch.ffn_expansion, bias, arch.norm_bias)
 
         self.patch_embed = nn.Conv2d(in_channels, dim, 3, padding=1, bias=bias)  # overlapped patch embedding
         self.encoder_level1 = stage(dim, 0)
@@ -110,7 +135,7 @@ class Restormer(nn.Module):
         self.decoder_level2 = stage(dim * 2, 1)
         self.up2_1 = Upsample(dim * 2)
         self.decoder_level1 = stage(dim * 2, 0)
-        self.refinement = stage(dim * 2, 0, num_refinement_blocks)
+        self.refinement = stage(dim * 2, 0, arch.num_refinement_blocks)
         self.output = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
         self.guide_channels = dim * 2
 

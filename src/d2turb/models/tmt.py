@@ -21,11 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from d2turb.models.common import ChannelLayerNorm, pad_to_multiple, transposed_attention
-from d2turb.models.d2turb import _check_input
+from d2turb.models.common import ChannelLayerNorm, check_input, pad_to_multiple, transposed_attention
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
-from d2turb.models.restormer import GDFN
+from d2turb.models.restormer import GDFN, RestormerConfig
 
 
 class ShuffleAttention(nn.Module):
@@ -85,26 +84,19 @@ class TMT(nn.Module):
 
     multiple = 8  # three 2× downsamples
 
-    def __init__(
-        self,
-        dim: int = 48,
-        num_blocks=(2, 3, 3, 4),
-        heads=(1, 2, 4, 8),
-        num_refinement_blocks: int = 2,
-        ffn_expansion: float = 2.66,
-        bias: bool = False,
-        norm_bias: bool = True,
-        shuffle_groups: int = 8,
-        in_channels: int = 3,
-    ):
+    defaults = {"num_blocks": (2, 3, 3, 4), "num_refinement_blocks": 2}  # TMT's own, over RestormerConfig's
+
+    def __init__(self, shuffle_groups: int = 8, **config):  # config: the fields of RestormerConfig
         super().__init__()
-        if len(num_blocks) != 4 or len(heads) != 4:
+        arch = self.arch = RestormerConfig(**{**self.defaults, **config})
+        dim, heads, bias, in_channels = arch.dim, arch.heads, arch.bias, arch.in_channels
+        if len(arch.num_blocks) != 4 or len(heads) != 4:
             raise ValueError("tmt: num_blocks and heads need 4 entries (levels 1-4)")
 
         def stage(d, level, n=None):
-            n = num_blocks[level] if n is None else n
+            n = arch.num_blocks[level] if n is None else n
             return nn.Sequential(
-                *[Block(d, heads[level], ffn_expansion, bias, norm_bias, shuffle_groups) for _ in range(n)]
+                *[Block(d, heads[level], arch.ffn_expansion, bias, arch.norm_bias, shuffle_groups) for _ in range(n)]
             )
 
         self.embed1, self.embed2, self.embed3 = (nn.Conv2d(in_channels, dim, 7, padding=3, bias=bias) for _ in range(3))
@@ -123,12 +115,12 @@ class TMT(nn.Module):
         self.decoder_level2 = stage(dim * 2, 1)
         self.up2_1 = Upsample(dim * 2)
         self.decoder_level1 = stage(dim * 2, 0)
-        self.refinement = stage(dim * 2, 0, num_refinement_blocks)
+        self.refinement = stage(dim * 2, 0, arch.num_refinement_blocks)
         self.output = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
         self.guide_channels = dim * 2
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         x, (h, w) = pad_to_multiple(image, self.multiple)
         hp, wp = x.shape[-2:]
         x2 = F.interpolate(x, size=(hp // 2, wp // 2), mode="bilinear", align_corners=False)

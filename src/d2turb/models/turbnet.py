@@ -15,11 +15,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from d2turb.models.common import pad_to_multiple
-from d2turb.models.d2turb import _check_input
+from d2turb.models.common import check_input, pad_to_multiple
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
-from d2turb.models.restormer import Restormer, _stage
+from d2turb.models.restormer import Restormer, transformer_stage
 
 
 def restormer_decoder_feature(net: Restormer, x: torch.Tensor) -> torch.Tensor:
@@ -41,26 +40,20 @@ class TurbNet(Restormer):
 
     alpha = 0.9  # TurbNet's weight of the reconstruction term; the re-degradation term has 1 − α
 
-    def __init__(
-        self,
-        dim: int = 48,
-        num_blocks=(4, 6, 6, 8),
-        heads=(1, 2, 4, 8),
-        num_refinement_blocks: int = 4,
-        ffn_expansion: float = 2.66,
-        bias: bool = False,
-        norm_bias: bool = True,
-        in_channels: int = 3,
-    ):
-        super().__init__(dim, num_blocks, heads, num_refinement_blocks, ffn_expansion, bias, norm_bias, in_channels)
-        self.refinement_t = _stage(dim * 2, heads[0], num_refinement_blocks, ffn_expansion, bias, norm_bias)
+    def __init__(self, **config):  # the fields of RestormerConfig
+        super().__init__(**config)
+        a = self.arch
+        dim, bias, in_channels = a.dim, a.bias, a.in_channels
+        self.refinement_t = transformer_stage(
+            dim * 2, a.heads[0], a.num_refinement_blocks, a.ffn_expansion, bias, a.norm_bias
+        )
         self.output_t = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
         self.epsilon = nn.Sequential(  # ε: a per-pixel network of the turbulent input
             nn.Conv2d(in_channels, 8 * in_channels, 1), nn.ReLU(), nn.Conv2d(8 * in_channels, in_channels, 1)
         )
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
-        _check_input(image)
+        check_input(image)
         x, (h, w) = pad_to_multiple(image, self.multiple)
         d1 = restormer_decoder_feature(self, x)
         guide = self.refinement(d1)

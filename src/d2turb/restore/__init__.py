@@ -1,7 +1,8 @@
 """d2turb.restore: remove turbulence. Single images of any size with a trained model (:class:`Restorer`, tiled);
 clips by registration across frames, fusion and deblurring (:func:`restore_clip`, ``d2turb.clip``)."""
 
-from d2turb.models.hub import IDENTITY_NAME, WEIGHTS_SUFFIX, resolve_weights, weights_search_path
+from d2turb.models.hub import IDENTITY_NAME, resolve_weights, weights_search_path
+from d2turb.models.weights import WEIGHTS_SUFFIX
 from d2turb.restore.single import (
     IdentityRestorer,
     Restorer,

@@ -24,8 +24,9 @@ from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
 from d2turb.models.common import pad_to_multiple
-from d2turb.models.hub import IDENTITY_NAME, load_pretrained, recommended_weights, resolve_weights
+from d2turb.models.hub import IDENTITY_NAME, recommended_weights, resolve_weights
 from d2turb.models.output import ModelOutput, model_output
+from d2turb.models.weights import load_pretrained
 from d2turb.ops.checks import check_image_tensor
 from d2turb.ops.warp import base_grid, sample_at
 
@@ -112,6 +113,18 @@ class Restorer:
     shipped). ``device``: see :func:`d2turb.device.resolve_device`. Images
     larger than ``tile`` are processed in overlapping tiles (``overlap`` pixels shared) and blended
     seamlessly; CUDA runs under bf16 autocast. A model output with NaN/inf raises ``D2TurbError``.
+
+    Args:
+        weights: see above (a path, a name, ``"input"``, a module, or None for the recommended shipped model).
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"``.
+        tile: largest side processed at once (px, >= 16); larger images go in tiles.
+        overlap: pixels shared by neighbouring tiles (0 to tile/2).
+        progress: show a progress bar over the tiles.
+
+    Example:
+        >>> restorer = Restorer("input")  # the identity baseline: no weights needed
+        >>> restorer.restore(torch.rand(3, 40, 56)).shape
+        torch.Size([3, 40, 56])
     """
 
     def __init__(self, weights=None, device: str = "cpu", tile: int = 512, overlap: int = 64, progress: bool = False):
@@ -128,7 +141,18 @@ class Restorer:
 
     # -- public API -------------------------------------------------------------------------------
     def restore(self, image) -> torch.Tensor:
-        """Restored image, same shape as the input ((3,H,W) or (B,3,H,W), float32 in [0,1], on CPU)."""
+        """The restored image.
+
+        Args:
+            image: float in [0, 1] (or an image file's path).
+
+        Returns:
+            The restored image, float32 in [0, 1], on the CPU.
+
+        Shape:
+            - image: :math:`(3, H, W)` or :math:`(B, 3, H, W)`.
+            - Output: the input's shape.
+        """
         return self.restore_with_details(image)["restored"]
 
     def restore_with_details(self, image) -> dict:

@@ -76,6 +76,27 @@ class TurbulenceParams:
     strength; with neither, D/r0 = 3. ``wavelength_m`` is one value or one per RGB channel; the
     reference wavelength (D/r0, default ifov) is the middle one. ``ifov_rad`` defaults to Nyquist
     sampling λ_ref/(2D). ``offset_s`` is the baseline offset s of Eq. 1 (default 0.5).
+
+    Args:
+        aperture_m: aperture diameter D (m).
+        wavelength_m: wavelength (m), one value or three (R, G, B).
+        path_length_m: path length L (m).
+        dr0: turbulence strength D/r0 at the reference wavelength (give it or ``cn2``).
+        cn2: refractive-index structure constant Cn² (m^-2/3), constant along the path.
+        ifov_rad: angular size of a pixel (rad); default Nyquist λ_ref/(2D).
+        n_zernike: Zernike modes simulated (Noll indices 2..n_zernike).
+        offset_s: baseline offset s of the depth modulation (Eq. 1).
+        modulation: the depth modulation M's form (``d2turb.sim.MODULATIONS``).
+        tilt_geometry: "path" (constant Cn² along the path) or "layer" (one thin layer).
+        layer_z_frac: the layer's distance from the aperture / L (``tilt_geometry="layer"``).
+        psf_grid_px: spacing of the exact-PSF grid (px).
+
+    Raises:
+        D2TurbError: a value out of its range, or dr0 and cn2 that disagree (one line, naming the parameter).
+
+    Example:
+        >>> TurbulenceParams(dr0=2.0, wavelength_m=(630e-9, 525e-9, 450e-9)).reference_wavelength
+        5.25e-07
     """
 
     aperture_m: float = 0.1
@@ -149,10 +170,11 @@ class TurbulenceParams:
         ratio = [self.ifov_rad / n for n in nyquist]
         if min(ratio) < lo or max(ratio) > hi:
             raise D2TurbError(
-                f"ifov_rad (--ifov) = {self.ifov_rad:.3g} rad is {min(ratio) if min(ratio) < lo else max(ratio):.3g}× "
+                f"ifov_rad = {self.ifov_rad:.3g} rad is {min(ratio) if min(ratio) < lo else max(ratio):.3g}× "
                 f"the Nyquist pixel λ/(2D); the simulator supports {lo:g}× to {hi:g}×: ifov_rad from "
                 f"{lo * max(nyquist):.3g} to {hi * min(nyquist):.3g} rad for this aperture and wavelength "
-                f"(docs/cli.md, physical parameters)"
+                f"(docs/cli.md, physical parameters)",
+                param="ifov_rad",
             )
 
     @property
@@ -205,7 +227,7 @@ def make_params(
     """
     wl = list(wavelength_m) if isinstance(wavelength_m, (list, tuple)) else [wavelength_m]
     if len(wl) not in (1, 3):
-        raise D2TurbError(f"--wavelength takes one or three values, got {len(wl)}")
+        raise D2TurbError(f"wavelength_m takes one or three values, got {len(wl)}", param="wavelength_m")
     return TurbulenceParams(
         aperture_m=aperture_m,
         wavelength_m=tuple(wl) if len(wl) == 3 else wl[0],

@@ -59,6 +59,16 @@ class Simulator:
     Σ_k w_k exp(−((n_j+1) s_k)²) (width shrinking with the radial order n_j). Exact PSFs from these
     coefficients on a grid every ``psf_grid_px`` pixels are compressed to a PCA basis and applied as a
     spatially varying blur; tilt becomes the displacement field Δ.
+
+    Args:
+        params: the imaging and turbulence parameters (default ``TurbulenceParams()``: D/r0 = 3, Nyquist pixels).
+        device: where the fields and the blur are computed.
+
+    Example:
+        >>> sim = Simulator(TurbulenceParams(dr0=2.0))
+        >>> out = sim(torch.rand(1, 3, 64, 64), generator=torch.Generator().manual_seed(0))
+        >>> out.turb.shape, out.fwd_flow_px.shape
+        (torch.Size([1, 3, 64, 64]), torch.Size([1, 2, 64, 64]))
     """
 
     def __init__(self, params: TurbulenceParams | None = None, device="cpu"):
@@ -164,8 +174,24 @@ class Simulator:
         generator: torch.Generator | None = None,
         fields=None,
     ) -> SimResult:
-        """One realisation; ``fields`` (a :class:`~d2turb.sim.sequence.FrozenFlow`) supplies the unit random
-        fields of the current frame of a sequence instead of fresh independent ones."""
+        """One realisation of turbulence over ``image``.
+
+        Args:
+            image: the clean image(s), float in [0, 1].
+            depth: depth (or a per-pixel modulation source) for the depth modulation M of Eq. 4; None: M = 1.
+            dr0: D/r0, a number or one per image (default: the parameters').
+            generator: the random generator of the fields (reproducible realisations).
+            fields: a :class:`~d2turb.sim.sequence.FrozenFlow` supplying the unit random fields of the current
+                frame of a sequence instead of fresh independent ones.
+
+        Returns:
+            A :class:`SimResult`: ``turb`` (the turbulent image), ``tilt`` (tilt only), ``clean``, ``blur``,
+            ``fwd_flow_px`` (the forward displacement Δ in px), ``modulation`` and ``dr0``.
+
+        Shape:
+            - image: :math:`(C, H, W)` or :math:`(B, C, H, W)`; depth: :math:`(H, W)` or :math:`(B, 1, H, W)`.
+            - turb, tilt, clean, blur: :math:`(B, C, H, W)`; fwd_flow_px: :math:`(B, 2, H, W)`; dr0: :math:`(B,)`.
+        """
         check_shape(image, "[B] C H W", "image", floating=True)
         if image.ndim == 3:
             image = image[None]

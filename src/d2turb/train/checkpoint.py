@@ -158,11 +158,12 @@ def load_weights(model: torch.nn.Module, weights: str | os.PathLike) -> Path:
     """
     path = resolve_weights(weights)
     if path == IDENTITY_NAME:
-        raise D2TurbError(f"--init-from {weights}: not a weights file")
+        raise D2TurbError(f"init_from {weights}: not a weights file", param="init_from")
     source = load_pretrained(path)  # verifies the checksum, strict
     if _jsonable(source.config) != _jsonable(model.config):
         raise D2TurbError(
-            f"--init-from {path}: the weights are for model {_jsonable(source.config)}, not {_jsonable(model.config)}"
+            f"init_from {path}: the weights are for model {_jsonable(source.config)}, not {_jsonable(model.config)}",
+            param="init_from",
         )
     model.load_state_dict(source.state_dict(), strict=True)
     return path

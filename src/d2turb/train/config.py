@@ -177,10 +177,10 @@ def parse_override(item: str) -> tuple[list[str], object]:
     import yaml
 
     if "=" not in item:
-        raise D2TurbError(f"--set {item!r}: expected key=value (e.g. train.iterations=100)")
+        raise D2TurbError(f"overrides {item!r}: expected key=value (e.g. train.iterations=100)", param="overrides")
     key, text = item.split("=", 1)
     if not key or any(not part for part in key.split(".")):
-        raise D2TurbError(f"--set {item!r}: empty key")
+        raise D2TurbError(f"overrides {item!r}: empty key", param="overrides")
     try:
         value = yaml.safe_load(text) if text else None
     except yaml.YAMLError:

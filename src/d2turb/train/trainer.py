@@ -103,7 +103,7 @@ class Trainer:
         if distributed_env().rank == 0:  # temp checkpoints (hundreds of MB) of a killed run, before anything is written
             remove_stale_temp_files(self.run_dir)
         if resume and not self.checkpoint_path.is_file():
-            raise D2TurbError(f"--resume: no checkpoint {self.checkpoint_path}")
+            raise D2TurbError(f"resume: no checkpoint {self.checkpoint_path}", param="resume")
         return self.checkpoint_path.is_file()
 
     def _per_rank_batch(self) -> int:
