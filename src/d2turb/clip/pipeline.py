@@ -355,7 +355,9 @@ class ClipRestorer:
         share = np.clip(z, 0, 1).astype(np.float32)
         if not share.any():
             return np.zeros((h, w), np.float32) if half else share
-        share = cv2.dilate(share, np.ones((box, box), np.uint8))
+        # grown by a disc (a square box printed square patches on real clips), then its edge softened by a box
+        # average as wide as the growth: the share stays 1 over the object itself and fades over box/2 around it
+        share = cv2.blur(cv2.dilate(share, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (box, box))), (box, box))
         return cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR) if half else share
 
 
