@@ -21,7 +21,7 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 # The shipped weights recommended for single-frame restoration: the default of `d2turb restore`, Restorer(), the demo
 # and the page (MODEL_CARD.md). Shipped weights are the package's resources/weights/NAME.safetensors.
-RECOMMENDED_WEIGHTS = "nafnet-gpu-spectral"
+RECOMMENDED_WEIGHTS = "nafnet-gpu-spectral2"
 
 
 def shipped_weights_dir() -> Path:
