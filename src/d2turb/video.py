@@ -155,7 +155,8 @@ class Mp4Writer:
         self._pending: collections.deque = collections.deque()
         self.frames = 0
 
-    def _encode(self, arr) -> None:
+    def _encode(self, frame) -> None:
+        arr = None if frame is None else self._padded(frame)
         for packet in self._stream.encode(None if arr is None else self._av.VideoFrame.from_ndarray(arr, "rgb24")):
             self._container.mux(packet)
 
@@ -163,14 +164,19 @@ class Mp4Writer:
         while len(self._pending) > keep:
             self._pending.popleft().result()  # an encoder error is raised here, in the caller
 
-    def write(self, frame) -> None:
+    @staticmethod
+    def _padded(frame) -> np.ndarray:
         arr = to_uint8(frame) if isinstance(frame, torch.Tensor) else np.asarray(frame, dtype=np.uint8)
         h, w = arr.shape[:2]
-        arr = np.ascontiguousarray(np.pad(arr, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        return np.ascontiguousarray(np.pad(arr, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+
+    def write(self, frame) -> None:
+        """Queue one frame (converted to 8 bits in the encoding thread; the caller must not change it after)."""
         if self.frames == 0:
-            self._stream.height, self._stream.width = arr.shape[:2]
+            h, w = frame.shape[-2:] if isinstance(frame, torch.Tensor) else np.shape(frame)[:2]
+            self._stream.height, self._stream.width = h + h % 2, w + w % 2
         self._wait(1)
-        self._pending.append(self._pool.submit(self._encode, arr))
+        self._pending.append(self._pool.submit(self._encode, frame))
         self.frames += 1
 
     def close(self) -> None:

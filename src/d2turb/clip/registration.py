@@ -52,13 +52,6 @@ def to_hwc(frame) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-def luma(frame_hwc: np.ndarray) -> np.ndarray:
-    """(H,W,C) float → (H,W,1) float32 luma (BT.601; a one-channel frame as it is)."""
-    if frame_hwc.shape[2] == 1:
-        return np.ascontiguousarray(frame_hwc, dtype=np.float32)
-    return (frame_hwc[..., :3] @ _LUMA)[..., None]
-
-
 def to_gray_u8(frame_hwc: np.ndarray) -> np.ndarray:
     """(H,W,C) float in [0,1] → (H,W) uint8 luma (what DIS and phase correlation take)."""
     gray = frame_hwc[..., 0] if frame_hwc.shape[2] == 1 else frame_hwc[..., :3] @ _LUMA
@@ -122,7 +115,8 @@ class DenseFlow:
 
 
 def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray) -> np.ndarray:
-    """``frame(x + flow(x))`` by bilinear interpolation (``cv2.remap``, edges replicated), (H,W,C) float32.
+    """``frame(x + flow(x))`` by bilinear interpolation (``cv2.remap``, edges replicated), (H,W,C) of the frame's
+    dtype (float32, or uint8 rounded to nearest).
 
     Shape:
         frame_hwc: (H, W, C); bwd_flow_px: (H, W, 2), x then y.
