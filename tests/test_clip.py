@@ -437,3 +437,26 @@ def test_registration_tilt_variance_scales_with_the_known_warps():
         got.append(registration_tilt_variance(frames, temporal=16, preset="medium"))
     assert 3.0 < got[1] / got[0] < 5.0, got
     assert got[0] < truth[0] and got[1] < truth[1], (got, truth)
+
+
+def test_8bit_frames_as_stored_restore_exactly_as_their_float_reading(tmp_path):
+    """An 8-bit clip given as (H,W,3) uint8 arrays (d2turb.io.read_frame, what `restore --temporal` reads) restores
+    bit for bit as the same frames read as k/255 float tensors (d2turb.io.read_image): one pipeline, two readings."""
+    from d2turb.io import read_frame, read_image, write_image
+
+    rng = np.random.default_rng(3)
+    scene = _scene(64)
+    paths = []
+    for i in range(6):
+        shifted = np.roll(scene, (i % 3) - 1, axis=1) + 0.02 * rng.standard_normal(scene.shape)
+        paths.append(tmp_path / f"f{i}.png")
+        write_image(paths[-1], torch.from_numpy(np.clip(shifted, 0, 1).astype(np.float32)).permute(2, 0, 1))
+    stored = [read_frame(p) for p in paths]
+    assert all(isinstance(f, np.ndarray) and f.dtype == np.uint8 and f.shape == (64, 64, 3) for f in stored)
+    a = list(ClipRestorer(temporal=4, deblur=BlindDeblur()).restore(stored))
+    b = list(ClipRestorer(temporal=4, deblur=BlindDeblur()).restore(read_image(p) for p in paths))
+    for x, y in zip(a, b, strict=True):
+        assert torch.equal(x.restored, y.restored) and torch.equal(x.bwd_flow_px, y.bwd_flow_px)
+    # a 16-bit frame is not 8-bit: read as read_image gives it
+    write_image(tmp_path / "deep.png", (rng.random((8, 8)) * 65535).astype(np.uint16))
+    assert isinstance(read_frame(tmp_path / "deep.png"), torch.Tensor)

@@ -201,7 +201,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         calls["flow"] += 1
         return real_call(self, *args, **kwargs)
 
-    real_read = files.read_image
+    real_read = files.read_frame
 
     def counting_read(path):
         calls["read"] += 1
@@ -211,7 +211,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         raise AssertionError("the default path must not run d2turb.clip.strength")
 
     monkeypatch.setattr(registration.DenseFlow, "__call__", counting)
-    monkeypatch.setattr(files, "read_image", counting_read)
+    monkeypatch.setattr(files, "read_frame", counting_read)
     monkeypatch.setattr(files, "measure_clip", no_measure)
     monkeypatch.setattr(measure, "measure_clip", no_measure)
     rng = np.random.default_rng(5)

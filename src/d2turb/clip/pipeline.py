@@ -144,7 +144,8 @@ class ClipRestorer:
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
-        """Restored frames in order, one per input frame ((3,H,W) tensors or (H,W,3) arrays in [0,1]), computed
+        """Restored frames in order, one per input frame ((3,H,W) tensors or (H,W,3) arrays in [0,1], or 8-bit frames
+        as (H,W,3) uint8 arrays), computed
         with a bounded lookahead. Raises ``D2TurbError`` for frames of different sizes or a clip of < 2 frames.
 
         The deblur of frame t runs in a thread of its own while frame t + 1 is registered and fused (one frame in
@@ -193,7 +194,13 @@ class ClipRestorer:
                     if length < 2:
                         raise D2TurbError(f"a clip needs at least 2 frames, got {length}")
                 else:
-                    raw = to_hwc(item)
+                    if isinstance(item, np.ndarray) and item.dtype == np.uint8 and item.ndim == 3:
+                        raw = np.ascontiguousarray(item)  # an 8-bit frame as stored: held as it is
+                        gray = to_gray_u8(raw.astype(np.float32) / np.float32(255))  # as from k/255 floats
+                    else:
+                        raw = to_hwc(item)
+                        gray = to_gray_u8(raw)
+                        raw = _compact(raw)
                     if shape is None:
                         check_registrable(*raw.shape[:2])
                         shape = raw.shape
@@ -204,7 +211,7 @@ class ClipRestorer:
                         )
                     if self.flow is None:
                         self.flow = DenseFlow(self.preset)
-                    buf[done[0]] = _Frame(_compact(raw), to_gray_u8(raw))
+                    buf[done[0]] = _Frame(raw, gray)
                     done[0] += 1
                 progressed = True
             total = length if length is not None else done[0]

@@ -38,13 +38,14 @@ def check_registrable(height: int, width: int) -> None:
 
 
 def to_hwc(frame) -> np.ndarray:
-    """A (3,H,W) tensor or (H,W[,C]) array in [0,1] → C-contiguous (H,W,C) float32 array."""
+    """A (3,H,W) tensor or (H,W[,C]) array in [0,1] (uint8: 0–255) → C-contiguous (H,W,C) float32 in [0,1]."""
     if isinstance(frame, torch.Tensor):
         frame = frame.detach().cpu().float()
         if frame.ndim != 3:
             raise D2TurbError(f"expected a (C,H,W) frame, got shape {tuple(frame.shape)}")
         frame = frame.permute(1, 2, 0).numpy()
-    arr = np.asarray(frame, dtype=np.float32)
+    arr = np.asarray(frame)
+    arr = arr.astype(np.float32) / np.float32(255) if arr.dtype == np.uint8 else np.asarray(arr, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
     if arr.ndim != 3:

@@ -26,6 +26,7 @@ from d2turb.io.read import (
     image_size,
     list_images,
     open_image,
+    read_frame,
     read_image,
     set_max_pixels,
 )
@@ -51,6 +52,7 @@ __all__ = [
     "image_size",
     "list_images",
     "open_image",
+    "read_frame",
     "read_image",
     "remove_stale_temp_files",
     "set_max_pixels",

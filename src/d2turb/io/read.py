@@ -203,6 +203,20 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         Image.MAX_IMAGE_PIXELS = saved
 
 
+def read_frame(path: str | os.PathLike) -> np.ndarray | torch.Tensor:
+    """An 8-bit RGB image as it is stored, (H, W, 3) uint8 (what clip restoration holds: no float copy, a quarter
+    of the memory); any other image as :func:`read_image` gives it. Errors as :func:`read_image`."""
+    path = Path(path)
+    pixels = decode_plain_png(path, _limits["max_pixels"])
+    if pixels is None:
+        img = open_image(path)
+        if img.mode == "RGB" and min(img.size) >= 2:
+            pixels = np.asarray(img)
+    if pixels is not None and pixels.dtype == np.uint8 and pixels.ndim == 3 and pixels.shape[2] == 3:
+        return np.ascontiguousarray(pixels)
+    return read_image(path)
+
+
 def read_image(path: str | os.PathLike) -> torch.Tensor:
     """Read an image as a float32 tensor (3, H, W) in [0, 1].
 

@@ -31,6 +31,7 @@ from d2turb.io import (
     check_unique_stems,
     expand_inputs,
     list_images,
+    read_frame,
     read_image,
     write_image,
     write_json,
@@ -183,9 +184,10 @@ def restore_files(
 
 
 # ---- clips ---------------------------------------------------------------------------------------------------------
-def clip_frames(src: Path, errors) -> tuple[list[str], object]:
+def clip_frames(src: Path, errors, as_stored: bool = False) -> tuple[list[str], object]:
     """(frame names, iterator of (3,H,W) frames) of a clip; an unreadable frame of a folder is reported and
-    skipped, a video that stops decoding ends the clip there (reported) through ``errors.record``."""
+    skipped, a video that stops decoding ends the clip there (reported) through ``errors.record``. ``as_stored``:
+    a folder's 8-bit frames as (H,W,3) uint8 arrays (:func:`~d2turb.io.read_frame`; ClipRestorer takes both)."""
     names: list[str] = []
     if is_video(src):
 
@@ -207,7 +209,7 @@ def clip_frames(src: Path, errors) -> tuple[list[str], object]:
     def read():
         for f in files:
             try:
-                frame = read_image(f)
+                frame = read_frame(f) if as_stored else read_image(f)
             except D2TurbError as exc:
                 errors.record(_named(f, exc))
                 continue
@@ -430,7 +432,7 @@ def restore_clip_files(
     )
     out_dir = check_output_dir(out, inputs=files or [src])
     errors = FileErrors(2, fail_fast)  # per frame: a bad one is reported and skipped
-    names, frames = clip_frames(src, errors)
+    names, frames = clip_frames(src, errors, as_stored=True)
     fps = video_fps(src) if is_video(src) else (fps or 30.0)
     total = _video_frames(src) if is_video(src) else len(files)  # the bar's total (unreadable frames aside)
     name = src.stem if is_video(src) else src.resolve().name
