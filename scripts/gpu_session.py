@@ -266,11 +266,28 @@ def main(argv=None) -> int:
         metavar="KEY=VALUE",
         help="a config override for every candidate's training (e.g. train.init_from=FILE for a second lease)",
     )
+    ap.add_argument(
+        "--rate",
+        dest="rates",
+        action="append",
+        default=[],
+        metavar="NAME=IMAGES_PER_S",
+        help="a candidate's training rate measured before on this kind of device (gpu_session.json of a previous "
+        "lease): its bench is skipped (about 20-35 s of device time); train.max_minutes still stops it in time",
+    )
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     s = Session(out, args.budget_s, args.rehearsal)
     names = [n for n in args.candidates.split(",") if n]
+    try:
+        given = {k: float(v) for k, v in (r.split("=", 1) for r in args.rates)}
+    except ValueError:
+        print(f"error: --rate takes NAME=IMAGES_PER_S, got {args.rates}", file=sys.stderr)
+        return 2
+    if any(not (v > 0) for v in given.values()) or set(given) - set(names):
+        print(f"error: --rate needs a positive rate for a chosen candidate, got {args.rates}", file=sys.stderr)
+        return 2
     unknown = [n for n in names if n not in CANDIDATES]
     if unknown:
         print(f"error: unknown candidate(s) {', '.join(unknown)}; known: {', '.join(CANDIDATES)}", file=sys.stderr)
@@ -284,7 +301,9 @@ def main(argv=None) -> int:
         pack = args.pack or (str(runs / "pack") if s.rehearsal else "packs/clean")  # the rehearsal builds its own
         pack = ensure_pack(s, (ROOT / pack).resolve(), Path(args.clean) if args.clean else None)
 
-        rates = bench(s, names, pack, runs, device, fallback=False)
+        measure = [n for n in names if n not in given]
+        rates = bench(s, measure, pack, runs, device, fallback=False) if measure else {}
+        rates |= {n: {"images_per_s": r, "given": True} for n, r in given.items()}
         failed = [n for n in names if _broken(rates[n])]
         if failed and not s.rehearsal:
             s.log(f"bench failed for {failed} with bf16/channels_last: again in float32")

@@ -18,7 +18,8 @@ def rehearsal(tmp_path_factory):
     out, runs = tmp / "out", tmp / "runs"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "gpu_session.py"), "--rehearsal", "--out", str(out)]
-        + ["--runs", str(runs), "--budget-s", "240", "--candidates", "nafnet_ft,nafnet_w24"],  # two side by side
+        + ["--runs", str(runs), "--budget-s", "240", "--candidates", "nafnet_ft,nafnet_w24"]  # two side by side
+        + ["--rate", "nafnet_w24=40"],  # one with a rate measured before: not benched
         capture_output=True,
         text=True,
         timeout=300,
@@ -38,6 +39,8 @@ def test_rehearsal_runs_every_step_and_brings_back_what_fits(rehearsal, tmp_path
     assert report["rehearsal"] is True
     assert set(report["steps"]) >= {"check", "pack", "bench", "train_start", "train_end", "collected"}
     assert report["steps"]["pack"]["carried"] is False  # built by the same make_pack as on a host without a pack
+    benched = report["steps"]["bench"]["results"]
+    assert benched["nafnet_w24"] == {"images_per_s": 40.0, "given": True} and "steps" in benched["nafnet_ft"]
     assert report["candidates"], "no candidate trained"
     for name, cand in report["candidates"].items():
         assert cand["exit"] == 0 and cand["state"] == "finished", (name, cand)
