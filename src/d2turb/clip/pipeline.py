@@ -321,7 +321,8 @@ class ClipRestorer:
             frame.sharp = sharp_coefficients(_as_float(frame.warped[-1]), median)
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
-        fused = self._reference(buf, index, self.passes, length)
+        if self.fusion in ("mean", "robust"):  # the others do not start from the window's mean
+            fused = self._reference(buf, index, self.passes, length)
         if self.fusion == "robust":
             fused = self._robust([_as_float(buf[j].warped[-1]) for j in self._window(buf, index, length)], fused)
         elif self.fusion == "fba":
