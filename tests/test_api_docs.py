@@ -24,11 +24,7 @@ def test_import_d2turb_imports_no_torch():
     assert set(PUBLIC) <= set(eval(proc.stdout))
 
 
-# its docstring lacks an Args section; d2turb/clip/blur.py was being changed elsewhere when the others got theirs
-PENDING = pytest.mark.xfail(strict=True, reason="BlindDeblur (clip/blur.py) has no Args/Returns/Shape yet")
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=PENDING) if n == "BlindDeblur" else n for n in PUBLIC])
+@pytest.mark.parametrize("name", PUBLIC)
 def test_public_names_are_importable_from_the_top(name):
     obj = getattr(d2turb, name)
     assert obj.__name__ == name and name in dir(d2turb)

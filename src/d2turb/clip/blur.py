@@ -333,13 +333,28 @@ def _physics_deblur(lod: float):
 class BlindDeblur:
     """The default deblur of a clip's fused frames: the blur is estimated on the first fused frame it is given
     (:func:`estimate_blur`; every later frame is deblurred with the same filter, no flicker), then, with ``shape``
-    "physics" (default), the physics Wiener filter (``restore.clip.PhysicsDeblur``) at D/r0 ``PHYSICS_DR0`` and the
+    "physics" (default), the physics Wiener filter (:class:`PhysicsDeblur`) at D/r0 ``PHYSICS_DR0`` and the
     λ/(D·ifov) whose edge estimate is ``PHYSICS_SHARE``·σ (:func:`physics_lod_for_sigma`), or with "gaussian" a
     :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, each weakened by its ringing guard. Where the blur varies across
     the image (tiles' spread above ``SPREAD_MAX``) the Gaussian at ``DEBLUR_SHARE`` of the lower quartile of the
     tiles (conservative, either shape); otherwise not confident, or nothing to deblur: the frames pass unchanged.
     ``record`` says what was used and why; ``note`` is the one line for the user (empty when the estimate was used
-    as is)."""
+    as is).
+
+    Args:
+        shape: "physics" (the short-exposure OTF family, default) or "gaussian" (round 1's Gaussian).
+
+    Returns:
+        Called on a fused frame: the deblurred frame (the frame itself when nothing is deblurred).
+
+    Shape:
+        (C, H, W) float32 in [0, 1] → (C, H, W) float32 in [0, 1].
+
+    Example:
+        >>> deblur = BlindDeblur()
+        >>> restorer = ClipRestorer(temporal=16, deblur=deblur)  # doctest: +SKIP
+        >>> deblur.record["sigma_px"]  # after the first frame  # doctest: +SKIP
+    """
 
     def __init__(self, shape: str = "physics"):
         if shape not in ("physics", "gaussian"):

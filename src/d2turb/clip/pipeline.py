@@ -108,13 +108,22 @@ class ClipRestorer:
     Args:
         temporal: frames per window (≥ 2).
         passes: registration rounds (≥ 1); each refines the reference from the previous round's fusion.
-        fusion: "mean", "robust" (pixels weighted by their agreement with the reference) or "fba" (Fourier burst
-            accumulation: each frequency mostly from the frames that kept it best, ``clip/fusion.py``).
-        deblur: "none", a :class:`PhysicsDeblur`, or any callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
+        fusion: "mean", "robust" (pixels weighted by their agreement with the reference), "fba" (Fourier burst
+            accumulation: each frequency mostly from the frames that kept it best) or "sharpest" (per coefficient the
+            frame that kept it best; ``clip/fusion.py``).
+        deblur: "none", a :class:`PhysicsDeblur`, a :class:`BlindDeblur` (what ``restore --temporal`` uses), or any
+            callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
         preset: registration accuracy, a key of ``d2turb.clip.registration.DIS_PRESETS`` (default "fast": the flow at
             half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
         stabilise: remove a global shift per frame (camera shake) before the dense registration.
         fallback: use the single frame where its residual against the fusion stays high (moving objects).
+
+    Returns:
+        :meth:`restore` yields one :class:`ClipFrame` per input frame, in order.
+
+    Shape:
+        frames: (3, H, W) float tensors or (H, W, 3) arrays in [0, 1], or (H, W, 3) uint8; all of one size.
+        ClipFrame.restored, .fused: (3, H, W) float32 in [0, 1]; .bwd_flow_px: (2, H, W); .fallback: (H, W).
     """
 
     def __init__(
