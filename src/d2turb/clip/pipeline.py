@@ -137,7 +137,7 @@ class ClipRestorer:
         fallback: bool = True,
     ):
         if not isinstance(temporal, int) or isinstance(temporal, bool) or temporal < 2:
-            raise D2TurbError(f"--temporal must be an integer >= 2, got {temporal!r}")
+            raise D2TurbError(f"temporal must be an integer >= 2, got {temporal!r}", param="temporal")
         if not isinstance(passes, int) or isinstance(passes, bool) or passes < 1:
             raise D2TurbError(f"passes must be an integer >= 1, got {passes!r}")
         if fusion not in FUSIONS:

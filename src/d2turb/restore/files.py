@@ -412,7 +412,7 @@ def restore_clip_files(
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
     if fps is not None and not (np.isfinite(fps) and fps > 0):
-        raise D2TurbError(f"--fps must be positive, got {fps}")
+        raise D2TurbError(f"fps must be positive, got {fps}", param="fps")
     ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)  # bad settings first, in one line
     files = list_images(src) if src.is_dir() else []
     check_frame_sizes(src, files)
