@@ -123,7 +123,7 @@ def clean_dir(tmp_path):
 
 
 def test_clean_crop_dataset_crops_image_and_depth_together(clean_dir):
-    from d2turb.data.generate import resize_up
+    from d2turb.data.sources import resize_up
     from d2turb.depth.prior import estimate_depth_prior
 
     torch.manual_seed(1)

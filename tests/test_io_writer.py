@@ -1,5 +1,5 @@
 """d2turb.io.writer: the background writer surfaces its errors, bounds its queue, phases its writes around
-the computation and starts no compute threads."""
+the computation and starts no compute threads; d2turb.io.jobs: the skeleton of the batch jobs over input files."""
 
 import os
 import time
@@ -105,3 +105,34 @@ def test_background_writes_start_no_compute_threads(tmp_path):
             assert len(started) == 1, started
     finally:
         torch.set_num_threads(threads)
+
+
+def test_file_job_reports_a_bad_input_and_goes_on(tmp_path, capsys):
+    """d2turb.io.jobs.FileJob, the skeleton of simulate and restore: one error line per bad input (naming it),
+    the others processed and written, the summary line and the exit status; fail_fast (or one input) raises."""
+    from d2turb.io import FileJob
+
+    def work(path):
+        if path.stem == "bad":
+            raise D2TurbError("cannot read it")
+        return path.stem.upper()
+
+    paths = [tmp_path / "a.png", tmp_path / "bad.png", tmp_path / "c.png"]
+    with FileJob("demo", len(paths), max_pending=2) as job:
+        for path, result in job.each(paths, work, named=True, desc="demo", unit="img"):
+            job.submit(write_json, tmp_path / f"{path.stem}.json", {"result": result})
+    assert job.finish() == 1
+    err = capsys.readouterr().err
+    assert f"error: {tmp_path / 'bad.png'}: cannot read it" in err
+    assert "demo: 2 of 3 inputs done, 1 failed (see the error lines)" in err
+    assert sorted(p.name for p in tmp_path.glob("*.json")) == ["a.json", "c.json"]
+    with FileJob("demo", 2, max_pending=2) as job:
+        assert list(job.each(paths[1:2] * 2, work)) == []  # unnamed: the error as raised
+    assert job.finish() == 2
+    assert "error: cannot read it" in capsys.readouterr().err
+    for total, fail_fast in ((3, True), (1, False)):
+        with (
+            pytest.raises(D2TurbError, match="bad.png: cannot read it"),
+            FileJob("demo", total, fail_fast, max_pending=1) as job,
+        ):
+            list(job.each(paths, work, named=True))

@@ -11,7 +11,8 @@ import torch
 from hostile_input import one_error_line, rgb, run_cli
 from PIL import Image
 
-from d2turb.data.pack import MANIFEST, PackCrops, decode_pack, make_pack, read_pack
+from d2turb.data.pack import make_pack
+from d2turb.data.pack_read import MANIFEST, PackCrops, decode_pack, read_pack
 from d2turb.data.split import split_of
 from d2turb.errors import D2TurbError
 
@@ -209,7 +210,8 @@ def test_pack_crops_in_memory(pack):
 
 
 def test_a_pack_entry_that_leaves_the_pack_is_refused(tmp_path):
-    from d2turb.data.pack import make_pack, read_pack
+    from d2turb.data.pack import make_pack
+    from d2turb.data.pack_read import read_pack
     from d2turb.errors import D2TurbError
 
     for i in range(2):

@@ -1,7 +1,7 @@
 """Options and behaviour shared by the subcommands: seed range, device, image-size limit, PNG level, the
-rule for folders with bad files (``FileErrors``, from :mod:`d2turb.errors`: every readable file is processed, one
-``error:`` line per bad file, a summary, exit status 1; ``--fail-fast`` stops at the first), and the stderr handler
-of the ``d2turb`` loggers."""
+rule for folders with bad files (``FileErrors``, from :mod:`d2turb.errors`, in the file-job skeleton of simulate and
+restore, :class:`d2turb.io.jobs.FileJob`: every readable file is processed, one ``error:`` line per bad file, a
+summary, exit status 1; ``--fail-fast`` stops at the first), and the stderr handler of the ``d2turb`` loggers."""
 
 from __future__ import annotations
 

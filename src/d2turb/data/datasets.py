@@ -11,8 +11,8 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.generate import make_depth_fn, resize_up
 from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
+from d2turb.data.sources import make_depth_fn, resize_up
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
 from d2turb.ops.checks import check_shape

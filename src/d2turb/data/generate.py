@@ -5,6 +5,9 @@ Determinism: sample ``i`` draws its source image, crop and D/r0 from ``(seed, i)
 noise for the batch ("chunk") ``c = i // batch`` is seeded from ``(seed, c)``. Chunks are dealt to ranks
 round-robin (``c ≡ rank mod world``; with ``--batch 1`` that is ``i ≡ rank mod world``), so for a given
 seed, batch size and device the output does not depend on the number of processes or on restarts.
+
+The source images are read by :mod:`~d2turb.data.sources`; which samples are done, and the clean-up of an
+unfinished run, is :mod:`~d2turb.data.resume`.
 """
 
 from __future__ import annotations
@@ -12,33 +15,36 @@ from __future__ import annotations
 import contextlib
 import datetime
 import json
-import logging
 import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from d2turb.data.layout import (
     CONFIG_NAME,
     FILES,
     FORMAT_VERSION,
-    META_NAME,
-    SHARD_DIR,
     append_line,
     file_path,
-    parse_meta_lines,
     sample_id,
     truncate_partial_line,
     write_depth_png,
 )
+from d2turb.data.resume import (
+    check_same_config,
+    collect_records,
+    discard_if_empty,
+    merge_meta,
+    remove_temp_files,
+    reset_unfinished,
+    shard_dir,
+)
 from d2turb.data.sequence import sequence_settings, simulate_sequence_chunk
+from d2turb.data.sources import SourceCache, check_patch_fits, make_depth_fn
 from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE
-from d2turb.depth import depth_for_image
 from d2turb.device import DistributedEnv, distributed_env, resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
@@ -47,20 +53,15 @@ from d2turb.io import (
     FolderLock,
     check_output_dir,
     expand_inputs,
-    image_size,
-    read_image,
-    remove_stale_temp_files,
     write_image,
     write_json,
     write_npy,
-    write_text,
 )
 from d2turb.ops.splat import backward_flow
 from d2turb.sim import Simulator
 from d2turb.sim.geometry import footprint_px, geometry_bank
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
-logger = logging.getLogger(__name__)
 SPLITS = ("train", "test")
 
 
@@ -147,26 +148,6 @@ def camera_degrade(turb: torch.Tensor, camera: dict, seed: int, index: int, rows
     return torch.from_numpy(u8.transpose(2, 0, 1).astype(np.float32) / 255), drawn
 
 
-def check_patch_fits(sources: list[Path], patch: int) -> None:
-    """Refuse a patch larger than every source image (all of them would be upsampled, often absurdly):
-    reads image headers until one source's short side reaches the patch."""
-    largest = 0
-    for path in sources:
-        try:
-            short = min(image_size(path))
-        except D2TurbError:  # unreadable: SourceCache reports it when the source is drawn
-            continue
-        if short >= patch:
-            return
-        largest = max(largest, short)
-    if largest:
-        raise D2TurbError(
-            f"patch {patch} is larger than every source image (largest short side {largest} px); "
-            f"use a patch of {largest} or less, or larger images",
-            param="patch",
-        )
-
-
 def _rng(*key: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(k) for k in key]))
 
@@ -200,34 +181,11 @@ def plan_sample(index: int, seed: int, split: str, bins: tuple[str, ...], n_sour
     return SamplePlan(index, sample_id(index), source, dr0, name, float(u), float(v))
 
 
-def resize_up(image: torch.Tensor, patch: int) -> torch.Tensor:
-    """Images whose short side is below ``patch`` are resized up (bilinear, aspect kept) to short side = patch."""
-    h, w = image.shape[-2:]
-    if min(h, w) >= patch:
-        return image
-    scale = patch / min(h, w)
-    size = (max(patch, round(h * scale)), max(patch, round(w * scale)))
-    return F.interpolate(image[None], size=size, mode="bilinear", align_corners=False)[0].clamp(0, 1)
-
-
 def crop_box(plan: SamplePlan, height: int, width: int, patch: int) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) of the patch inside a height×width image."""
     x0 = min(int(plan.crop_u * (width - patch + 1)), width - patch)
     y0 = min(int(plan.crop_v * (height - patch + 1)), height - patch)
     return x0, y0, x0 + patch, y0 + patch
-
-
-def make_depth_fn(spec: str, device=None, is_disparity: bool = False):
-    """spec → f(image (3,H,W), path) -> depth (1,H,W) in [0,1] (far = 1), or None for ``none``."""
-    if spec == "none":
-        return None
-
-    def depth_fn(image: torch.Tensor, path) -> torch.Tensor:
-        if spec == "prior" and device is not None:
-            image = image.to(device)  # the weight-free prior is plain torch: run it where the simulator runs
-        return depth_for_image(spec, path, image, is_disparity=is_disparity, device=device).float().cpu()
-
-    return depth_fn
 
 
 PER_SAMPLE_KEYS = ("dr0", "r0_m")  # drawn per sample (its bin): the record's "dr0", not the simulator's default
@@ -240,91 +198,6 @@ def params_record(params) -> dict:
     full = {**params.to_dict(), "footprint_px": footprint_px(params)}
     full = {k: v for k, v in full.items() if k not in PER_SAMPLE_KEYS}
     return json.loads(json.dumps(full, default=str))
-
-
-class SourceCache:
-    """Loads source images (+ depth on the full image), skipping corrupt files deterministically."""
-
-    def __init__(self, sources: list[Path], patch: int, depth_fn, size: int = 4):
-        self.sources, self.patch, self.depth_fn, self.size = sources, patch, depth_fn, size
-        self.cache: OrderedDict[int, tuple] = OrderedDict()
-        self.bad: set[int] = set()
-        self.small: set[int] = set()  # sources already reported as smaller than the patch
-
-    def get(self, index: int):
-        """(source index actually used, image (3,H,W), depth (1,H,W) | None); a corrupt source is
-        replaced by the next readable one in the list (same choice in every process)."""
-        for step in range(len(self.sources)):
-            k = (index + step) % len(self.sources)
-            if k in self.bad:
-                continue
-            if k in self.cache:
-                self.cache.move_to_end(k)
-                return (k, *self.cache[k])
-            try:
-                image = read_image(self.sources[k])
-            except D2TurbError as exc:
-                logger.warning(f"skipping unreadable source {exc}")
-                self.bad.add(k)
-                continue
-            h, w = image.shape[-2:]
-            if min(h, w) < self.patch and k not in self.small:
-                self.small.add(k)
-                logger.warning(f"{self.sources[k]} is {w}x{h}, smaller than the {self.patch}-px patch: resized up")
-            depth = (
-                None
-                if self.depth_fn is None
-                else self.depth_fn(image, self.sources[k]).float().reshape(1, *image.shape[-2:])
-            )
-            image = resize_up(image, self.patch)
-            if depth is not None:
-                depth = resize_up(depth, self.patch)
-            self.cache[k] = (image, depth)
-            if len(self.cache) > self.size:
-                self.cache.popitem(last=False)
-            return k, image, depth
-        raise D2TurbError("no readable clean image among the sources")
-
-
-# ----------------------------------------------------------------------------------------- resume state
-def shard_dir(root: Path) -> Path:
-    return Path(root) / SHARD_DIR
-
-
-def sample_complete(root: Path, sid: str) -> bool:
-    return all(file_path(root, kind, sid).is_file() for kind in FILES)
-
-
-def collect_records(root: Path) -> dict[str, dict]:
-    """Meta records (final meta.jsonl and shards) whose files all exist: the samples that are done."""
-    root = Path(root)
-    paths = [root / META_NAME] + sorted(shard_dir(root).glob("*.jsonl"))
-    records: dict[str, dict] = {}
-    for path in paths:
-        if not path.is_file():
-            continue
-        for rec in parse_meta_lines(path.read_bytes()):
-            if rec["id"] not in records and sample_complete(root, rec["id"]):
-                records[rec["id"]] = rec
-    return records
-
-
-def remove_temp_files(root: Path) -> int:
-    """Temporary files a killed writer left in the dataset's folders (see ``d2turb.io.remove_stale_temp_files``)."""
-    return sum(remove_stale_temp_files(Path(root) / kind) for kind in (*FILES, SHARD_DIR, "."))
-
-
-def merge_meta(root: Path) -> int:
-    """Rank 0, after all ranks finished: sorted, de-duplicated meta.jsonl; shards removed."""
-    root = Path(root)
-    records = collect_records(root)
-    lines = "".join(json.dumps(r, sort_keys=True) + "\n" for r in sorted(records.values(), key=lambda r: r["index"]))
-    write_text(root / META_NAME, lines)
-    for p in shard_dir(root).glob("*.jsonl"):
-        p.unlink()
-    if shard_dir(root).is_dir():
-        shard_dir(root).rmdir()
-    return len(records)
 
 
 def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
@@ -351,53 +224,6 @@ def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: 
         "flow": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, flow) ~ gt",
         "depth_encoding": "16-bit PNG, depth = value / 65535, far = 1",
     }
-
-
-def check_same_config(root: Path, record: dict) -> bool:
-    """Whether ``dataset.json`` must be (re)written: it is absent, or the folder holds no finished sample yet
-    (a run that wrote no sample does not lock the folder to its settings). Raises ``D2TurbError`` when
-    finished samples were made with other settings."""
-    path = Path(root) / CONFIG_NAME
-    if not path.is_file():
-        return True
-    try:
-        old = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        old = None
-    keys = "version pairs patch split bins seed batch depth params geometry sources frames sequence camera".split()
-    diff = keys if not isinstance(old, dict) else [k for k in keys if old.get(k) != record.get(k)]
-    if not diff:
-        return False
-    if not collect_records(root):
-        return True
-    if not isinstance(old, dict):
-        raise D2TurbError(f"{path}: unreadable dataset config, but the folder holds samples; use a new --out")
-    raise D2TurbError(f"{root} holds a dataset made with different settings ({', '.join(diff)}); use a new --out")
-
-
-def reset_unfinished(root: Path) -> None:
-    """Remove what an earlier run that finished no sample left (its config, meta shards, sample files)."""
-    root = Path(root)
-    (root / CONFIG_NAME).unlink(missing_ok=True)
-    (root / META_NAME).unlink(missing_ok=True)
-    for p in shard_dir(root).glob("*.jsonl"):
-        p.unlink()
-    for kind, suffix in FILES.items():
-        for p in (root / kind).glob(f"{'[0-9]' * 7}{suffix}"):
-            p.unlink()
-
-
-def _discard_if_empty(root: Path, created_root: bool) -> None:
-    """After a failed single-process run: if no sample was finished, remove the config and empty folders
-    it made, so a corrected re-run starts afresh (nothing is removed once a sample exists)."""
-    if collect_records(root):
-        return
-    reset_unfinished(root)
-    for folder in [shard_dir(root), *(root / kind for kind in FILES), *([root] if created_root else [])]:
-        try:
-            folder.rmdir()  # only when empty
-        except OSError:
-            pass
 
 
 # ------------------------------------------------------------------------------------------ distributed
@@ -452,7 +278,7 @@ def generate_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
         if lock is not None:
             lock.release()
         if info.world == 1 and root.is_dir():
-            _discard_if_empty(root, created_root)
+            discard_if_empty(root, created_root)
         raise
     finally:
         if lock is not None:

@@ -20,9 +20,9 @@ from tqdm import tqdm
 from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH, DEFAULT_DEPTH, DEFAULT_DEVICE, DEFAULT_PNG_LEVEL
 from d2turb.depth import check_depth_spec, depth_for_image
 from d2turb.device import resolve_device
-from d2turb.errors import D2TurbError, FileErrors
+from d2turb.errors import D2TurbError
 from d2turb.io import (
-    BackgroundWriter,
+    FileJob,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -109,22 +109,19 @@ def simulate_files(
         strengths = sample_dr0(len(paths), *dr0_range, generator=gen).tolist()
     else:
         strengths = [params.dr0] * len(paths)
-    errors = FileErrors(len(paths), fail_fast)
+    job = FileJob("simulate", len(paths), fail_fast, max_pending=2 * batch, compute_device=device)
 
-    def readable():
-        for path, dr0 in zip(paths, strengths):
-            try:
-                image = read_image(path)
-                depth_map = depth_for_image(depth, path, image, is_disparity=disparity, device=device)
-            except D2TurbError as exc:
-                errors.record(exc)
-                continue
-            yield path, dr0, image, depth_map
+    def read(item: tuple) -> tuple:
+        path, _ = item
+        image = read_image(path)
+        return image, depth_for_image(depth, path, image, is_disparity=disparity, device=device)
 
+    items = job.each(zip(paths, strengths), read)  # the readable inputs: a bad one is reported and skipped
+    readable = ((path, dr0, image, depth_map) for (path, dr0), (image, depth_map) in items)
     base_meta = params.to_dict()
-    with BackgroundWriter(max_pending=2 * batch, compute_device=device) as writer:
-        for group in batches(readable(), batch):
-            writer.before_compute()
+    with job:
+        for group in batches(readable, batch):
+            job.before_compute()
             images = torch.stack([item[2] for item in group])
             depths = (
                 None if group[0][3] is None else torch.stack([item[3].reshape(1, *images.shape[-2:]) for item in group])
@@ -149,7 +146,7 @@ def simulate_files(
                     width=image.shape[2],
                     mean_modulation=float(modulation[b]),
                 )
-                writer.submit(
+                job.submit(
                     _write_outputs,
                     out,
                     path.stem,
@@ -160,7 +157,7 @@ def simulate_files(
                     png_level,
                 )
                 print(f"{path.name}: D/r0 = {value:.3g} ({dr0_bin(value)}) -> {out / (path.stem + '_turb.png')}")
-    return errors.finish("simulate")
+    return job.finish()
 
 
 # ---- clips ---------------------------------------------------------------------------------------------------------

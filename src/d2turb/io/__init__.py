@@ -1,6 +1,7 @@
 """Image and file I/O: reading (:mod:`~d2turb.io.read`), atomic writes and stale temp files
-(:mod:`~d2turb.io.atomic`), the PNG encoder and ``write_image`` (:mod:`~d2turb.io.png`), and the background writer
-of the batch jobs (:mod:`~d2turb.io.writer`). Every name is importable from ``d2turb.io``."""
+(:mod:`~d2turb.io.atomic`), the PNG encoder and ``write_image`` (:mod:`~d2turb.io.png`), the background writer
+of the batch jobs (:mod:`~d2turb.io.writer`) and their skeleton over input files (:mod:`~d2turb.io.jobs`). Every
+name is importable from ``d2turb.io``."""
 
 from d2turb.defaults import DEFAULT_PNG_LEVEL
 from d2turb.io.atomic import (
@@ -16,6 +17,7 @@ from d2turb.io.atomic import (
     write_npy,
     write_text,
 )
+from d2turb.io.jobs import FileJob, named_error
 from d2turb.io.png import encode_png, float_array, to_uint8, write_image
 from d2turb.io.read import (
     FLOAT_TOLERANCE,
@@ -40,6 +42,7 @@ __all__ = [
     "LOCK_NAME",
     "NAME_MAX",
     "BackgroundWriter",
+    "FileJob",
     "FolderLock",
     "atomic_path",
     "cache_dir",
@@ -51,6 +54,7 @@ __all__ = [
     "float_array",
     "image_size",
     "list_images",
+    "named_error",
     "open_image",
     "read_frame",
     "read_image",

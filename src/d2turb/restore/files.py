@@ -27,6 +27,7 @@ from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
     BackgroundWriter,
+    FileJob,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -37,6 +38,7 @@ from d2turb.io import (
     write_json,
     write_npy,
 )
+from d2turb.io import named_error as _named  # an input's error, naming it
 from d2turb.ops.splat import backward_flow
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
@@ -91,10 +93,6 @@ def _video_frames(path: Path) -> int | None:
         return None
 
 
-def _named(path: Path, exc: D2TurbError) -> D2TurbError:
-    return exc if str(exc).startswith(str(path)) else D2TurbError(f"{path}: {exc}")
-
-
 def restore_files(
     inputs: list,
     out,
@@ -127,21 +125,20 @@ def restore_files(
     images, videos = split_inputs(inputs)
     out_dir = check_output_dir(out, inputs=images + videos)
     restorer = Restorer(weights, device=resolve_device(device), tile=tile, overlap=overlap, progress=True)
-    errors = FileErrors(len(images) + len(videos), fail_fast)
+    job = FileJob("restore", len(images) + len(videos), fail_fast, max_pending=4, compute_device=restorer.device)
     options = (save_flow, save_intermediate, png_level)
     count = 0
-    with _no_empty_out(out_dir), BackgroundWriter(max_pending=4, compute_device=restorer.device) as writer:
-        for path in tqdm(images, desc="restore", unit="img", disable=len(images) < 2):
-            try:
-                image = read_image(path)
-                writer.before_compute()
-                details = restorer.restore_with_details(image)
-            except D2TurbError as exc:
-                errors.record(_named(path, exc))
-                continue
-            writer.submit(_save, out_dir, path.stem, details, *options)
+
+    def restored(path: Path) -> tuple:
+        image = read_image(path)
+        job.before_compute()
+        return image, restorer.restore_with_details(image)
+
+    with _no_empty_out(out_dir), job:
+        for path, (image, details) in job.each(images, restored, named=True, desc="restore", unit="img"):
+            job.submit(_save, out_dir, path.stem, details, *options)
             if compare:
-                writer.submit(_save_compare, out_dir, path.stem, image, details["restored"], png_level)
+                job.submit(_save_compare, out_dir, path.stem, image, details["restored"], png_level)
             count += 1
         for video in videos:
             total = _video_frames(video)
@@ -160,15 +157,15 @@ def restore_files(
                         i, frame = next(frames, (None, None))
                         if frame is None:
                             break
-                        writer.before_compute()
+                        job.before_compute()
                         details = restorer.restore_with_details(frame)
                     except D2TurbError as exc:
                         bar.close()
-                        errors.record(_named(video, exc))
+                        job.record(exc, video)
                         break
-                    writer.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
+                    job.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
                     if compare and i == pick:
-                        writer.submit(_save_compare, out_dir, video.stem, frame, details["restored"], png_level)
+                        job.submit(_save_compare, out_dir, video.stem, frame, details["restored"], png_level)
                     if mp4 is not None:
                         mp4.write(details["restored"])
                     if side is not None:
@@ -180,7 +177,7 @@ def restore_files(
                     if side is not None:
                         side.abort()
     print(f"restored {count} image(s) with {restorer.name} into {out_dir}")
-    return errors.finish("restore")
+    return job.finish()
 
 
 # ---- clips ---------------------------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from d2turb.data import CleanCropDataset, OnTheFlySynthesis, PairDataset
-from d2turb.data.pack import PackCrops
+from d2turb.data.pack_read import PackCrops
 from d2turb.data.split import split_of
 from d2turb.errors import D2TurbError
 from d2turb.sim import Simulator

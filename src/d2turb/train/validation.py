@@ -12,7 +12,7 @@ from torch.utils.data import DataLoader, Subset
 
 from d2turb.data import PairDataset, crop_sample
 from d2turb.data.layout import BIN_NAMES
-from d2turb.data.pack import PackCrops
+from d2turb.data.pack_read import PackCrops
 from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
 from d2turb.train.config import Config
 
