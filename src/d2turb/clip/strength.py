@@ -38,6 +38,7 @@ import torch
 
 from d2turb.clip.pipeline import ClipRestorer
 from d2turb.clip.registration import DenseFlow, global_shift_px, to_hwc
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import turbulence_otf
 from d2turb.sim.params import MAX_DR0, cn2_spherical, isoplanatic_angle, positive_finite
@@ -127,8 +128,8 @@ class Optics:
     path length L (m, optional: without it Cn² and θ0 are not given and the correlation scale is fitted), frame
     rate (optional, only to express the fitted wind in m/s)."""
 
-    aperture_m: float = 0.1
-    wavelength_m: float = 525e-9
+    aperture_m: float = DEFAULT_APERTURE_M
+    wavelength_m: float = DEFAULT_WAVELENGTH_M
     ifov_rad: float | None = None
     path_length_m: float | None = None
     fps: float | None = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from d2turb.commands.common import add_max_pixels_arg
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 
 PARAM_KEYS = ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps")
@@ -17,7 +18,8 @@ def register(sub):
         description="Writes DIR/measure.json (D/r0 with a 90 % interval, r0, and with path_length_m the "
         "constant-path Cn² and the isoplanatic angle θ0) and prints one line. CLIP is a video file or a folder of "
         "frames. The optics (--param aperture_m=… wavelength_m=… ifov_rad=… path_length_m=… fps=…) default to "
-        "D = 0.1 m, λ = 525 nm, ifov = λ/(2D); D/r0 depends on them only through λ/(D·ifov). Clips that cannot be "
+        f"D = {DEFAULT_APERTURE_M:g} m, λ = {DEFAULT_WAVELENGTH_M * 1e9:g} nm, ifov = λ/(2D); D/r0 depends on them "
+        "only through λ/(D·ifov). Clips that cannot be "
         "measured (too few frames, no texture, failed registration) are refused with the reason.",
     )
     p.add_argument("clip", metavar="CLIP", help="video file or folder of frames")

@@ -10,21 +10,31 @@ from d2turb.commands.common import (
     add_png_level_arg,
     add_seed_arg,
 )
-from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH
+from d2turb.defaults import (
+    BATCH_PIXELS,
+    DEFAULT_APERTURE_M,
+    DEFAULT_BATCH,
+    DEFAULT_PATH_LENGTH_M,
+    DEFAULT_WAVELENGTH_M,
+)
 
 
-def add_physics_args(p, path_length_m: float = 1000.0):
+def add_physics_args(p, path_length_m: float = DEFAULT_PATH_LENGTH_M):
     """Physical parameters shared by simulate and demo."""
     p.add_argument(
-        "--aperture", type=float, default=0.1, metavar="M", help="aperture diameter D in metres (default 0.1)"
+        "--aperture",
+        type=float,
+        default=DEFAULT_APERTURE_M,
+        metavar="M",
+        help=f"aperture diameter D in metres (default {DEFAULT_APERTURE_M:g})",
     )
     p.add_argument(
         "--wavelength",
         type=float,
         nargs="+",
-        default=[525e-9],
+        default=[DEFAULT_WAVELENGTH_M],
         metavar="M",
-        help="wavelength in metres, one value or three (R G B) (default 525e-9)",
+        help=f"wavelength in metres, one value or three (R G B) (default {DEFAULT_WAVELENGTH_M * 1e9:g}e-9)",
     )
     p.add_argument(
         "--path-length",

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 
 BINS = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}  # D/r0 strength bins (paper Sec. 4.1)
@@ -99,9 +100,9 @@ class TurbulenceParams:
         5.25e-07
     """
 
-    aperture_m: float = 0.1
-    wavelength_m: float | tuple = 525e-9
-    path_length_m: float = 1000.0
+    aperture_m: float = DEFAULT_APERTURE_M
+    wavelength_m: float | tuple = DEFAULT_WAVELENGTH_M
+    path_length_m: float = DEFAULT_PATH_LENGTH_M
     dr0: float | None = None
     cn2: float | None = None
     ifov_rad: float | None = None
@@ -204,9 +205,9 @@ class TurbulenceParams:
 
 
 def make_params(
-    aperture_m: float = 0.1,
-    wavelength_m=525e-9,
-    path_length_m: float = 1000.0,
+    aperture_m: float = DEFAULT_APERTURE_M,
+    wavelength_m=DEFAULT_WAVELENGTH_M,
+    path_length_m: float = DEFAULT_PATH_LENGTH_M,
     *,
     dr0: float | None = None,
     cn2: float | None = None,
