@@ -22,13 +22,7 @@ from tqdm import tqdm
 from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.clip.blur import BlindDeblur
 from d2turb.clip.strength import measure_clip
-from d2turb.defaults import (
-    DEFAULT_APERTURE_M,
-    DEFAULT_DEVICE,
-    DEFAULT_FUSION,
-    DEFAULT_PNG_LEVEL,
-    DEFAULT_WAVELENGTH_M,
-)
+from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
@@ -46,7 +40,7 @@ from d2turb.io import (
 from d2turb.ops.splat import backward_flow
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
-from d2turb.sim import TurbulenceParams
+from d2turb.sim import Optics, TurbulenceParams
 from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps, video_size
 
 
@@ -320,8 +314,8 @@ def clip_deblur(
             dr0, (lo, hi) = measured["dr0"], measured["dr0_ci"]
             source = f"measured on the clip's first {len(head)} frames (d2turb measure, 90 % [{lo:.3g}, {hi:.3g}])"
             if "ifov_rad" not in params:  # the λ/(D·ifov) at which measure's estimate holds
-                a, w = params.get("aperture_m", DEFAULT_APERTURE_M), params.get("wavelength_m", DEFAULT_WAVELENGTH_M)
-                params["ifov_rad"] = w / (a * measured["lambda_over_d_px"])
+                o = Optics(**{k: params[k] for k in ("aperture_m", "wavelength_m") if k in params})
+                params["ifov_rad"] = o.wavelength_m / (o.aperture_m * measured["lambda_over_d_px"])
                 optics = "λ/(D·ifov) of d2turb measure's estimate"
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
         deblur = PhysicsDeblur(deblur_dr0(p.dr0, fusion), p.lambda_over_d_px, balance=default_balance(p.dr0))
