@@ -590,11 +590,11 @@ def estimate_from_sums(
     given = {"ifov_rad": optics.ifov_known, "path_length_m": optics.path_length_m is not None}
     if not optics.ifov_known:
         qs = grid_q[sel.any(0)]
-        spans["unknown λ/(D·ifov) (give --param ifov_rad=…)"] = 1.2 * math.log(qs.max() / qs.min()) if len(qs) else 0
+        spans["unknown λ/(D·ifov) (give --ifov RAD)"] = 1.2 * math.log(qs.max() / qs.min()) if len(qs) else 0
     if optics.path_length_m is None:
         rows_used = prior_rows[sel[prior_rows].any(1)]
         per_f = [np.log(dr0[rows_used, qi].max() / dr0[rows_used, qi].min()) for qi in range(n_q) if len(rows_used)]
-        spans["unknown path length (give --param path_length_m=…)"] = float(max(per_f)) if per_f else 0.0
+        spans["unknown path length (give --path-length M)"] = float(max(per_f)) if per_f else 0.0
     fit_best = np.unravel_index(best[fi_point], models.shape[1:4])
     vi, di, bi = fit_best
     q_est = float(grid_q[qi_best])

@@ -7,45 +7,16 @@ from d2turb.commands.common import (
     add_device_arg,
     add_fail_fast_arg,
     add_max_pixels_arg,
+    add_optics_args,
     add_png_level_arg,
     add_seed_arg,
 )
-from d2turb.defaults import (
-    BATCH_PIXELS,
-    DEFAULT_APERTURE_M,
-    DEFAULT_BATCH,
-    DEFAULT_PATH_LENGTH_M,
-    DEFAULT_WAVELENGTH_M,
-)
+from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH, DEFAULT_PATH_LENGTH_M
 
 
 def add_physics_args(p, path_length_m: float = DEFAULT_PATH_LENGTH_M):
     """Physical parameters shared by simulate and demo."""
-    p.add_argument(
-        "--aperture",
-        type=float,
-        default=DEFAULT_APERTURE_M,
-        metavar="M",
-        help=f"aperture diameter D in metres (default {DEFAULT_APERTURE_M:g})",
-    )
-    p.add_argument(
-        "--wavelength",
-        type=float,
-        nargs="+",
-        default=[DEFAULT_WAVELENGTH_M],
-        metavar="M",
-        help=f"wavelength in metres, one value or three (R G B) (default {DEFAULT_WAVELENGTH_M * 1e9:g}e-9)",
-    )
-    p.add_argument(
-        "--path-length",
-        type=float,
-        default=path_length_m,
-        metavar="M",
-        help=f"path length L in metres (default {path_length_m:g})",
-    )
-    p.add_argument(
-        "--ifov", type=float, default=None, metavar="RAD", help="pixel angular size (default Nyquist λ/(2D))"
-    )
+    add_optics_args(p, path_length_m)
     p.add_argument(
         "--modulation",
         default="power_offset",

@@ -266,7 +266,7 @@ def _clip_head(src: Path) -> list:
 
 
 def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
-    """TurbulenceParams from the ``--param`` optics (the path length is the measurement's only); one-line error."""
+    """TurbulenceParams from the given optics (the path length is the measurement's only); one-line error."""
     try:
         return TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, **extra)
     except TypeError as exc:
@@ -304,7 +304,7 @@ def clip_deblur(
         return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
     if choice in ("physics", "auto"):
         source, measured = "given (--dr0)", None
-        optics = "from --param" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
+        optics = "given" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
         if dr0 is None:
             head = _clip_head(src)
             try:
@@ -475,8 +475,8 @@ def restore_clip_files(
         record = restorer.deblur.record
         if restorer.deblur.note:
             print(
-                f"note: {restorer.deblur.note}; for the physics deblur give --dr0 X (and the optics with --param), "
-                "or --deblur none",
+                f"note: {restorer.deblur.note}; for the physics deblur give --dr0 X (and the optics: --aperture, "
+                "--wavelength, --ifov), or --deblur none",
                 file=sys.stderr,
             )
     if count:  # a run that restored nothing leaves no folder (_no_empty_out), so no restore.json either
