@@ -248,7 +248,7 @@ def _write_frames(folder, frames):
 )
 def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
     tex = [_texture(64, i) for i in range(10)]
-    params = ["--param", "path_length_m=1000"]
+    params = ["--path-length", "1000"]
     if case == "one":
         clip = _write_frames(tmp_path / "c", tex[:1])
     elif case == "constant":
@@ -262,8 +262,8 @@ def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
     else:
         clip = _write_frames(tmp_path / "c", tex)
         params += {
-            "aperture": ["--param", "aperture_m=-1"],
-            "wavelength": ["--param", "wavelength_m=0.2"],
+            "aperture": ["--aperture", "-1"],
+            "wavelength": ["--wavelength", "0.2"],
             "key": ["--param", "focal=3"],
             "missing": [],
         }[case]
@@ -285,12 +285,12 @@ def test_measure_command_writes_json_and_plot(tmp_path, capsys):
         frames.append(_warp(base, a * np.sin(2 * np.pi * x / 40), b * np.cos(2 * np.pi * y / 40))[8:-8, 8:-8])
     clip = _write_frames(tmp_path / "c", frames)
     out = tmp_path / "out"
-    args = ["--window", "8", "--plot", "--bootstrap", "20", "--param", "ifov_rad=2.625e-6"]
+    args = ["--window", "8", "--plot", "--bootstrap", "20", "--ifov", "2.625e-6"]
     # without the path the interval spans more than 3x: refused in one line naming what widens it
     assert main(["measure", str(clip), "--out", str(out), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and "spans" in err[0], err
-    assert "widened most by unknown path length (give --param path_length_m=…)" in err[0], err
+    assert "widened most by unknown path length (give --path-length M)" in err[0], err
     rc = main(["measure", str(clip), "--out", str(out), *args, "--any-width"])
     assert rc == 0, capsys.readouterr().err
     line = capsys.readouterr().out.strip().splitlines()

@@ -119,7 +119,7 @@ def test_restore_reports_the_estimate_and_interval_of_measure(tmp_path, capsys):
     for i, f in enumerate(frames):
         rgb = (f.permute(1, 2, 0).numpy()[..., ::-1] * 255 + 0.5).clip(0, 255).astype(np.uint8)
         cv2.imwrite(str(clip / f"{i:03d}.png"), rgb)
-    params = ["--param", f"ifov_rad={p.ifov_rad}", "--param", "path_length_m=1000"]
+    params = ["--ifov", f"{p.ifov_rad}", "--path-length", "1000"]
     assert main(["measure", str(clip), "--out", str(tmp_path / "m"), "--bootstrap", "50", *params]) == 0
     args = ["--temporal", "16", "--deblur", "physics", "--out", str(tmp_path / "r"), *params]
     assert main(["restore", str(clip), *args]) == 0

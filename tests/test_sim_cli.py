@@ -237,10 +237,10 @@ def test_a_pixel_scale_that_cannot_fit_in_memory_is_refused_before_allocating(if
     rc, _, err = run_cli(capsys, ["simulate", str(image), "--out", str(tmp_path / "o"), "--ifov", ifov])
     assert rc == 2
     one_error_line(err, "--ifov", "6.56e-07", "4.2e-05")
-    argv = make_dataset_args(tmp_path, tmp_path / "ds", "--param", f"ifov_rad={ifov}")
+    argv = make_dataset_args(tmp_path, tmp_path / "ds", "--ifov", ifov)
     rc, _, err = run_cli(capsys, argv)
     assert rc == 2
-    one_error_line(err, "ifov_rad", "6.56e-07", "4.2e-05")
+    one_error_line(err, "ifov_rad (--ifov)", "6.56e-07", "4.2e-05")
     assert not (tmp_path / "o").exists() and not (tmp_path / "ds").exists()
 
 

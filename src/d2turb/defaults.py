@@ -21,3 +21,8 @@ DEFAULT_FUSION = "mean"
 DEFAULT_TEMPORAL = 24
 # `evaluate --real-clips --max-frames`: frames read per clip (the 1080p clip costs about 1 s of CPU per frame)
 DEFAULT_REAL_CLIP_FRAMES = 48
+# the default optics (d2turb.sim.Optics, TurbulenceParams, `--aperture`, `--wavelength`, `--path-length`, the page):
+# aperture D, wavelength λ, and the simulator's path length L; the pixel angle ifov defaults to Nyquist λ/(2D)
+DEFAULT_APERTURE_M = 0.1
+DEFAULT_WAVELENGTH_M = 525e-9
+DEFAULT_PATH_LENGTH_M = 1000.0

@@ -28,7 +28,7 @@ import torch
 from d2turb import __version__
 from d2turb.data.samples import SAMPLES, sample_images
 from d2turb.data.simulate import simulate_files, simulate_video
-from d2turb.defaults import DEFAULT_DEVICE
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_DEVICE, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
 from d2turb.depth import depth_for_image
 from d2turb.depth.io import DEPTH_SUFFIXES
 from d2turb.errors import D2TurbError
@@ -232,9 +232,9 @@ class SimSettings:
     strength: str = "D/r0"
     dr0: float = 3.0
     cn2: float = 1e-14
-    aperture_m: float = 0.1
-    wavelength_nm: str = "525"
-    path_length_m: float = 1000.0
+    aperture_m: float = DEFAULT_APERTURE_M
+    wavelength_nm: str = f"{DEFAULT_WAVELENGTH_M * 1e9:g}"  # "525": parsed back to exactly DEFAULT_WAVELENGTH_M
+    path_length_m: float = DEFAULT_PATH_LENGTH_M
     ifov_urad: float | None = None
     depth: str = "none"
     depth_upload: str | None = None

@@ -24,6 +24,8 @@ from d2turb.sim import MODULATIONS
 from d2turb.sim.params import BINS_RULE
 from d2turb.video import VIDEO_SUFFIXES
 
+SIM_DEFAULTS = core.SimSettings()  # the optics' defaults (d2turb.defaults) shown in the Simulate tab
+
 log = logging.getLogger("d2turb.app")
 
 INTRO = """# d2turb — depth-aware atmospheric turbulence
@@ -208,10 +210,12 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
                     dr0 = gr.Slider(0.1, 10.0, value=3.0, step=0.05, label=f"D/r0 ({BINS_RULE})")
                     cn2 = gr.Number(value=1e-14, label="Cn² (m^-2/3), constant along the path", visible=False)
                     with gr.Row():
-                        aperture = gr.Number(value=0.1, label="aperture D (m)")
-                        wavelength = gr.Textbox(value="525", label="wavelength (nm): one, or three R G B")
+                        aperture = gr.Number(value=SIM_DEFAULTS.aperture_m, label="aperture D (m)")
+                        wavelength = gr.Textbox(
+                            value=SIM_DEFAULTS.wavelength_nm, label="wavelength (nm): one, or three R G B"
+                        )
                     with gr.Row():
-                        path_length = gr.Number(value=1000.0, label="path length L (m)")
+                        path_length = gr.Number(value=SIM_DEFAULTS.path_length_m, label="path length L (m)")
                         ifov = gr.Number(value=0, label="pixel IFOV (µrad), 0 = Nyquist λ/(2D)")
                     depth = gr.Radio(list(core.DEPTH_SOURCES), value="prior", label="depth")
                     depth_upload = gr.File(

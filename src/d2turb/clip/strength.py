@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -40,7 +39,7 @@ from d2turb.clip.pipeline import ClipRestorer
 from d2turb.clip.registration import DenseFlow, global_shift_px, to_hwc
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import turbulence_otf
-from d2turb.sim.params import MAX_DR0, cn2_spherical, isoplanatic_angle, positive_finite
+from d2turb.sim.params import MAX_DR0, Optics, as_optics, cn2_spherical, isoplanatic_angle
 from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
 
 MIN_FRAMES = 8  # fewer frames give too few time differences to fit the wind and the strength
@@ -119,46 +118,6 @@ TEXTURED_FULL = 0.15
 LOW_TEXTURE_LOG_SD = 0.1
 MAX_SPAN = 3.0  # the 90 % interval's hi/lo above which the clip is refused, naming the parameter that widens it
 NEGLIGIBLE_DR0 = 0.3  # ... unless its upper bound is below this: "no measurable turbulence" is an answer
-
-
-@dataclass
-class Optics:
-    """What the inversion needs: aperture D (m), wavelength λ (m), pixel angle ifov (rad; default Nyquist λ/(2D)),
-    path length L (m, optional: without it Cn² and θ0 are not given and the correlation scale is fitted), frame
-    rate (optional, only to express the fitted wind in m/s)."""
-
-    aperture_m: float = 0.1
-    wavelength_m: float = 525e-9
-    ifov_rad: float | None = None
-    path_length_m: float | None = None
-    fps: float | None = None
-    ifov_known: bool = field(init=False, default=False)  # ifov_rad was given (else λ/(D·ifov) is marginalised)
-
-    def __post_init__(self):
-        self.ifov_known = self.ifov_rad is not None
-        for name in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps"):
-            value = getattr(self, name)
-            if value is not None:
-                setattr(self, name, positive_finite(name, value))
-        if self.wavelength_m >= self.aperture_m:
-            raise D2TurbError(f"wavelength {self.wavelength_m} m is not smaller than the aperture {self.aperture_m} m")
-        if self.ifov_rad is None:
-            self.ifov_rad = self.wavelength_m / (2 * self.aperture_m)
-
-
-def as_optics(optics) -> Optics:
-    """An :class:`Optics` from itself, None (defaults), a dict of its fields, or a ``TurbulenceParams`` (its
-    reference wavelength, ifov and path length)."""
-    if isinstance(optics, Optics):
-        return optics
-    if optics is None or isinstance(optics, dict):
-        unknown = sorted(set(optics or {}) - set(Optics.__dataclass_fields__))
-        if unknown:
-            raise D2TurbError(f"unknown optics {unknown}; choose from {', '.join(Optics.__dataclass_fields__)}")
-        return Optics(**(optics or {}))
-    if hasattr(optics, "reference_wavelength") and hasattr(optics, "aperture_m"):
-        return Optics(optics.aperture_m, optics.reference_wavelength, optics.ifov_rad, optics.path_length_m)
-    raise D2TurbError(f"optics must be an Optics, a dict or TurbulenceParams, got {type(optics).__name__}")
 
 
 def r0_cn2_theta0(dr0: float, optics: Optics) -> dict:
@@ -631,11 +590,11 @@ def estimate_from_sums(
     given = {"ifov_rad": optics.ifov_known, "path_length_m": optics.path_length_m is not None}
     if not optics.ifov_known:
         qs = grid_q[sel.any(0)]
-        spans["unknown λ/(D·ifov) (give --param ifov_rad=…)"] = 1.2 * math.log(qs.max() / qs.min()) if len(qs) else 0
+        spans["unknown λ/(D·ifov) (give --ifov RAD)"] = 1.2 * math.log(qs.max() / qs.min()) if len(qs) else 0
     if optics.path_length_m is None:
         rows_used = prior_rows[sel[prior_rows].any(1)]
         per_f = [np.log(dr0[rows_used, qi].max() / dr0[rows_used, qi].min()) for qi in range(n_q) if len(rows_used)]
-        spans["unknown path length (give --param path_length_m=…)"] = float(max(per_f)) if per_f else 0.0
+        spans["unknown path length (give --path-length M)"] = float(max(per_f)) if per_f else 0.0
     fit_best = np.unravel_index(best[fi_point], models.shape[1:4])
     vi, di, bi = fit_best
     q_est = float(grid_q[qi_best])

@@ -11,8 +11,19 @@ import logging
 import os
 import sys
 
-from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE, DEFAULT_MAX_PIXELS, DEFAULT_PNG_LEVEL, DEVICE_HELP
+from d2turb.defaults import (
+    DEFAULT_APERTURE_M,
+    DEFAULT_DEPTH,
+    DEFAULT_DEVICE,
+    DEFAULT_MAX_PIXELS,
+    DEFAULT_PATH_LENGTH_M,
+    DEFAULT_PNG_LEVEL,
+    DEFAULT_WAVELENGTH_M,
+    DEVICE_HELP,
+)
 from d2turb.errors import D2TurbError
+
+log = logging.getLogger("d2turb.commands")
 
 SEED_MAX = 2**63 - 1  # torch generators and numpy SeedSequence both take [0, 2**63 - 1]
 
@@ -109,18 +120,102 @@ def add_param_arg(p, help_text: str = "simulator parameter override (repeatable)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help=help_text)
 
 
-def parse_params(texts: list[str]) -> dict:
-    """``--param`` values → {key: value}; a malformed item is a one-line error."""
+def parse_params(texts: list[str], keys=None) -> dict:
+    """``--param`` values → {key: value}, each value parsed as JSON (else kept as text); a malformed item, or a key
+    not in ``keys`` (when given), is a one-line error."""
     params = {}
     for text in texts:
         key, sep, value = text.partition("=")
         if not sep or not key:
             raise D2TurbError(f"--param expects KEY=VALUE, got {text!r}")
+        if keys is not None and key not in keys:
+            raise D2TurbError(f"--param {key}: unknown key; choose from {', '.join(keys)}")
         try:
             params[key] = json.loads(value)
         except json.JSONDecodeError:
             params[key] = value
     return params
+
+
+# ---- the optics (d2turb.sim.Optics): one spelling on every command that takes them --------------------------------
+# field → flag (argparse dest: the flag's name with _); `--param FIELD=…` is the old spelling of restore, measure and
+# make-dataset, kept as an alias for one release (a warning line names the flag)
+OPTICS_FLAGS = {
+    "aperture_m": "--aperture",
+    "wavelength_m": "--wavelength",
+    "ifov_rad": "--ifov",
+    "path_length_m": "--path-length",
+}
+
+
+def add_optics_args(
+    p,
+    path_length_m: float | None = DEFAULT_PATH_LENGTH_M,
+    *,
+    given_only: bool = False,
+    ifov_help: str = "default Nyquist λ/(2D)",
+    path_help: str | None = None,
+    wavelength_note: str = "",
+) -> None:
+    """``--aperture M``, ``--wavelength M [M M]``, ``--ifov RAD``, ``--path-length M``: the optics, with the defaults
+    of d2turb.defaults. ``given_only``: every value None unless given (the command fills in what is not given, and
+    records what was: :func:`optics_given`); ``path_length_m`` None: no default path length (``path_help`` says
+    what then); ``wavelength_note``: appended to the wavelength's "R G B"."""
+    default = (lambda v: None) if given_only else (lambda v: v)
+    p.add_argument(
+        "--aperture",
+        type=float,
+        default=default(DEFAULT_APERTURE_M),
+        metavar="M",
+        help=f"aperture diameter D in metres (default {DEFAULT_APERTURE_M:g})",
+    )
+    p.add_argument(
+        "--wavelength",
+        type=float,
+        nargs="+",
+        default=default([DEFAULT_WAVELENGTH_M]),
+        metavar="M",
+        help=f"wavelength in metres, one value or three (R G B{wavelength_note}) "
+        f"(default {DEFAULT_WAVELENGTH_M * 1e9:g}e-9)",
+    )
+    p.add_argument(
+        "--path-length",
+        type=float,
+        default=default(path_length_m),
+        metavar="M",
+        help=f"path length L in metres ({path_help or f'default {path_length_m:g}'})",
+    )
+    p.add_argument("--ifov", type=float, default=None, metavar="RAD", help=f"pixel angular size ({ifov_help})")
+
+
+def optics_given(args, params: dict | None = None) -> dict:
+    """The optics given on the command line as {Optics field: value}: the flags of :func:`add_optics_args` and, the
+    old spelling, the optics keys of ``params`` (parsed ``--param``; removed from it, one warning line each). The
+    same field given both ways with different values is a one-line error. Three wavelengths: a list (as in JSON)."""
+    given = {}
+    for key, flag in OPTICS_FLAGS.items():
+        value = getattr(args, flag[2:].replace("-", "_"), None)
+        if key == "wavelength_m" and value is not None:
+            value = list(value) if len(value) > 1 else value[0]
+        if params is not None and key in params:
+            old = params.pop(key)
+            log.warning("--param %s=… is the old spelling of %s (kept until the next release)", key, flag)
+            if value is not None and old != value:
+                raise D2TurbError(f"{key} given twice: {flag} {value} and --param {key}={old}")
+            value = old
+        if value is not None:
+            given[key] = value
+    return given
+
+
+def measured_optics(given: dict) -> dict:
+    """:func:`optics_given` for a measurement (d2turb.sim.Optics): of three wavelengths, the middle (reference) one."""
+    wl = given.get("wavelength_m")
+    if isinstance(wl, (list, tuple)):
+        if len(wl) not in (1, 3):
+            raise D2TurbError(f"wavelength_m takes one or three values, got {len(wl)}", param="wavelength_m")
+        given = {**given, "wavelength_m": wl[len(wl) // 2]}
+    return given
 
 
 def add_max_pixels_arg(p) -> None:

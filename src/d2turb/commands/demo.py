@@ -10,7 +10,7 @@ from d2turb.commands.simulate import add_physics_args, physics_params
 from d2turb.errors import D2TurbError
 
 LEVELS = (("weak", 1.5), ("medium", 3.0), ("strong", 4.5))
-DEMO_PATH_LENGTH_M = 3000.0  # D = 0.1 m at Nyquist: tilt footprint 12.7 px, inside the training geometries
+DEMO_PATH_LENGTH_M = 3000.0  # the default aperture at Nyquist: tilt footprint 12.7 px, inside the training geometries
 CLIP_IMAGE = "astronaut"  # the sample the clip is simulated from
 CLIP_FRAMES = 16  # frames per bin; the clip pipeline's window spans them all
 CLIP_WIND_M_S, CLIP_BOIL = 2.0, 0.1  # as the test clips of docs/clips.md

@@ -9,12 +9,15 @@ from d2turb.commands.common import (
     add_device_arg,
     add_max_pixels_arg,
     add_motion_args,
+    add_optics_args,
     add_param_arg,
     add_png_level_arg,
     add_seed_arg,
+    optics_given,
     parse_params,
     wait_passively,
 )
+from d2turb.defaults import DEFAULT_PATH_LENGTH_M
 from d2turb.errors import D2TurbError
 
 
@@ -46,13 +49,24 @@ def register(sub):
     add_seed_arg(p, "dataset seed (default 0)")
     p.add_argument("--batch", type=int, default=8, help="samples per simulator call (part of the seed; default 8)")
     add_device_arg(p)
-    add_param_arg(p)
+    add_optics_args(
+        p,
+        path_help=f"default {DEFAULT_PATH_LENGTH_M:g}",
+        given_only=True,
+        ifov_help="default Nyquist λ/(2D); with --geometry fixed",
+    )
+    add_param_arg(
+        p,
+        "TurbulenceParams override KEY=VALUE, e.g. n_zernike=21 (repeatable; the optics' keys are the old "
+        "spelling of the flags above, kept for one release)",
+    )
     p.add_argument(
         "--geometry",
         default="fixed",
         metavar="NAME",
-        help="imaging geometry: fixed (TurbulenceParams defaults + --param) or field (apertures, ranges and depth "
-        "offsets drawn per chunk of --batch samples), blind (as field, and λ/(D·ifov) 1-4 px; docs/datasets.md)",
+        help="imaging geometry: fixed (TurbulenceParams defaults + the optics flags and --param) or field "
+        "(apertures, ranges and depth offsets drawn per chunk of --batch samples), blind (as field, and λ/(D·ifov) "
+        "1-4 px; docs/datasets.md)",
     )
     p.add_argument(
         "--frames", type=int, default=1, metavar="N", help="N > 1: turbulent clips of N frames per sample (filmstrips)"
@@ -81,6 +95,7 @@ def run(args):
     from d2turb.data.generate import DatasetConfig, generate_dataset
 
     params = parse_params(args.param)
+    params.update(optics_given(args, params))  # the flags; the optics' keys of --param are their old spelling
     camera = {}
     for key, text, cast in (("noise", args.camera_noise, float), ("jpeg", args.jpeg, int)):
         if text:

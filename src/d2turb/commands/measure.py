@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
-from d2turb.commands.common import add_max_pixels_arg
+from d2turb.commands.common import (
+    OPTICS_FLAGS,
+    add_max_pixels_arg,
+    add_optics_args,
+    measured_optics,
+    optics_given,
+    parse_params,
+)
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 
-PARAM_KEYS = ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps")
+PARAM_KEYS = (*OPTICS_FLAGS, "fps")  # of the old spelling --param KEY=VALUE
+log = logging.getLogger("d2turb.commands")
 
 
 def register(sub):
@@ -16,14 +26,30 @@ def register(sub):
         help="measure the turbulence strength (D/r0, r0, Cn², θ0) from a clip of a static scene",
         description="Writes DIR/measure.json (D/r0 with a 90 % interval, r0, and with path_length_m the "
         "constant-path Cn² and the isoplanatic angle θ0) and prints one line. CLIP is a video file or a folder of "
-        "frames. The optics (--param aperture_m=… wavelength_m=… ifov_rad=… path_length_m=… fps=…) default to "
-        "D = 0.1 m, λ = 525 nm, ifov = λ/(2D); D/r0 depends on them only through λ/(D·ifov). Clips that cannot be "
+        "frames. The optics (--aperture, --wavelength, --ifov, --path-length; --fps) default to "
+        f"D = {DEFAULT_APERTURE_M:g} m, λ = {DEFAULT_WAVELENGTH_M * 1e9:g} nm, ifov not known; D/r0 depends on them "
+        "only through λ/(D·ifov). Clips that cannot be "
         "measured (too few frames, no texture, failed registration) are refused with the reason.",
     )
     p.add_argument("clip", metavar="CLIP", help="video file or folder of frames")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_optics_args(
+        p,
+        None,
+        given_only=True,
+        ifov_help="default: not known, λ/(D·ifov) marginalised over 0.7-6 px",
+        path_help="default: not known, D/r0 and r0 only (Cn² and θ0 need it)",
+        wavelength_note="; the middle one is used",
+    )
     p.add_argument(
-        "--param", action="append", default=[], metavar="KEY=VALUE", help=f"optics ({', '.join(PARAM_KEYS)})"
+        "--fps", type=float, default=None, help="frame rate, only to give the fitted wind in m/s (default: not known)"
+    )
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"old spelling of the optics, kept for one release: {', '.join(PARAM_KEYS)} (use the flags)",
     )
     p.add_argument("--window", type=int, default=None, metavar="N", help="also estimate per window of N frames")
     p.add_argument("--plot", action="store_true", help="write DIR/measure.png: D/r0 per window with its band")
@@ -39,19 +65,17 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def parse_params(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise D2TurbError(f"--param expects KEY=VALUE, got {item!r}")
-        if key not in PARAM_KEYS:
-            raise D2TurbError(f"--param {key}: unknown key; choose from {', '.join(PARAM_KEYS)}")
-        try:
-            out[key] = float(value)
-        except ValueError as exc:
-            raise D2TurbError(f"--param {key} must be a number, got {value!r}") from exc
-    return out
+def optics_of(args) -> dict:
+    """The optics given (d2turb.sim.Optics fields, and fps): the flags, or their old spelling ``--param KEY=VALUE``."""
+    params = parse_params(args.param, PARAM_KEYS)
+    given = measured_optics(optics_given(args, params))
+    fps = params.pop("fps", None)
+    if fps is not None:
+        log.warning("--param fps=… is the old spelling of --fps (kept until the next release)")
+        if args.fps is not None and args.fps != fps:
+            raise D2TurbError(f"fps given twice: --fps {args.fps} and --param fps={fps}")
+    fps = args.fps if args.fps is not None else fps
+    return {**given, **({"fps": fps} if fps is not None else {})}
 
 
 def read_clip(path: Path, max_frames: int | None = None) -> list:
@@ -101,10 +125,11 @@ def run(args):
     from d2turb.clip.strength import Optics, measure_clip
     from d2turb.io import check_output_dir, write_json
 
+    given = optics_of(args)
+    optics = Optics(**given)
     src = Path(args.clip)
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
-    optics = Optics(**parse_params(args.param))
     if args.bootstrap < 0:
         raise D2TurbError(f"--bootstrap must be 0 or more, got {args.bootstrap}")
     if args.max_frames is not None and args.max_frames < 1:
@@ -113,7 +138,6 @@ def run(args):
     frames = read_clip(src, args.max_frames)
     result = measure_clip(frames, optics, window=args.window, bootstrap=args.bootstrap, extrapolate=args.any_width)
     result["clip"] = str(src)
-    given = {k for k in PARAM_KEYS if any(p.startswith(k + "=") for p in args.param)}
     result["inputs"]["params_given"] = sorted(given)
     if optics.path_length_m is None:
         result["note"] = "no path_length_m: D/r0 and r0 only (Cn² and θ0 need the path length)"

@@ -6,8 +6,11 @@ from d2turb.commands.common import (
     add_device_arg,
     add_fail_fast_arg,
     add_max_pixels_arg,
+    add_optics_args,
     add_param_arg,
     add_png_level_arg,
+    measured_optics,
+    optics_given,
     parse_params,
     wait_passively,
 )
@@ -54,7 +57,17 @@ def register(sub):
     clip.add_argument(
         "--dr0", type=float, default=None, metavar="X", help="D/r0 of the path for --deblur physics (default: measured)"
     )
-    add_param_arg(clip, "optics: aperture_m, wavelength_m, ifov_rad (default Nyquist), path_length_m")
+    add_optics_args(
+        clip,
+        None,
+        given_only=True,
+        ifov_help="default: the λ/(D·ifov) of the measured D/r0; Nyquist λ/(2D) with --dr0",
+        path_help="default: not known; used by the measurement only",
+        wavelength_note="; the middle one is used",
+    )
+    add_param_arg(
+        clip, "old spelling of the optics, kept for one release: aperture_m, wavelength_m, ifov_rad, path_length_m"
+    )
     clip.add_argument(
         "--passes",
         type=int,
@@ -122,6 +135,13 @@ def run(args) -> int:
     )
 
 
+def _optics(args) -> dict:
+    """The optics given for the physics deblur: the flags, or their old spelling ``--param KEY=VALUE``."""
+    params = parse_params(args.param)
+    given = measured_optics(optics_given(args, params))  # takes the optics keys out of params
+    return {**params, **given}
+
+
 def run_clips(args) -> int:
     """``restore CLIP --temporal N``: register, fuse and deblur across frames (d2turb.restore.files)."""
     # lazy: see d2turb.commands
@@ -136,7 +156,7 @@ def run_clips(args) -> int:
         args.temporal,
         deblur=args.deblur,
         dr0=args.dr0,
-        params=parse_params(args.param) if args.deblur in ("physics", "auto") else {},  # --param: the optics
+        params=_optics(args) if args.deblur in ("physics", "auto") else {},
         passes=args.passes,
         preset=args.preset,
         fusion=args.fusion,

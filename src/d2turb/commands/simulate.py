@@ -7,35 +7,16 @@ from d2turb.commands.common import (
     add_device_arg,
     add_fail_fast_arg,
     add_max_pixels_arg,
+    add_optics_args,
     add_png_level_arg,
     add_seed_arg,
 )
-from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH
+from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH, DEFAULT_PATH_LENGTH_M
 
 
-def add_physics_args(p, path_length_m: float = 1000.0):
+def add_physics_args(p, path_length_m: float = DEFAULT_PATH_LENGTH_M):
     """Physical parameters shared by simulate and demo."""
-    p.add_argument(
-        "--aperture", type=float, default=0.1, metavar="M", help="aperture diameter D in metres (default 0.1)"
-    )
-    p.add_argument(
-        "--wavelength",
-        type=float,
-        nargs="+",
-        default=[525e-9],
-        metavar="M",
-        help="wavelength in metres, one value or three (R G B) (default 525e-9)",
-    )
-    p.add_argument(
-        "--path-length",
-        type=float,
-        default=path_length_m,
-        metavar="M",
-        help=f"path length L in metres (default {path_length_m:g})",
-    )
-    p.add_argument(
-        "--ifov", type=float, default=None, metavar="RAD", help="pixel angular size (default Nyquist λ/(2D))"
-    )
+    add_optics_args(p, path_length_m)
     p.add_argument(
         "--modulation",
         default="power_offset",

@@ -42,7 +42,7 @@ from d2turb.io import named_error as _named  # an input's error, naming it
 from d2turb.ops.splat import backward_flow
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
-from d2turb.sim import TurbulenceParams
+from d2turb.sim import Optics, TurbulenceParams
 from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, iter_video, video_fps, video_size
 
 
@@ -263,7 +263,7 @@ def _clip_head(src: Path) -> list:
 
 
 def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
-    """TurbulenceParams from the ``--param`` optics (the path length is the measurement's only); one-line error."""
+    """TurbulenceParams from the given optics (the path length is the measurement's only); one-line error."""
     try:
         return TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, **extra)
     except TypeError as exc:
@@ -301,7 +301,7 @@ def clip_deblur(
         return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
     if choice in ("physics", "auto"):
         source, measured = "given (--dr0)", None
-        optics = "from --param" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
+        optics = "given" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
         if dr0 is None:
             head = _clip_head(src)
             try:
@@ -311,8 +311,8 @@ def clip_deblur(
             dr0, (lo, hi) = measured["dr0"], measured["dr0_ci"]
             source = f"measured on the clip's first {len(head)} frames (d2turb measure, 90 % [{lo:.3g}, {hi:.3g}])"
             if "ifov_rad" not in params:  # the λ/(D·ifov) at which measure's estimate holds
-                a, w = params.get("aperture_m", 0.1), params.get("wavelength_m", 525e-9)
-                params["ifov_rad"] = w / (a * measured["lambda_over_d_px"])
+                o = Optics(**{k: params[k] for k in ("aperture_m", "wavelength_m") if k in params})
+                params["ifov_rad"] = o.wavelength_m / (o.aperture_m * measured["lambda_over_d_px"])
                 optics = "λ/(D·ifov) of d2turb measure's estimate"
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
         deblur = PhysicsDeblur(deblur_dr0(p.dr0, fusion), p.lambda_over_d_px, balance=default_balance(p.dr0))
@@ -472,8 +472,8 @@ def restore_clip_files(
         record = restorer.deblur.record
         if restorer.deblur.note:
             print(
-                f"note: {restorer.deblur.note}; for the physics deblur give --dr0 X (and the optics with --param), "
-                "or --deblur none",
+                f"note: {restorer.deblur.note}; for the physics deblur give --dr0 X (and the optics: --aperture, "
+                "--wavelength, --ifov), or --deblur none",
                 file=sys.stderr,
             )
     if count:  # a run that restored nothing leaves no folder (_no_empty_out), so no restore.json either

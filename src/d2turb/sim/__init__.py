@@ -4,7 +4,9 @@ from d2turb.sim.derived import derived_quantities
 from d2turb.sim.params import (
     BINS,
     MODULATIONS,
+    Optics,
     TurbulenceParams,
+    as_optics,
     bin_spans,
     cn2_spherical,
     depth_modulation,
@@ -21,7 +23,9 @@ from d2turb.sim.simulator import SimResult, Simulator, simulate
 __all__ = [
     "BINS",
     "MODULATIONS",
+    "Optics",
     "TurbulenceParams",
+    "as_optics",
     "Simulator",
     "SimResult",
     "FrozenFlow",

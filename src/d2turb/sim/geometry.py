@@ -3,8 +3,8 @@
 What one frame shows of the tilt is set by two numbers in pixels (docs/physics.md): the tilt amplitude
 σ ≈ 0.426·q·(D/r0)^(5/6) per axis, with q = λ/(D·ifov) pixels per λ/D (q = 2 at Nyquist), and the correlation
 scale, the aperture's footprint at mid-path D/(ifov·L): two pixels this far apart see tilts from air volumes
-that barely overlap. With the simulator's default (D = 0.1 m, L = 1 km, Nyquist) the footprint is 38 px, so a
-256² crop moves almost as one piece and the learnable part of the flow is small.
+that barely overlap. With the simulator's default optics (d2turb.defaults; L = 1 km, Nyquist) the footprint is 38 px, so
+a 256² crop moves almost as one piece and the learnable part of the flow is small.
 
 A :class:`GeometryDistribution` draws L log-uniformly in ``range_m`` and the footprint log-uniformly in
 ``footprint_px``; the aperture follows from them at fixed q (D = sqrt(footprint·λ·L/q)), and the depth offset s
@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from d2turb.defaults import DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 from d2turb.sim.params import TurbulenceParams
 
@@ -32,7 +33,7 @@ class GeometryDistribution:
     footprint_px: tuple[float, float] = (4.0, 32.0)
     offset_s: tuple[float, float] = (0.3, 0.9)
     samples_per_lambda_d: float = 2.0  # q; 2 = Nyquist (larger q makes the PSF window, and the simulator, slower)
-    wavelength_m: float = 525e-9
+    wavelength_m: float = DEFAULT_WAVELENGTH_M
     size: int = 16
     seed: int = 0
     # q drawn log-uniformly per geometry in this range (the blind test set); None: ``samples_per_lambda_d`` for all

@@ -1,13 +1,15 @@
-"""Physical turbulence parameters (SI units) with validation, strength bins and depth modulation."""
+"""The imaging optics (:class:`Optics`) and the physical turbulence parameters (SI units) with validation, strength
+bins and depth modulation."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 
 BINS = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}  # D/r0 strength bins (paper Sec. 4.1)
@@ -68,6 +70,68 @@ def isoplanatic_angle(cn2: float, path_length_m: float, wavelength_m: float, wav
     return (2.914 * k * k * cn2 * path_length_m ** (8 / 3) * ISOPLANATIC_WEIGHTS[wave]) ** (-3 / 5)
 
 
+def nyquist_ifov(wavelength_m: float, aperture_m: float) -> float:
+    """The Nyquist pixel angle λ/(2D) (rad): the default ifov everywhere."""
+    return wavelength_m / (2 * aperture_m)
+
+
+@dataclass(frozen=True)
+class Optics:
+    """The imaging optics, one definition for the simulator (:attr:`TurbulenceParams.optics`), ``d2turb measure``,
+    the clip deblur and the page; defaults from :mod:`d2turb.defaults`.
+
+    Args:
+        aperture_m: aperture diameter D (m).
+        wavelength_m: wavelength λ (m); of an RGB simulation, its reference (middle) wavelength.
+        ifov_rad: angular size of a pixel (rad); None: not known, taken as Nyquist λ/(2D) (``ifov_known`` False:
+            the measurement then marginalises λ/(D·ifov)).
+        path_length_m: path length L (m); None: not known (no Cn², θ0; the tilt's correlation scale is fitted).
+        fps: frame rate (optional; only to express a measured wind in m/s).
+
+    Raises:
+        D2TurbError: a value that is not positive and finite, or λ ≥ D (one line, naming it).
+    """
+
+    aperture_m: float = DEFAULT_APERTURE_M
+    wavelength_m: float = DEFAULT_WAVELENGTH_M
+    ifov_rad: float | None = None
+    path_length_m: float | None = None
+    fps: float | None = None
+    ifov_known: bool = field(init=False, default=False)  # ifov_rad was given (else Nyquist, and marginalised)
+
+    def __post_init__(self):
+        object.__setattr__(self, "ifov_known", self.ifov_rad is not None)
+        for name in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, positive_finite(name, value))
+        if self.wavelength_m >= self.aperture_m:
+            raise D2TurbError(f"wavelength {self.wavelength_m} m is not smaller than the aperture {self.aperture_m} m")
+        if self.ifov_rad is None:
+            object.__setattr__(self, "ifov_rad", nyquist_ifov(self.wavelength_m, self.aperture_m))
+
+    @property
+    def lambda_over_d_px(self) -> float:
+        """λ/(D·ifov): the diffraction angle in pixels (2 = Nyquist sampling)."""
+        return self.wavelength_m / (self.aperture_m * self.ifov_rad)
+
+
+def as_optics(optics) -> Optics:
+    """An :class:`Optics` from itself, None (defaults), a dict of its fields, or a :class:`TurbulenceParams` (its
+    :attr:`~TurbulenceParams.optics`)."""
+    if isinstance(optics, Optics):
+        return optics
+    if optics is None or isinstance(optics, dict):
+        names = [f for f in Optics.__dataclass_fields__ if f != "ifov_known"]
+        unknown = sorted(set(optics or {}) - set(names))
+        if unknown:
+            raise D2TurbError(f"unknown optics {unknown}; choose from {', '.join(names)}")
+        return Optics(**(optics or {}))
+    if isinstance(optics, TurbulenceParams):
+        return optics.optics
+    raise D2TurbError(f"optics must be an Optics, a dict or TurbulenceParams, got {type(optics).__name__}")
+
+
 @dataclass
 class TurbulenceParams:
     """Imaging and turbulence parameters.
@@ -99,9 +163,9 @@ class TurbulenceParams:
         5.25e-07
     """
 
-    aperture_m: float = 0.1
-    wavelength_m: float | tuple = 525e-9
-    path_length_m: float = 1000.0
+    aperture_m: float = DEFAULT_APERTURE_M
+    wavelength_m: float | tuple = DEFAULT_WAVELENGTH_M
+    path_length_m: float = DEFAULT_PATH_LENGTH_M
     dr0: float | None = None
     cn2: float | None = None
     ifov_rad: float | None = None
@@ -140,7 +204,7 @@ class TurbulenceParams:
         if self.dr0 > MAX_DR0:
             raise D2TurbError(f"D/r0 = {self.dr0:.3g} is beyond the supported range (0, {MAX_DR0:g}]")
         self.ifov_rad = (
-            self.reference_wavelength / (2 * self.aperture_m)
+            nyquist_ifov(self.reference_wavelength, self.aperture_m)
             if self.ifov_rad is None
             else positive_finite("ifov_rad", self.ifov_rad)
         )
@@ -191,9 +255,14 @@ class TurbulenceParams:
         return self.aperture_m / self.dr0
 
     @property
+    def optics(self) -> Optics:
+        """The :class:`Optics` of these parameters (the reference wavelength; ifov and path length given)."""
+        return Optics(self.aperture_m, self.reference_wavelength, self.ifov_rad, self.path_length_m)
+
+    @property
     def lambda_over_d_px(self) -> float:
         """λ/(D·ifov) at the reference wavelength: the diffraction angle in pixels (2 = Nyquist sampling)."""
-        return self.reference_wavelength / (self.aperture_m * self.ifov_rad)
+        return self.optics.lambda_over_d_px
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -204,9 +273,9 @@ class TurbulenceParams:
 
 
 def make_params(
-    aperture_m: float = 0.1,
-    wavelength_m=525e-9,
-    path_length_m: float = 1000.0,
+    aperture_m: float = DEFAULT_APERTURE_M,
+    wavelength_m=DEFAULT_WAVELENGTH_M,
+    path_length_m: float = DEFAULT_PATH_LENGTH_M,
     *,
     dr0: float | None = None,
     cn2: float | None = None,
