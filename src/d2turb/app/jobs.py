@@ -91,7 +91,8 @@ _BAR = re.compile(r"^(?:(?P<desc>[^:|]{1,60}): )?\s*(?P<pct>\d{1,3})%\|")  # a t
 
 def _child_env() -> dict[str, str]:
     env = dict(os.environ)
-    installed = {str(Path(p).resolve()) for p in [*site.getsitepackages(), site.getusersitepackages()]}
+    folders = [*getattr(site, "getsitepackages", list)(), site.getusersitepackages()]  # (old virtualenv: no list)
+    installed = {str(Path(p).resolve()) for p in folders}
     if _PACKAGE_PARENT not in installed:  # a checkout on PYTHONPATH or an editable install: the same source tree
         env["PYTHONPATH"] = os.pathsep.join(p for p in (_PACKAGE_PARENT, env.get("PYTHONPATH")) if p)
     env["PYTHONSAFEPATH"] = "1"  # Python >= 3.11: the run folder (the child's cwd) is not put on sys.path
