@@ -47,27 +47,50 @@ def _rgb(h, w, seed=0):
     return np.clip(base + rng.normal(0, 30, (h, w, 3)), 0, 255).astype(np.uint8)
 
 
-def _reproduce(command: str, bundle_zip: Path, where: Path, monkeypatch) -> tuple[Path, Path]:
-    """Unpack the app's download, move its outputs aside, run its command line with the CLI there
-    → (outputs of the command, outputs of the app)."""
-    with zipfile.ZipFile(bundle_zip) as zf:
+def _reproduce(r, where: Path) -> int:
+    """Unpack the page's download, set aside what its commands wrote, run the command lines the page shows there
+    (each as a subprocess, ``d2turb`` = this checkout's ``python -m d2turb``, as a user's shell would) and check that
+    they write the page's files bit for bit; returns the number of files compared."""
+    with zipfile.ZipFile(r.files[0]) as zf:
         zf.extractall(where)
-    (folder,) = list(where.iterdir())
-    app_out = where / "app_out"
-    shutil.move(folder / "out", app_out)
-    monkeypatch.chdir(folder)
-    argv = shlex.split(command)
-    assert argv[0] == "d2turb"
-    assert main(argv[1:]) == 0
-    assert (folder / "command.sh").read_text().strip().endswith(command)
-    return folder / "out", app_out
+    (folder,) = [p for p in where.iterdir() if p.name != "page"]
+    assert (folder / "command.sh").read_text().strip().endswith(r.command)
+    argvs = [shlex.split(line) for line in r.command.splitlines()]
+    outs = [argv[argv.index("--out") + 1] for argv in argvs]
+    for out in outs:
+        (where / "page" / out).parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(folder / out, where / "page" / out)
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    for argv in argvs:
+        assert argv[0] == "d2turb"
+        res = subprocess.run(
+            [sys.executable, "-m", "d2turb", *argv[1:]], cwd=folder, env=env, capture_output=True, timeout=600
+        )
+        assert res.returncode == 0, res.stderr.decode()
+    return sum(_same_files(folder / out, where / "page" / out) for out in outs)
 
 
-def _same_files(a: Path, b: Path):
-    names = sorted(p.name for p in a.iterdir())
-    assert names == sorted(p.name for p in b.iterdir())
+def _same_files(a: Path, b: Path) -> int:
+    names = sorted(str(p.relative_to(a)) for p in a.rglob("*") if p.is_file())
+    assert names == sorted(str(p.relative_to(b)) for p in b.rglob("*") if p.is_file())
     for name in names:
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    return len(names)
+
+
+@pytest.fixture
+def executed(monkeypatch):
+    """The argument lists the page runs, in order (recorded around d2turb.app.jobs.run_command)."""
+    import d2turb.app.tabs
+
+    calls = []
+
+    def record(argv, cwd, progress=None):
+        calls.append(list(argv))
+        return core.run_command(argv, cwd, progress)
+
+    monkeypatch.setattr(d2turb.app.tabs, "run_command", record)
+    return calls
 
 
 # ---- physics of the derived quantities ---------------------------------------------------------------------------
@@ -105,14 +128,16 @@ def test_units_typed_in_the_page_give_the_clis_floats():
     assert core.safe_stem("-rm -rf.png") == "image_-rm_-rf"  # never read as an option
     assert core.safe_stem("my photo (1).JPG") == "my_photo_1"
     assert core.safe_stem("...") == "image"
-    argv = core.simulate_argv(core.SimSettings(dr0=3.0500000000000003, aperture_m=0.30000000000000004), "a.png", None)
+    values = core.sim_values(core.SimSettings(dr0=3.0500000000000003, aperture_m=0.30000000000000004), None)
+    argv = core.simulate_argv(values, "a.png")
     assert argv[argv.index("--dr0") + 1] == "3.05" and argv[argv.index("--aperture") + 1] == "0.3"
 
 
 # ---- simulate ----------------------------------------------------------------------------------------------------
-def test_simulate_sample_with_prior_depth_is_reproduced_by_its_command_line(workspace, tmp_path, monkeypatch):
+def test_simulate_sample_with_prior_depth_is_reproduced_by_its_command_line(workspace, tmp_path, executed):
     s = core.SimSettings(source="sample", sample="chart", dr0=2.0, depth="prior", seed=5, modulation="power_offset")
     r = core.run_simulation(s, workspace)
+    assert r.command == core.command_text(*executed)  # what ran is what the page shows
     assert r.command.startswith("d2turb simulate chart.png --out out --seed 5 --dr0 2.0 --depth prior")
     out = r.run_dir / "out"
     turb = np.asarray(Image.open(r.turb))
@@ -137,10 +162,10 @@ def test_simulate_sample_with_prior_depth_is_reproduced_by_its_command_line(work
         "chart_meta.json",
         "command.sh",
     ]
-    _same_files(*_reproduce(r.command, r.files[0], tmp_path / "again", monkeypatch))  # bit for bit, meta.json included
+    assert _reproduce(r, tmp_path / "again") == 4  # bit for bit, meta.json included
 
 
-def test_simulate_upload_with_depth_map_cn2_rgb_and_ifov(workspace, tmp_path, monkeypatch):
+def test_simulate_upload_with_depth_map_cn2_rgb_and_ifov(workspace, tmp_path):
     img = tmp_path / "street view.png"
     Image.fromarray(_rgb(48, 64)).save(img)
     depth = tmp_path / "depth.npy"
@@ -171,7 +196,8 @@ def test_simulate_upload_with_depth_map_cn2_rgb_and_ifov(workspace, tmp_path, mo
     # linear M = d̃ and disparity is inverted: the bottom row (largest disparity) is nearest, M = 0
     m = np.asarray(Image.open(r.modulation), dtype=np.float64) / 255
     assert m[0].min() == 1.0 and m[-1].max() == 0.0
-    _same_files(*_reproduce(r.command, r.files[0], tmp_path / "again", monkeypatch))
+    assert meta["input"] == "street_view.png" and meta["depth"] == "street_view_depthmap.npy"  # run in the folder
+    assert _reproduce(r, tmp_path / "again") == 4
 
 
 def test_simulate_bad_input_gives_one_line_messages(workspace, tmp_path):
@@ -219,7 +245,7 @@ def test_depth_map_of_another_aspect_ratio_is_refused(workspace, tmp_path):
 
 
 # ---- restore -----------------------------------------------------------------------------------------------------
-def test_restore_identity_image_and_video(workspace, tmp_path, monkeypatch):
+def test_restore_identity_image_and_video(workspace, tmp_path):
     img = tmp_path / "scene.png"
     Image.fromarray(_rgb(200, 240)).save(img)
     r = core.run_restore(str(img), "input", workspace)
@@ -230,20 +256,21 @@ def test_restore_identity_image_and_video(workspace, tmp_path, monkeypatch):
     frames = [Image.fromarray(_rgb(24, 32, seed=i)) for i in range(3)]
     gif = tmp_path / "clip.gif"
     frames[0].save(gif, save_all=True, append_images=frames[1:], duration=50, loop=0)
-    v = core.run_restore(str(gif), "input", workspace)
+    bars = []
+    v = core.run_restore(str(gif), "input", workspace, progress=lambda fraction, desc: bars.append((fraction, desc)))
     assert v.frames == 3 and "3 frames" in v.notes[0]
+    assert bars[-1] == (1.0, "clip.gif")  # the command's tqdm bar (its stderr) drives the page's
     assert isinstance(v.niqe["input"], str) and v.niqe["input"].startswith("n/a")  # 24x32 has no 96x96 block
     with zipfile.ZipFile(v.files[0]) as zf:
         restored = sorted(n for n in zf.namelist() if n.endswith("_restored.png"))
     assert [Path(n).name for n in restored] == [f"clip_{i:06d}_restored.png" for i in range(3)]
+    assert _reproduce(v, tmp_path / "again") in (6, 7)  # each frame's restored PNG and flow (and the mp4)
     with pytest.raises(D2TurbError, match="5 frames is more"):  # noqa: PT012
         frames[0].save(gif, save_all=True, append_images=frames[1:] * 2, duration=50, loop=0)
         core.run_restore(str(gif), "input", workspace, limits=core.Limits(video_frames=3))
 
 
-def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(
-    workspace, tiny_d2turb_weights, tmp_path, monkeypatch
-):
+def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(workspace, tiny_d2turb_weights, tmp_path, executed):
     img = tmp_path / "far.png"
     Image.fromarray(_rgb(56, 72)).save(img)
     r = core.run_restore(str(img), str(tiny_d2turb_weights), workspace, tile=40, overlap=16)  # 2 x 2 tiles
@@ -251,7 +278,8 @@ def test_restore_tiny_model_tiled_is_reproduced_by_its_command_line(
     assert np.asarray(Image.open(r.after)).shape == (56, 72, 3)
     flow = np.load(r.files[2])
     assert flow.shape == (2, 56, 72) and r.flow_scale_px > 0.1
-    _same_files(*_reproduce(r.command, r.files[0], tmp_path / "again", monkeypatch))
+    assert r.command == core.command_text(*executed)
+    assert _reproduce(r, tmp_path / "again") == 2
 
 
 def test_weights_choices_follow_resolve_weights(tmp_path, monkeypatch):
@@ -300,6 +328,16 @@ def test_restore_bad_input_gives_one_line_messages(workspace, tmp_path):
         core.run_restore(str(img), "input", workspace, limits=core.Limits(restore_pixels=500))
 
 
+def test_an_error_of_the_command_is_one_line_in_the_page(tmp_path):
+    """A job's command that fails (here: a missing input, a usage error) gives its own ``error:`` line as the page's
+    one-line message."""
+    with pytest.raises(D2TurbError) as info:
+        core.run_command(["simulate", "missing.png", "--out", "out"], tmp_path)
+    assert str(info.value) == "missing.png: no such file or directory"
+    with pytest.raises(D2TurbError, match=r"^argument --dr0: invalid float value: 'x'"):
+        core.run_command(["simulate", "a.png", "--out", "out", "--dr0", "x"], tmp_path)
+
+
 # ---- the command and the install -----------------------------------------------------------------------------------
 def test_base_install_does_not_pull_the_app_dependencies_and_the_command_says_how_to_install():
     tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
@@ -343,30 +381,21 @@ def test_a_folder_named_gradio_is_not_the_extra(tmp_path, monkeypatch, capsys):
     )
 
 
-def test_clip_tab_simulates_from_an_image_and_restores_with_the_known_strength(workspace, tmp_path):
+def test_clip_tab_simulates_from_an_image_and_restores_with_the_known_strength(workspace, tmp_path, executed):
     """An uploaded image becomes a simulated clip at D/r0 = 2 and is restored with that D/r0; the command lines
-    reproduce the run (the restored frames are byte-identical when run again from the download)."""
+    reproduce the run (the simulated and the restored frames are byte-identical when run again from the download)."""
     path = tmp_path / "scene.png"
     Image.fromarray(_rgb(48, 56)).save(path)
     r = core.run_clip(str(path), workspace, temporal=4, dr0=2.0)
     assert r.frames == core.CLIP_SIM_FRAMES
+    assert r.command == core.command_text(*executed)
     lines = r.command.splitlines()
     assert lines[0].startswith("d2turb simulate-video scene.png --out clip --frames 32 --dr0 2")
     assert lines[1] == "d2turb restore clip/turb --temporal 4 --out out --save-intermediate --dr0 2"
     assert np.asarray(Image.open(r.after)).shape == (48, 56, 3)
     restored = sorted((r.run_dir / "out").glob("*_restored.png"))
     assert len(restored) == 32
-    again = tmp_path / "again"
-    with zipfile.ZipFile(r.files[0]) as zf:
-        zf.extractall(again)
-    (folder,) = list(again.iterdir())
-    shutil.rmtree(folder / "out")
-    for line in lines:
-        argv = shlex.split(line)[1:]
-        argv = [str(folder / a) if a in ("scene.png", "clip", "clip/turb", "out") else a for a in argv]
-        assert main(argv) == 0
-    for p in restored:
-        assert (folder / "out" / p.name).read_bytes() == p.read_bytes(), p.name
+    assert _reproduce(r, tmp_path / "again") >= 32 + 32 + 32  # clip/turb frames, restored and deblurred frames
 
 
 def test_clip_tab_refuses_bad_uploads(workspace, tmp_path):
@@ -398,3 +427,4 @@ def test_clip_tab_counts_the_frames_of_containers_that_do_not_store_them(workspa
     r = core.run_clip(str(tmp_path / "clip.mkv"), workspace, temporal=3)
     assert r.frames == 6 and r.command.endswith("--deblur none")
     assert np.asarray(Image.open(r.after)).shape == (32, 40, 3)
+    assert _reproduce(r, tmp_path / "again") >= 6  # the restored frames of the video, bit for bit

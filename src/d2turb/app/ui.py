@@ -1,5 +1,6 @@
 """The page of ``d2turb app`` (Gradio Blocks) and the server. The callbacks are thin: they call
-:mod:`d2turb.app.core` and turn its one-line errors into ``gr.Error`` messages in the page.
+:mod:`d2turb.app.core` (which runs each job as its ``d2turb`` command, :mod:`d2turb.app.jobs`) and turn its
+one-line errors into ``gr.Error`` messages in the page.
 
 Import this module only after :func:`d2turb.app.core.prepare_environment` when nothing may be written outside the
 app's temp folder: gradio reads ``GRADIO_TEMP_DIR`` when it is imported.
@@ -161,10 +162,10 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
         )
 
     @guard
-    def restore(upload, weights, weights_path, tile, overlap, device, progress=gr.Progress(track_tqdm=True)):  # noqa: B008
+    def restore(upload, weights, weights_path, tile, overlap, device, progress=gr.Progress()):  # noqa: B008
         chosen = (weights_path or "").strip() or weights
         progress(0, desc="restoring")
-        r = core.run_restore(upload, chosen, workspace, tile, overlap, device, limits)
+        r = core.run_restore(upload, chosen, workspace, tile, overlap, device, limits, _bars(progress))
         notes = "\n".join(f"* {n}" for n in r.notes)
         pair = (str(r.before), str(r.after))
         niqe_md = core.niqe_markdown(r.niqe) + f"\n\nflow picture: full colour = {r.flow_scale_px:.3g} px"
@@ -179,9 +180,9 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
         )
 
     @guard
-    def clip(upload, temporal, dr0, progress=gr.Progress(track_tqdm=True)):  # noqa: B008
+    def clip(upload, temporal, dr0, progress=gr.Progress()):  # noqa: B008
         progress(0, desc="restoring the clip")
-        r = core.run_clip(upload, workspace, temporal, dr0, limits)
+        r = core.run_clip(upload, workspace, temporal, dr0, limits, _bars(progress))
         notes = "\n".join(f"* {n}" for n in r.notes)
         return (str(r.before), str(r.after)), notes, r.command, [str(f) for f in r.files]
 
@@ -338,6 +339,11 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
                 concurrency_limit=1,
             )
     return demo
+
+
+def _bars(progress: gr.Progress):
+    """The command's tqdm bars (read from its stderr by :func:`d2turb.app.jobs.run_command`) → the page's bar."""
+    return lambda fraction, desc: progress(fraction, desc=desc)
 
 
 def _code_kwargs() -> dict:
