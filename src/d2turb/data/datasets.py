@@ -16,7 +16,7 @@ from d2turb.data.layout import bin_index, file_path, load_flow, read_config, rea
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
 from d2turb.ops.checks import check_shape
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
 FLOW_KEYS = ("bwd_flow_px", "flow")  # the backward flow of a sample, and its deprecated name
@@ -252,7 +252,7 @@ class OnTheFlySynthesis:
         )
         with torch.no_grad():
             res = self.simulators[g](gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
-            flow = backward_flow(res.fwd_flow_px)
+            flow = invert_flow(res.fwd_flow_px)
         return {
             "turb": res.turb,
             "tilt": res.tilt,

@@ -55,7 +55,7 @@ from d2turb.io import (
     write_npy,
     write_text,
 )
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.sim import Simulator
 from d2turb.sim.geometry import footprint_px, geometry_bank
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
@@ -572,7 +572,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                 )
             else:
                 res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
-                turb, tilt, flow = res.turb, res.tilt, backward_flow(res.fwd_flow_px).float()
+                turb, tilt, flow = res.turb, res.tilt, invert_flow(res.fwd_flow_px).float()
             if not torch.isfinite(flow).all() or not torch.isfinite(turb).all():
                 raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
             turb, tilt, flow = turb.float().cpu(), tilt.float().cpu(), flow.cpu()

@@ -24,7 +24,7 @@ from torch.utils.data import Dataset
 from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.sim.sequence import check_sequence_args, wind_speeds
 
 SEQUENCE_DEFAULTS = {"fps": 30.0, "wind": 1.0, "wind_dir": 0.0, "boil": 0.0}
@@ -52,7 +52,7 @@ def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, sett
     for res in sim.sequence(clean, frames=frames, depth=depth, dr0=dr0, generator=generator, **settings):
         turb.append(res.turb.float().cpu())
         tilt.append(res.tilt.float().cpu())
-        flow.append(backward_flow(res.fwd_flow_px).float().cpu())
+        flow.append(invert_flow(res.fwd_flow_px).float().cpu())
     return torch.cat(turb, -2), torch.cat(tilt, -2), torch.stack(flow, 1)
 
 

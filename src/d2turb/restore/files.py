@@ -37,7 +37,7 @@ from d2turb.io import (
     write_json,
     write_npy,
 )
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
 from d2turb.sim import TurbulenceParams
@@ -464,7 +464,7 @@ def restore_clip_files(
             if save_intermediate:
                 writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), frame.fused, png_level)
             if save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
-                fwd = backward_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
+                fwd = invert_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
                 writer.submit(write_npy, out_dir / "flow" / f"{frame.index:06d}.npy", fwd)
             if video is not None:
                 video.write(frame.restored)

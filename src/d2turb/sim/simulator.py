@@ -27,7 +27,7 @@ class SimResult:
 
     Shape:
         turb, tilt, clean, blur: (B, C, H, W); fwd_flow_px: (B, 2, H, W), the forward displacement Δ in pixels, x then
-        y (tilt = warp(clean, fwd_flow_px); :func:`d2turb.ops.backward_flow` gives the backward flow that undoes it);
+        y (tilt = warp(clean, fwd_flow_px); :func:`d2turb.ops.invert_flow` gives the backward flow that undoes it);
         modulation M: (B, 1, H, W); dr0: (B,).
     """
 
