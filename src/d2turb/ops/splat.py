@@ -1,7 +1,9 @@
 """Invert a displacement field by density-based forward splatting (Eq. 12's V_bwd from the simulator's Δ).
 
 :func:`invert_flow` turns a forward flow into the backward flow that undoes it, and a backward flow into the
-forward one (the inverse of the inverse). The simulator gives Δ with I_tilt(x) = I(x + Δ(x)) (Eq. 7, ``warp(I, Δ)``). The rectifier needs V
+forward one (the inverse of the inverse).
+
+The simulator gives Δ with I_tilt(x) = I(x + Δ(x)) (Eq. 7, ``warp(I, Δ)``). The rectifier needs V
 with I_tilt(y + V(y)) = I(y) (Eq. 9, ``warp(I_tilt, V) ≈ I``). Pixel x of I_tilt shows the content
 of y = x + Δ(x), so V(y) = x − y = −Δ(x): the value −Δ(x) is splatted to x + Δ(x) with bilinear
 weights, the weights are accumulated as a density, and V = Σ w·(−Δ) / Σ w. Holes (density below
