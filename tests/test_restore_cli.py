@@ -36,7 +36,7 @@ def test_restore_identity_writes_all_outputs(tmp_path, capsys):
     c = read_image(out / "c_restored.png")
     assert c.shape == (3, 30, 20)
     assert (c[0] - torch.from_numpy(grey16 / 65535.0).float()).abs().max() <= 0.5 / 255 + 1e-6
-    flow = np.load(out / "b_flow.npy")
+    flow = np.load(out / "b_bwd_flow_px.npy")
     assert flow.dtype == np.float32 and flow.shape == (2, 24, 40) and not flow.any()
     assert "restored 3 image(s)" in capsys.readouterr().out
 

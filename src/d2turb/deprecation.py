@@ -20,3 +20,33 @@ def warn_once(old: str, message: str, stacklevel: int = 3) -> None:
 def reset() -> None:
     """Forget which deprecated names have warned (each warns again once)."""
     _warned.clear()
+
+
+class AliasDict(dict):
+    """A dict whose deprecated keys (``aliases``: old → new) still read, warning once per old key.
+
+    Only the new keys are stored (iteration, ``len``, ``set(d)`` and copies see one key per value); ``d[old]``,
+    ``d.get(old)`` and ``old in d`` go to the new key. Subclasses set ``aliases`` and ``what`` (for the message)."""
+
+    aliases: dict[str, str] = {}
+    what = "dict"
+
+    def _new(self, key):
+        new = self.aliases.get(key) if isinstance(key, str) else None
+        if new is not None and not dict.__contains__(self, key):
+            warn_once(f"{self.what}[{key!r}]", f"{self.what}[{key!r}] is deprecated; use {self.what}[{new!r}]", 4)
+            return new
+        return key
+
+    def __missing__(self, key):
+        new = self._new(key)
+        if new is key:
+            raise KeyError(key)
+        return self[new]
+
+    def get(self, key, default=None):
+        return dict.get(self, self._new(key), default)
+
+    def __contains__(self, key) -> bool:
+        new = self.aliases.get(key) if isinstance(key, str) else None
+        return dict.__contains__(self, key) or (new is not None and dict.__contains__(self, new))
