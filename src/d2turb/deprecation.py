@@ -31,6 +31,19 @@ class AliasDict(dict):
     aliases: dict[str, str] = {}
     what = "dict"
 
+    def __init_subclass__(cls, **kwargs):
+        """Each subclass flattens like a dict for torch's pytree tools (DDP's output handling, ``tree_map``, export):
+        unregistered, a dict subclass would be one opaque leaf."""
+        super().__init_subclass__(**kwargs)
+        from torch.utils import _pytree
+
+        _pytree.register_pytree_node(
+            cls,
+            lambda d: (list(d.values()), list(d.keys())),
+            lambda values, keys: cls(zip(keys, values)),
+            serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
+        )
+
     def _new(self, key):
         new = self.aliases.get(key) if isinstance(key, str) else None
         if new is not None and not dict.__contains__(self, key):

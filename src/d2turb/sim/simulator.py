@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -11,6 +10,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from d2turb.deprecation import warn_once
 from d2turb.errors import D2TurbError
 from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
@@ -41,12 +41,8 @@ class SimResult:
 
     @property
     def flow(self) -> torch.Tensor:
-        """Deprecated name of :attr:`fwd_flow_px`."""
-        warnings.warn(
-            "SimResult.flow is deprecated; use SimResult.fwd_flow_px (the forward displacement in px)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
+        """Deprecated name of :attr:`fwd_flow_px` (warns once)."""
+        warn_once("SimResult.flow", "SimResult.flow is deprecated; use SimResult.fwd_flow_px (the forward Δ in px)")
         return self.fwd_flow_px
 
 
