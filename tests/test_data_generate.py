@@ -267,7 +267,7 @@ def test_check_dataset_reports_each_problem(reference, tmp_path, capsys):
     for expected in [
         "0000000: missing depth/0000000.png",
         "0000001: turb does not decode",
-        "0000002: flow contains NaN",
+        "0000002: bwd_flow_px contains NaN",
         "0000003: tilt is RGB 32x32",
         "orphan file gt/9999999.png",
         "0000005: D/r0 = ",
