@@ -78,6 +78,16 @@ def test_simulate_video_writes_forward_flows_in_fwd_flow_px(tmp_path, capsys):
         assert_forward(fwd, clean, read_image(out / "tilt" / f"{i:06d}.png")[None])
 
 
+def test_simulate_video_rerun_removes_an_earlier_versions_flow_folder(tmp_path, capsys):
+    image = scene(tmp_path / "a.png", size=24)
+    out = tmp_path / "clip"
+    (out / "flow").mkdir(parents=True)
+    np.save(out / "flow" / "000000.npy", np.zeros((2, 24, 24), np.float32))  # written before issue 39
+    assert main(["simulate-video", str(image), "--out", str(out), "--frames", "2", "--no-mp4", "--save-flow"]) == 0
+    capsys.readouterr()
+    assert not (out / "flow").exists() and len(list((out / "fwd_flow_px").iterdir())) == 2
+
+
 class KnownFlow(nn.Module):
     """A restoration model that knows the simulator's backward flow of its input (deblurred = input)."""
 
