@@ -83,9 +83,9 @@ def compare_untiled(
         "size": f"{w}x{h}",
         "tile": tile,
         "overlap": overlap,
-        "flow_abs_mean_px": round(float(untiled["flow"].abs().mean()), 3),
+        "flow_abs_mean_px": round(float(untiled["bwd_flow_px"].abs().mean()), 3),
     }
-    for key in ("restored", "flow"):
+    for key, label in (("restored", "restored"), ("bwd_flow_px", "flow")):  # labels as in earlier results
         d = (tiled[key] - untiled[key]).abs()
         cols, rows = [c - 1 for c in edges(w)], [r - 1 for r in edges(h)]
         ratio_x = float(
@@ -94,7 +94,7 @@ def compare_untiled(
         ratio_y = float(
             tiled[key].diff(dim=-2).abs()[..., rows, :].mean() / untiled[key].diff(dim=-2).abs()[..., rows, :].mean()
         )
-        out[key] = {
+        out[label] = {
             "mad": float(d.mean()),
             "max": float(d.max()),
             "edge_gradient_ratio_x": round(ratio_x, 4),

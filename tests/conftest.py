@@ -37,6 +37,14 @@ def _torch_threads():
     torch.set_num_threads(TEST_THREADS)
 
 
+@pytest.fixture(autouse=True)
+def _deprecations_warn_again():
+    """Deprecated names warn once per process (d2turb.deprecation); every test starts with none warned."""
+    from d2turb.deprecation import reset
+
+    reset()
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """../shared/data (real images); tests that need it skip cleanly when it is absent."""

@@ -139,8 +139,8 @@ def tiny_pairs(root: Path, n: int = 4, size: int = 32, split: str = "train") -> 
             rgb(root / kind / f"{sid}.png", size, size, seed=i)
         (root / "depth").mkdir(exist_ok=True)
         Image.fromarray(rng.integers(0, 65535, (size, size), dtype=np.uint16)).save(root / "depth" / f"{sid}.png")
-        (root / "flow").mkdir(exist_ok=True)
-        np.save(root / "flow" / f"{sid}.npy", np.zeros((2, size, size), np.float16))
+        (root / "bwd_flow_px").mkdir(exist_ok=True)
+        np.save(root / "bwd_flow_px" / f"{sid}.npy", np.zeros((2, size, size), np.float16))
         lines.append(json.dumps({"id": sid, "index": i, "dr0": 2.0, "bin": "weak", "split": split}))
     config = {"version": 1, "pairs": n, "patch": size, "split": split, "bin_ranges": {"weak": [1.0, 2.25]}}
     (root / "dataset.json").write_text(json.dumps(config))

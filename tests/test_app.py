@@ -142,7 +142,7 @@ def test_simulate_sample_with_prior_depth_is_reproduced_by_its_command_line(work
     out = r.run_dir / "out"
     turb = np.asarray(Image.open(r.turb))
     assert turb.shape == (192, 256, 3)  # the demo's sample size
-    flow = np.load(out / "chart_flow.npy")
+    flow = np.load(out / "chart_fwd_flow_px.npy")
     assert flow.shape == (2, 192, 256) and flow.dtype == np.float32
     assert r.flow_scale_px == pytest.approx(float(np.linalg.norm(flow, axis=0).max()), rel=1e-6)
     # M shown = Eq. 3 applied to the depth shown: ((1 − s)d̃ + s)^(3/5), s = 0.5 (both pictures 8-bit)
@@ -158,7 +158,7 @@ def test_simulate_sample_with_prior_depth_is_reproduced_by_its_command_line(work
         "d2turb_simulate_chart.zip",
         "chart_turb.png",
         "chart_tilt.png",
-        "chart_flow.npy",
+        "chart_fwd_flow_px.npy",
         "chart_meta.json",
         "command.sh",
     ]

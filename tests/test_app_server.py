@@ -157,7 +157,7 @@ def test_http_api_simulate_restore_and_errors(server, tmp_path, monkeypatch):
     assert m.shape == (192, 256) and m.min() >= np.floor(255 * 0.5**0.6) and m.max() == 255
     assert derived["dr0"] == 2.0 and derived["bin"] == "weak" and derived["r0_m"] == pytest.approx(0.05)
     assert "| strength bin | weak" in table
-    flow = np.load(by_name["chart_flow.npy"])
+    flow = np.load(by_name["chart_fwd_flow_px.npy"])
     assert flow.shape == (2, 192, 256)
     assert derived["flow_scale_px"] == pytest.approx(float(np.linalg.norm(flow, axis=0).max()), rel=1e-5)
     # the chart's straight lines are bent: I_tilt differs from the clean chart, I_turb is also blurred
@@ -168,7 +168,7 @@ def test_http_api_simulate_restore_and_errors(server, tmp_path, monkeypatch):
     again = _rerun(command, by_name["d2turb_simulate_chart.zip"], tmp_path / "sim", monkeypatch)
     for name in ("chart_turb.png", "chart_tilt.png"):
         assert np.abs(_pixels(again / name) - _pixels(by_name[name])).max() <= 1, name
-    np.testing.assert_allclose(np.load(again / "chart_flow.npy"), flow, atol=1e-4)
+    np.testing.assert_allclose(np.load(again / "chart_fwd_flow_px.npy"), flow, atol=1e-4)
 
     from d2turb.data.samples import sample_images
     from d2turb.io import write_image

@@ -40,7 +40,7 @@ CASES = {
         {"backbone_cfg": TINY_ADAIR, "rectifier_cfg": TINY_RECT},
     ),
 }
-KEYS = {"deblurred", "restored", "bwd_flow_px", "flow", "guide"}
+KEYS = {"deblurred", "restored", "bwd_flow_px", "guide"}
 # each method's own training terms (extra_loss), logged next to the project's photometric / multi-stage terms
 OWN_TERMS = {
     "atnet": {"half", "angular", "grad_angular", "prior"},

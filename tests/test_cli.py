@@ -178,10 +178,10 @@ def test_outputs_are_readable_by_others(umask_022, tmp_path, capsys):
     capsys.readouterr()
     modes = {**_modes(tmp_path / "sim"), **_modes(tmp_path / "ds"), **_modes(tmp_path / "res")}
     modes["w.safetensors"] = stat.S_IMODE(weights.stat().st_mode)
-    assert {"a_turb.png", "a_meta.json", "a_flow.npy", "dataset.json", "meta.jsonl", "a_restored.png"} <= {
+    assert {"a_turb.png", "a_meta.json", "a_fwd_flow_px.npy", "dataset.json", "meta.jsonl", "a_restored.png"} <= {
         Path(k).name for k in modes
     }
-    assert any(k.startswith("turb/") for k in modes) and any(k.startswith("flow/") for k in modes)
+    assert any(k.startswith("turb/") for k in modes) and any(k.startswith("bwd_flow_px/") for k in modes)
     assert set(modes.values()) == {0o644}, modes
 
 

@@ -276,7 +276,7 @@ def test_clip_errors_are_one_line(tmp_path, capsys):
     assert r.returncode == 1 and "f9.png" in r.stderr and "Traceback" not in r.stderr
     written = sorted(p.name for p in (tmp_path / "o6").glob("*_restored.png"))
     assert written == [f"f{i}_restored.png" for i in range(4)]
-    flows = sorted((tmp_path / "o6" / "flow").glob("*.npy"))
+    flows = sorted((tmp_path / "o6" / "fwd_flow_px").glob("*.npy"))
     assert len(flows) == 4 and np.load(flows[0]).shape == (2, 64, 64) and np.load(flows[0]).dtype == np.float32
 
 

@@ -1,6 +1,7 @@
 """PairDataset (augmentation keeps flow consistent), CleanCropDataset and OnTheFlySynthesis."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -52,7 +53,7 @@ def handmade(tmp_path):
         write_image(root / "tilt" / f"{sid}.png", tilt)
         write_image(root / "turb" / f"{sid}.png", tilt)
         write_image(root / "gt" / f"{sid}.png", gt)
-        write_npy(root / "flow" / f"{sid}.npy", flow.numpy().astype(np.float16))
+        write_npy(root / "bwd_flow_px" / f"{sid}.npy", flow.numpy().astype(np.float16))
         write_depth_png(root / "depth" / f"{sid}.png", torch.linspace(0, 1, P).view(1, P, 1).expand(1, P, P))
         lines.append(json.dumps({"id": sid, "index": k, "dr0": dr0, "bin": dr0_bin(dr0)}) + "\n")
     (root / "meta.jsonl").write_text("".join(lines))
@@ -74,6 +75,9 @@ def test_pair_dataset_items(handmade):
     assert warp_error(s) < 1.5 / 255  # only the 8-bit rounding of gt
     batch = torch.utils.data.default_collate([ds[0], ds[1]])
     assert batch["gt"].shape == (2, 3, P, P) and batch["bin"].tolist() == [0, 2]
+    assert set(s) == set(batch) and "flow" not in set(s)  # one key per tensor
+    with pytest.warns(DeprecationWarning, match=r"dataset sample\['flow'\]"):
+        assert batch["flow"] is batch["bwd_flow_px"]  # a batch keeps the deprecated name readable
     assert len(PairDataset(handmade.parent, split="train")) == 2  # parent folder holding train/
     with pytest.raises(D2TurbError, match="split is 'train', not 'test'"):
         PairDataset(handmade, split="test")
@@ -88,8 +92,11 @@ def test_flip_keeps_flow_consistent(handmade, horizontal):
     naive = dict(flipped, bwd_flow_px=s["bwd_flow_px"].flip(-1 if horizontal else -2))
     assert warp_error(naive) > 20 / 255
     assert torch.equal(flip_sample(flipped, horizontal=horizontal)["bwd_flow_px"], s["bwd_flow_px"])
-    assert s["flow"] is s["bwd_flow_px"] and flipped["flow"] is flipped["bwd_flow_px"]  # the deprecated name
-    old = flip_sample({k: v for k, v in s.items() if k != "bwd_flow_px"}, horizontal=horizontal)  # old name only
+    assert "flow" not in set(s) and "flow" not in set(flipped)  # one key per tensor
+    with pytest.warns(DeprecationWarning, match="bwd_flow_px"):  # the deprecated name still reads it
+        assert s["flow"] is s["bwd_flow_px"] and flipped["flow"] is flipped["bwd_flow_px"]
+    plain = {k: v for k, v in s.items() if k != "bwd_flow_px"} | {"flow": s["bwd_flow_px"]}  # an old dict
+    old = flip_sample(plain, horizontal=horizontal)
     assert torch.equal(old["flow"], flipped["bwd_flow_px"]) and "bwd_flow_px" not in old
 
 
@@ -184,6 +191,19 @@ def test_on_the_fly_synthesis(clean_dir):
     assert err_flow < 0.8 * err_none  # the returned flow is the backward flow: it undoes the tilt
     again = OnTheFlySynthesis(simulator, bins=("strong",), device="cpu", seed=3)(batch)
     assert torch.equal(again["turb"], a["turb"])  # seeded: reproducible
+
+
+def test_a_dataset_of_the_earlier_layout_still_reads_with_a_warning(handmade, capsys):
+    """Datasets written before issue 39 hold the backward flows in flow/<id>.npy: read as bwd_flow_px, warning once."""
+    new = PairDataset(handmade)[1]
+    (handmade / "bwd_flow_px").rename(handmade / "flow")
+    with pytest.warns(DeprecationWarning, match="earlier layout"):
+        old = PairDataset(handmade)[1]
+    assert torch.equal(old["bwd_flow_px"], new["bwd_flow_px"]) and warp_error(old) < 1.5 / 255
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per process
+        PairDataset(handmade)[0]
+    assert main(["check-dataset", str(handmade)]) == 0, capsys.readouterr()
 
 
 @pytest.mark.parametrize("bad_id", ["/etc/passwd", "a/b", "..", ".hidden", "", 7, None])

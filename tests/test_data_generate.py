@@ -178,7 +178,7 @@ def test_interrupted_state_is_repaired_byte_identically(reference, clean_dir, tm
     (out / ".meta").mkdir()
     (out / ".meta" / "rank-0.jsonl").write_text("".join(lines[:2]) + lines[2][:25])  # torn line 3
     (out / ".meta" / "rank-1.jsonl").write_text(lines[4])
-    (out / "flow" / "0000004.npy").unlink()  # meta line present but file missing → not done
+    (out / "bwd_flow_px" / "0000004.npy").unlink()  # meta line present but file missing → not done
     (out / "turb" / ".0000003.png.abcd.tmp.png").write_bytes(b"partial")
     assert check_dataset(out).problems
     torch.set_num_threads(3)  # the reference was made on 2: a resume on another machine or load gives the same bytes
@@ -256,7 +256,7 @@ def test_check_dataset_reports_each_problem(reference, tmp_path, capsys):
     shutil.copytree(reference, out)
     (out / "depth" / "0000000.png").unlink()
     (out / "turb" / "0000001.png").write_bytes((out / "turb" / "0000001.png").read_bytes()[:60])
-    np.save(out / "flow" / "0000002.npy", np.full((2, PATCH, PATCH), np.nan, np.float16))
+    np.save(out / "bwd_flow_px" / "0000002.npy", np.full((2, PATCH, PATCH), np.nan, np.float16))
     Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(out / "tilt" / "0000003.png")
     shutil.copy(out / "gt" / "0000004.png", out / "gt" / "9999999.png")
     lines = (out / "meta.jsonl").read_text().splitlines(keepends=True)
@@ -268,7 +268,7 @@ def test_check_dataset_reports_each_problem(reference, tmp_path, capsys):
     for expected in [
         "0000000: missing depth/0000000.png",
         "0000001: turb does not decode",
-        "0000002: flow contains NaN",
+        "0000002: bwd_flow_px contains NaN",
         "0000003: tilt is RGB 32x32",
         "orphan file gt/9999999.png",
         "0000005: D/r0 = ",

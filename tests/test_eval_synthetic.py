@@ -28,8 +28,8 @@ def _gt(seed):
 
 def write_tiny_dataset(root, per_bin=(2, 1, 2)):
     """A few-line writer of the make-dataset layout (d2turb/data/layout.py): dataset.json, meta.jsonl,
-    {turb,tilt,gt,depth}/<id>.png and flow/<id>.npy."""
-    for kind in ("turb", "tilt", "gt", "flow", "depth"):
+    {turb,tilt,gt,depth}/<id>.png and bwd_flow_px/<id>.npy."""
+    for kind in ("turb", "tilt", "gt", "bwd_flow_px", "depth"):
         (root / kind).mkdir(parents=True)
     meta, index = [], 0
     for bin_name, n in zip(OFFSETS, per_bin):
@@ -40,7 +40,7 @@ def write_tiny_dataset(root, per_bin=(2, 1, 2)):
             Image.fromarray(gt + OFFSETS[bin_name]).save(root / "turb" / f"{sid}.png")
             Image.fromarray(gt).save(root / "tilt" / f"{sid}.png")
             Image.fromarray(np.full((SIZE, SIZE), 30000, np.uint16)).save(root / "depth" / f"{sid}.png")
-            np.save(root / "flow" / f"{sid}.npy", np.zeros((2, SIZE, SIZE), np.float16))
+            np.save(root / "bwd_flow_px" / f"{sid}.npy", np.zeros((2, SIZE, SIZE), np.float16))
             meta.append({"id": sid, "index": index, "dr0": DR0[bin_name], "bin": bin_name, "split": "test"})
             index += 1
     (root / "meta.jsonl").write_text("".join(json.dumps(m) + "\n" for m in meta))
@@ -217,8 +217,8 @@ def test_evaluate_data_skips_a_broken_sample(tmp_path, capsys):
         for kind in ("turb", "tilt", "gt"):
             write_image(root / kind / f"{sid}.png", image)
         write_image(root / "depth" / f"{sid}.png", image[:1])
-        (root / "flow").mkdir(exist_ok=True)
-        np.save(root / "flow" / f"{sid}.npy", np.zeros((2, 16, 16), np.float16))
+        (root / "bwd_flow_px").mkdir(exist_ok=True)
+        np.save(root / "bwd_flow_px" / f"{sid}.npy", np.zeros((2, 16, 16), np.float16))
         meta.append({"id": sid, "index": i, "dr0": 3.0, "bin": "medium", "split": "test"})
     (root / "meta.jsonl").write_text("".join(json.dumps(m) + "\n" for m in meta))
     (root / "dataset.json").write_text(json.dumps({"version": 1, "pairs": 3, "patch": 16, "split": "test"}))
@@ -236,7 +236,7 @@ def test_evaluate_data_skips_a_broken_sample(tmp_path, capsys):
 
 def test_evaluate_epe_skips_a_flow_of_the_wrong_size(tmp_path, capsys):
     root = tiny_pairs(tmp_path / "ds", n=3, size=16, split="test")
-    np.save(root / "flow" / "0000001.npy", np.zeros((2, 8, 8), np.float16))
+    np.save(root / "bwd_flow_px" / "0000001.npy", np.zeros((2, 8, 8), np.float16))
     out = tmp_path / "o"
     rc, _, err = run_cli(
         capsys, ["evaluate", "--data", str(root), "--weights", "input", "--metrics", "epe", "--out", str(out)]

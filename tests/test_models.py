@@ -1,6 +1,7 @@
 """D²Turb model family: registry, forward/backward on odd sizes, identity at init, bf16, weights I/O, paper budgets."""
 
 import json
+import warnings
 
 import pytest
 import torch
@@ -14,6 +15,7 @@ from d2turb.models import (
     list_models,
     load_pretrained,
     model_cost,
+    model_output,
     parameter_count,
     save_pretrained,
 )
@@ -71,7 +73,7 @@ CASES = {
     ),
 }
 D2TURB_CASES = [k for k, (name, _) in CASES.items() if name.startswith("d2turb")]
-KEYS = {"deblurred", "restored", "bwd_flow_px", "flow", "pixel_flow", "guide"}
+KEYS = {"deblurred", "restored", "bwd_flow_px", "guide"}  # one key per tensor
 
 
 def build(case_id, seed=0):
@@ -123,7 +125,9 @@ def test_forward_odd_size(case_id):
         assert out["bwd_flow_px"] is None and out["restored"] is out["deblurred"]
     else:
         assert out["bwd_flow_px"].shape == (2, 2, 67, 93)
-        assert out["pixel_flow"] is out["bwd_flow_px"] and out["flow"] is out["bwd_flow_px"]  # deprecated names
+        for old in ("pixel_flow", "flow"):  # deprecated names: still read, warning
+            with pytest.warns(DeprecationWarning, match="bwd_flow_px"):
+                assert out[old] is out["bwd_flow_px"]
         expected, inside = _bilinear_oracle(out["deblurred"], out["bwd_flow_px"])
         assert out["bwd_flow_px"].abs().amax() > 0.5 and inside.float().mean() > 0.1
         assert torch.allclose(out["restored"].double()[inside], expected[inside], atol=1e-5)
@@ -423,3 +427,21 @@ def test_whole_pipeline_runs_padded_to_32(size, mode):
         out, ref = model(x), model(padded)
     for key in ("deblurred", "restored", "bwd_flow_px", "guide"):
         torch.testing.assert_close(out[key], ref[key][..., :h, :w], atol=1e-6, rtol=0)
+
+
+def test_model_output_one_key_per_tensor_old_names_warn_once():
+    flow = torch.zeros(1, 2, 4, 4)
+    out = model_output(torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4), flow)
+    assert set(out) == KEYS and len(dict(out)) == 4 and "flow" in out and "pixel_flow" in out and "other" not in out
+    with pytest.warns(DeprecationWarning, match=r"model output\['flow'\] is deprecated"):
+        assert out.get("flow") is flow
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert out["flow"] is flow and out["bwd_flow_px"] is flow  # once per process
+        assert out.get("missing", 3) == 3
+    with pytest.raises(KeyError):
+        out["missing"]
+    from torch.utils._pytree import tree_flatten, tree_map
+
+    leaves, _ = tree_flatten(out)  # flattens like a dict (DDP finds the tensors), and maps back to its own type
+    assert sum(isinstance(t, torch.Tensor) for t in leaves) == 3 and type(tree_map(lambda t: t, out)) is type(out)

@@ -75,7 +75,9 @@ def test_untiled_equals_model(photo):
     ref = model(photo[None])
     torch.testing.assert_close(got["restored"], ref["restored"][0].clamp(0, 1), atol=1e-5, rtol=0)
     torch.testing.assert_close(got["bwd_flow_px"], ref["flow"][0], atol=1e-6, rtol=0)  # a model naming it "flow"
-    assert got["flow"] is got["bwd_flow_px"]  # the deprecated name
+    assert set(got) == {"restored", "deblurred", "bwd_flow_px"}  # one key per tensor
+    with pytest.warns(DeprecationWarning, match="bwd_flow_px"):
+        assert got["flow"] is got["bwd_flow_px"]  # the deprecated name
 
 
 def _boundary_columns(length, tile, overlap):

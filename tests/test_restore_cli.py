@@ -30,13 +30,13 @@ def test_restore_identity_writes_all_outputs(tmp_path, capsys):
     rc = main(["restore", str(src), "--weights", "input", "--out", str(out), "--save-flow", "--save-intermediate"])
     assert rc == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted(f"{s}_{k}" for s in "abc" for k in ("restored.png", "flow.npy", "deblurred.png"))
+    assert names == sorted(f"{s}_{k}" for s in "abc" for k in ("restored.png", "bwd_flow_px.npy", "deblurred.png"))
     # identity restorer: the output is the input, up to 8-bit quantisation of the 16-bit grey
     np.testing.assert_array_equal(np.asarray(Image.open(out / "a_restored.png")), _rgb())
     c = read_image(out / "c_restored.png")
     assert c.shape == (3, 30, 20)
     assert (c[0] - torch.from_numpy(grey16 / 65535.0).float()).abs().max() <= 0.5 / 255 + 1e-6
-    flow = np.load(out / "b_flow.npy")
+    flow = np.load(out / "b_bwd_flow_px.npy")
     assert flow.dtype == np.float32 and flow.shape == (2, 24, 40) and not flow.any()
     assert "restored 3 image(s)" in capsys.readouterr().out
 

@@ -129,4 +129,4 @@ def test_cli_with_saved_weights_matches_api(tmp_path, tiny_model, photo, monkeyp
     )
     assert (read_image(tmp_path / "o" / "img_restored.png") - api["restored"]).abs().max() <= 0.5 / 255 + 1e-4
     assert (read_image(tmp_path / "o" / "img_deblurred.png") - api["deblurred"]).abs().max() <= 0.5 / 255 + 1e-4
-    np.testing.assert_allclose(np.load(tmp_path / "o" / "img_flow.npy"), api["bwd_flow_px"].numpy(), atol=1e-5)
+    np.testing.assert_allclose(np.load(tmp_path / "o" / "img_bwd_flow_px.npy"), api["bwd_flow_px"].numpy(), atol=1e-5)

@@ -31,13 +31,13 @@ def test_simulate_writes_outputs_and_meta(small_png, tmp_path):
     out = tmp_path / "out"
     assert main(["simulate", str(small_png), "--out", str(out), "--dr0", "2.5", "--seed", "4", "--save-flow"]) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["scene_flow.npy", "scene_meta.json", "scene_tilt.png", "scene_turb.png"]
+    assert names == ["scene_fwd_flow_px.npy", "scene_meta.json", "scene_tilt.png", "scene_turb.png"]
     meta = json.loads((out / "scene_meta.json").read_text())
     for key in ("dr0", "aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "offset_s", "modulation", "seed"):
         assert key in meta
     assert meta["dr0"] == 2.5 and meta["seed"] == 4 and meta["bin"] == "medium"
     assert meta["ifov_rad"] == pytest.approx(525e-9 / 0.2)
-    flow = np.load(out / "scene_flow.npy")
+    flow = np.load(out / "scene_fwd_flow_px.npy")
     assert flow.dtype == np.float32 and flow.shape == (2, 36, 52)
     # the saved flow reproduces the saved tilt image: tilt = clean(x + flow)
     clean = read_image(small_png)[None]
@@ -76,7 +76,7 @@ def test_simulate_with_depth_file_and_range(small_png, tmp_path):
     )
     meta = json.loads((out / "scene_meta.json").read_text())
     assert 1 <= meta["dr0"] <= 5 and meta["modulation"] == "power"
-    flow = np.load(out / "scene_flow.npy")
+    flow = np.load(out / "scene_fwd_flow_px.npy")
     assert np.abs(flow[:, :, :26]).max() == 0.0  # near half: M = 0
     assert np.abs(flow[:, :, 26:]).max() > 0.0
 
@@ -224,7 +224,7 @@ def test_simulate_video_rerun_with_fewer_frames_leaves_a_consistent_folder(tmp_p
     meta = json.loads((out / "meta.json").read_text())
     assert meta["frames"] == 2
     assert sorted(p.name for p in (out / "turb").iterdir()) == ["000000.png", "000001.png"]
-    for kind in ("tilt", "flow"):  # not asked for this time: the earlier run's frames would not match turb/
+    for kind in ("tilt", "fwd_flow_px"):  # not asked for this time: the earlier run's frames would not match turb/
         assert not (out / kind).exists() or not any((out / kind).iterdir())
 
 

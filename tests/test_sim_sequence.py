@@ -314,7 +314,7 @@ def test_simulate_video_cli(still, tmp_path, capsys):
     assert np.abs(video[0].astype(float) - first).mean() < 8  # lossy H.264 of the same frame
     clean = read_image(still)[None]
     for i in (0, 4):
-        flow = torch.from_numpy(np.load(out / "flow" / f"{i:06d}.npy"))[None]
+        flow = torch.from_numpy(np.load(out / "fwd_flow_px" / f"{i:06d}.npy"))[None]
         tilt = read_image(out / "tilt" / f"{i:06d}.png")[None]
         assert (warp(clean, flow) - tilt).abs().max() < 1 / 255 + 1e-4
     # a moving input, frame by frame (the clip just written), and bad input

@@ -1,11 +1,13 @@
-"""Backward flow by density-based forward splatting (d2turb.ops.splat)."""
+"""Flow inversion by density-based forward splatting (d2turb.ops.splat)."""
+
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
 from d2turb.errors import D2TurbError
-from d2turb.ops import BackwardFlow, backward_flow, splat, warp
+from d2turb.ops import BackwardFlow, InvertFlow, backward_flow, invert_flow, splat, warp
 
 
 def affine_flow(a: np.ndarray, t, h: int, w: int, dtype=torch.float64) -> torch.Tensor:
@@ -19,7 +21,7 @@ def affine_flow(a: np.ndarray, t, h: int, w: int, dtype=torch.float64) -> torch.
 def test_constant_translation_inverts_exactly():
     flow = torch.empty(1, 2, 24, 30)
     flow[:, 0], flow[:, 1] = 1.3, -0.6
-    v = backward_flow(flow)
+    v = invert_flow(flow)
     assert torch.allclose(v, -flow, atol=1e-6)
 
 
@@ -34,7 +36,7 @@ def test_affine_flow_matches_analytic_inverse():
     px, py = xs - t[0], ys - t[1]
     vx = inv[0, 0] * px + inv[0, 1] * py - xs
     vy = inv[1, 0] * px + inv[1, 1] * py - ys
-    v = backward_flow(flow)[0]
+    v = invert_flow(flow)[0]
     m = 6
     err = torch.maximum((v[0] - vx).abs(), (v[1] - vy).abs())[m:-m, m:-m]
     assert err.max() < 0.02
@@ -48,7 +50,7 @@ def test_expanding_flow_has_holes_that_are_filled():
     flow = affine_flow(a, (-1.5 * c, -1.5 * c), h, w)
     _, density = splat(flow, flow)
     assert (density < 1e-3).float().mean() > 0.2
-    v = backward_flow(flow)[0]
+    v = invert_flow(flow)[0]
     assert torch.isfinite(v).all()
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     vx, vy = (xs - c) * (1 / 2.5 - 1), (ys - c) * (1 / 2.5 - 1)
@@ -62,7 +64,7 @@ def test_holes_fall_back_to_negated_forward_flow_without_filling():
     flow = affine_flow(np.eye(2) * 1.5, (-14.25, -14.25), h, w)
     _, density = splat(flow, flow)
     holes = (density < 1e-3).expand(1, 2, h, w)
-    v = backward_flow(flow, fill_iterations=0)
+    v = invert_flow(flow, fill_iterations=0)
     assert holes.any() and torch.equal(v[holes], -flow[holes])
 
 
@@ -87,10 +89,31 @@ def test_splat_conserves_weight_inside_the_frame():
 def test_batch_items_are_independent():
     g = torch.Generator().manual_seed(2)
     flow = torch.randn(3, 2, 20, 18, generator=g)
-    together = backward_flow(flow)
+    together = invert_flow(flow)
     for i in range(3):
-        assert torch.allclose(together[i : i + 1], backward_flow(flow[i : i + 1]), atol=1e-6)
-    assert torch.equal(BackwardFlow()(flow), together)
+        assert torch.allclose(together[i : i + 1], invert_flow(flow[i : i + 1]), atol=1e-6)
+    assert torch.equal(InvertFlow()(flow), together)
+
+
+def test_old_names_warn_once_and_give_the_same_flow():
+    flow = torch.randn(1, 2, 12, 10, generator=torch.Generator().manual_seed(4))
+    with pytest.warns(DeprecationWarning, match="invert_flow"):
+        old = backward_flow(flow)
+    assert torch.equal(old, invert_flow(flow))
+    with pytest.warns(DeprecationWarning, match="InvertFlow"):
+        module = BackwardFlow()
+    assert isinstance(module, InvertFlow) and torch.equal(module(flow), old)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per process: the second use is silent
+        backward_flow(flow)
+        BackwardFlow()
+
+
+def test_inverting_the_inverse_gives_the_forward_flow_back():
+    ys, xs = torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij")
+    fwd = torch.stack((1.5 * torch.sin(ys / 6), -1.2 * torch.cos(xs / 7)))[None]
+    back = invert_flow(invert_flow(fwd))
+    assert (back - fwd)[..., 6:-6, 6:-6].abs().max() < 0.1
 
 
 def test_gradcheck():
@@ -99,7 +122,7 @@ def test_gradcheck():
     base = torch.randint(-1, 2, (1, 2, 4, 4), generator=g).double()
     frac = 0.3 + 0.4 * torch.rand(1, 2, 4, 4, generator=g, dtype=torch.float64)
     flow = (base + frac).requires_grad_()
-    assert torch.autograd.gradcheck(lambda f: backward_flow(f), (flow,), eps=1e-6, atol=1e-5)
+    assert torch.autograd.gradcheck(lambda f: invert_flow(f), (flow,), eps=1e-6, atol=1e-5)
 
 
 @pytest.mark.parametrize(
@@ -113,7 +136,7 @@ def test_gradcheck():
 )
 def test_bad_input_raises_clear_error(bad, msg):
     with pytest.raises(D2TurbError, match=msg.replace("(", r"\(").replace(")", r"\)")):
-        backward_flow(bad)
+        invert_flow(bad)
 
 
 def _natural_images(size: int) -> torch.Tensor:
@@ -144,7 +167,7 @@ def test_splatted_flow_beats_direct_inversion_on_simulated_strong_turbulence(sim
     clean = _natural_images(128)
     res = simulator(clean, generator=torch.Generator().manual_seed(0))
     assert res.fwd_flow_px.abs().max() > 3  # strong turbulence: several pixels of displacement
-    v = backward_flow(res.fwd_flow_px)
+    v = invert_flow(res.fwd_flow_px)
     mse_splat = _mse(warp(res.tilt, v), res.clean)
     mse_direct = _mse(warp(res.tilt, -res.fwd_flow_px), res.clean)
     assert (mse_splat < mse_direct).all()
@@ -161,5 +184,5 @@ def test_splatted_flow_beats_direct_inversion_on_shared_images(shared_data, simu
         pytest.skip("no urban100 images")
     clean = torch.stack([F.interpolate(read_image(f)[None], size=(128, 128), mode="area")[0] for f in files])
     res = simulator(clean, generator=torch.Generator().manual_seed(1))
-    v = backward_flow(res.fwd_flow_px)
+    v = invert_flow(res.fwd_flow_px)
     assert (_mse(warp(res.tilt, v), res.clean) < _mse(warp(res.tilt, -res.fwd_flow_px), res.clean)).all()

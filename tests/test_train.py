@@ -37,7 +37,7 @@ def make_pairs(root: Path, n: int = 8, size: int = 32, seed: int = 0, split: str
     from d2turb.ops import warp
 
     g = torch.Generator().manual_seed(seed)
-    for kind in ("turb", "tilt", "gt", "flow", "depth"):
+    for kind in ("turb", "tilt", "gt", "bwd_flow_px", "depth"):
         (root / kind).mkdir(parents=True, exist_ok=True)
     lines = []
     for i in range(n):
@@ -52,7 +52,7 @@ def make_pairs(root: Path, n: int = 8, size: int = 32, seed: int = 0, split: str
         turb = F.avg_pool2d(F.pad(tilt, (1, 1, 1, 1), mode="replicate"), 3, 1)
         for kind, image in (("turb", turb), ("tilt", tilt), ("gt", gt)):
             write_image(root / kind / f"{sid}.png", image[0])
-        np.save(root / "flow" / f"{sid}.npy", flow[0].numpy().astype(np.float16))
+        np.save(root / "bwd_flow_px" / f"{sid}.npy", flow[0].numpy().astype(np.float16))
         write_depth_png(root / "depth" / f"{sid}.png", torch.rand(1, size, size, generator=g))
         lines.append(json.dumps({"id": sid, "index": i, "dr0": 2.0, "bin": "weak"}))
     (root / "dataset.json").write_text(json.dumps({"version": 1, "patch": size, "split": split}))

@@ -107,7 +107,7 @@ def run_simulation(
 
     out = run / "out"
     meta = json.loads((out / f"{stem}_meta.json").read_text())
-    flow = torch.from_numpy(np.load(out / f"{stem}_flow.npy"))
+    flow = torch.from_numpy(np.load(out / f"{stem}_fwd_flow_px.npy"))
     views = run / "views"
     modulation = depth_modulation(depth[None], params.modulation, params.offset_s)[0] if depth is not None else None
     if modulation is None:
@@ -126,7 +126,7 @@ def run_simulation(
         flow_scale_px=scale,
     )
     zipped = bundle(run, f"d2turb_simulate_{stem}")
-    result.files = [zipped, *(out / f"{stem}_{k}" for k in ("turb.png", "tilt.png", "flow.npy", "meta.json"))]
+    result.files = [zipped, *(out / f"{stem}_{k}" for k in ("turb.png", "tilt.png", "fwd_flow_px.npy", "meta.json"))]
     result.files.append(run / "command.sh")
     return result
 
@@ -219,7 +219,7 @@ def run_restore(
     out = run / "out"
     key = f"{stem}_000000" if is_video else stem
     restored = read_image(out / f"{key}_restored.png")
-    flow = torch.from_numpy(np.load(out / f"{key}_flow.npy"))
+    flow = torch.from_numpy(np.load(out / f"{key}_bwd_flow_px.npy"))
     views = run / "views"
     flow_png, scale = flow_view(flow, views / "flow.png")
     notes = []
@@ -240,7 +240,7 @@ def run_restore(
         notes=notes,
     )
     zipped = bundle(run, f"d2turb_restore_{stem}")
-    result.files = [zipped, out / f"{key}_restored.png", out / f"{key}_flow.npy", run / "command.sh"]
+    result.files = [zipped, out / f"{key}_restored.png", out / f"{key}_bwd_flow_px.npy", run / "command.sh"]
     return result
 
 

@@ -126,11 +126,11 @@ def restore_single(restorer, res, names: list[str], out) -> tuple[dict, list[str
     from d2turb.data.samples import SAMPLE_SIZE
     from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, quantise_8bit, ssim
     from d2turb.io import write_image
-    from d2turb.ops.splat import backward_flow
+    from d2turb.ops.splat import invert_flow
 
     details = restorer.restore_with_details(res.turb.float().cpu())
     has_flow = bool(details["bwd_flow_px"].any())  # a plain restorer (no rectifier) predicts no flow
-    true_flow = backward_flow(res.fwd_flow_px).float().cpu()
+    true_flow = invert_flow(res.fwd_flow_px).float().cpu()
     gt = res.clean.float().cpu()
     b = len(names)
     table = {}

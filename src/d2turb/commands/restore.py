@@ -23,7 +23,8 @@ def register(sub):
         "restore",
         help="restore turbulence-degraded images (any size, tiled)",
         description="Restore images, folders of frames or a video. Every output is named after its input "
-        "(docs/cli.md): NAME_restored.png (and NAME_flow.npy / NAME_deblurred.png / NAME_compare.png on request) "
+        "(docs/cli.md): NAME_restored.png (and NAME_bwd_flow_px.npy / NAME_deblurred.png / NAME_compare.png on "
+        "request) "
         "into --out, and NAME_restored.mp4 for a video or a clip (video extra). With --temporal N, each input is "
         "a clip (a video file or a folder of frames) restored across frames: registration to a sliding window of "
         "N frames, fusion, deblurring (docs/clips.md). Unreadable inputs are reported (one error line each) and "
@@ -96,8 +97,9 @@ def register(sub):
     p.add_argument(
         "--save-flow",
         action="store_true",
-        help="also write NAME_flow.npy, float32 (2, H, W), x then y, px (clips: flow/NNNNNN.npy, forward "
-        "displacement of each frame from the restored one, as simulate-video --save-flow)",
+        help="also write NAME_bwd_flow_px.npy, float32 (2, H, W), x then y, px: the backward flow V̂, "
+        "warp(deblurred, V̂) ≈ restored (clips: fwd_flow_px/NNNNNN.npy, the forward displacement Δ of each frame "
+        "from the restored one, frame(x) ≈ restored(x + Δ(x)), as simulate-video --save-flow)",
     )
     p.add_argument("--save-intermediate", action="store_true", help="also write NAME_deblurred.png (Î_tilt)")
     p.add_argument(

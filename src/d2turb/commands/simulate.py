@@ -32,7 +32,7 @@ def register(sub):
         "simulate",
         help="simulate depth-aware atmospheric turbulence on images",
         description="Writes NAME_turb.png, NAME_tilt.png (unless --no-tilt), NAME_meta.json "
-        "(and NAME_flow.npy with --save-flow) per input. Images of the same size are simulated in batches; "
+        "(and NAME_fwd_flow_px.npy with --save-flow) per input. Images of the same size are simulated in batches; "
         "outputs are written in the background. Unreadable inputs are reported (one error line each) and "
         "skipped; the exit status is then 1.",
     )
@@ -75,7 +75,8 @@ def register(sub):
     p.add_argument(
         "--save-flow",
         action="store_true",
-        help="also write NAME_flow.npy: float32 (2,H,W) forward displacement px, x then y",
+        help="also write NAME_fwd_flow_px.npy: float32 (2,H,W) forward displacement Δ px, x then y: "
+        "turb(x) ≈ clean(x + Δ(x))",
     )
     p.add_argument("--no-tilt", action="store_true", help="do not write NAME_tilt.png")
     add_png_level_arg(p)

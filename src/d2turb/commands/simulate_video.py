@@ -11,7 +11,7 @@ def register(sub):
         "simulate-video",
         help="simulate a turbulent clip: frozen-flow layers moved by the wind",
         description="Writes DIR/turb/NNNNNN.png per frame, meta.json, turb.mp4 (with the video extra), "
-        "and with --save-tilt / --save-flow tilt/NNNNNN.png / flow/NNNNNN.npy. INPUT is a still image "
+        "and with --save-tilt / --save-flow tilt/NNNNNN.png / fwd_flow_px/NNNNNN.npy. INPUT is a still image "
         "(the scene stays, the air moves) or a video file / folder of frames (used frame by frame).",
     )
     p.add_argument("input", metavar="INPUT", help="image file, video file, or folder of frames")
@@ -26,7 +26,9 @@ def register(sub):
     add_seed_arg(p)
     p.add_argument("--save-tilt", action="store_true", help="also write tilt-only frames tilt/NNNNNN.png")
     p.add_argument(
-        "--save-flow", action="store_true", help="also write flow/NNNNNN.npy: float32 (2,H,W) forward displacement px"
+        "--save-flow",
+        action="store_true",
+        help="also write fwd_flow_px/NNNNNN.npy: float32 (2,H,W) forward displacement Δ px: turb(x) ≈ clean(x + Δ(x))",
     )
     p.add_argument("--no-mp4", action="store_true", help="do not write turb.mp4")
     add_physics_args(p)

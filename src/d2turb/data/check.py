@@ -13,6 +13,7 @@ from PIL import Image
 from d2turb.data.layout import (
     CONFIG_NAME,
     FILES,
+    LEGACY_FOLDERS,
     META_NAME,
     SHARD_DIR,
     file_path,
@@ -54,14 +55,14 @@ def _check_sample(root: Path, rec: dict, patch: int, decode: bool, frames: int =
         except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
             problems.append(f"{sid}: {kind} does not decode ({exc.__class__.__name__})")
     try:
-        flow = np.load(file_path(root, "flow", sid), allow_pickle=False)
+        flow = np.load(file_path(root, "bwd_flow_px", sid), allow_pickle=False)
         shape = (2, patch, patch) if frames == 1 else (frames, 2, patch, patch)
         if flow.shape != shape or flow.dtype != np.float16:
-            problems.append(f"{sid}: flow is {flow.dtype} {flow.shape}, expected float16 {shape}")
+            problems.append(f"{sid}: bwd_flow_px is {flow.dtype} {flow.shape}, expected float16 {shape}")
         elif not np.isfinite(flow).all():
-            problems.append(f"{sid}: flow contains NaN or infinite values")
+            problems.append(f"{sid}: bwd_flow_px contains NaN or infinite values")
     except (OSError, ValueError, EOFError) as exc:
-        problems.append(f"{sid}: flow does not load ({exc.__class__.__name__})")
+        problems.append(f"{sid}: bwd_flow_px does not load ({exc.__class__.__name__})")
     try:
         depth = read_depth_png(file_path(root, "depth", sid))
         if tuple(depth.shape) != (1, patch, patch):
@@ -132,7 +133,9 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
     report.samples = len(records)
     if report.samples != pairs:
         problems.append(f"{report.samples} samples in {META_NAME}, expected {pairs}")
-    for kind, suffix in FILES.items():
+    folders = [(kind, suffix) for kind, suffix in FILES.items()]
+    folders += [(LEGACY_FOLDERS[kind], FILES[kind]) for kind in LEGACY_FOLDERS]  # an earlier layout's
+    for kind, suffix in folders:
         folder = root / kind
         if not folder.is_dir():
             continue

@@ -1,7 +1,8 @@
 """PyTorch datasets: generated pairs from disk, and clean crops + on-the-fly synthesis on the training device.
 
 Samples hold the backward flow V as ``bwd_flow_px``: (…, 2, H, W) in pixels, x then y, ``warp(tilt, bwd_flow_px) ≈
-gt`` (the files' ``flow/<id>.npy``); ``flow``, its deprecated name, is kept beside it (the same tensor)."""
+gt`` (the files' ``bwd_flow_px/<id>.npy``, ``flow/<id>.npy`` in datasets of the earlier layout). Samples are
+:class:`~d2turb.data.layout.Sample` dicts: ``flow``, the deprecated name, still reads ``bwd_flow_px`` (warning once)."""
 
 from __future__ import annotations
 
@@ -11,31 +12,37 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
+from d2turb.data.layout import Sample, bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.data.sources import make_depth_fn, resize_up
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
 from d2turb.ops.checks import check_shape
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
 
 FLOW_KEYS = ("bwd_flow_px", "flow")  # the backward flow of a sample, and its deprecated name
 
 
 def _with_flow(sample: dict, out: dict, change) -> dict:
-    """``out`` with ``change`` applied to the sample's backward flow, under each of its names the sample has."""
-    flow = next((sample[k] for k in FLOW_KEYS if sample.get(k) is not None), None)
-    if flow is not None:
-        flow = change(flow)
-        out.update({k: flow for k in FLOW_KEYS if sample.get(k) is not None})
+    """``out`` with ``change`` applied to the sample's backward flow, under each of its names the sample stores (a
+    plain dict of an earlier version may hold it as ``flow``)."""
+    stored = [k for k in FLOW_KEYS if dict.get(sample, k) is not None]
+    if stored:
+        flow = change(dict.__getitem__(sample, stored[0]))
+        out.update({k: flow for k in stored})
     return out
+
+
+def _copy(sample: dict) -> dict:
+    """A shallow copy of the same kind (a :class:`Sample` stays one)."""
+    return type(sample)(sample) if isinstance(sample, Sample) else dict(sample)
 
 
 def flip_sample(sample: dict, horizontal: bool = True) -> dict:
     """Mirror every image-like entry; the backward flow's matching component changes sign
     (mirroring x → W-1-x turns a displacement +v into -v)."""
     dim, comp = (-1, 0) if horizontal else (-2, 1)
-    out = dict(sample)
+    out = _copy(sample)
     for key in ("turb", "tilt", "gt", "depth"):
         if key in out and out[key] is not None:
             out[key] = out[key].flip(dim)
@@ -50,7 +57,7 @@ def flip_sample(sample: dict, horizontal: bool = True) -> dict:
 
 def crop_sample(sample: dict, y0: int, x0: int, size: int) -> dict:
     """Crop every image-like entry; flow is in pixels, so its values stay valid after a crop."""
-    out = dict(sample)
+    out = _copy(sample)
     for key in ("turb", "tilt", "gt", "depth"):
         if key in out and out[key] is not None:
             out[key] = out[key][..., y0 : y0 + size, x0 : x0 + size]
@@ -100,23 +107,24 @@ class PairDataset(Dataset):
         skips bad samples, as evaluate does, skips it)."""
         rec = self.records[index]
         sid = rec["id"]
-        flow = torch.from_numpy(load_flow(file_path(self.root, "flow", sid)))
-        sample = {
-            "turb": read_image(file_path(self.root, "turb", sid)),
-            "tilt": read_image(file_path(self.root, "tilt", sid)),
-            "gt": read_image(file_path(self.root, "gt", sid)),
-            "bwd_flow_px": flow,
-            "flow": flow,
-            "depth": read_depth_png(file_path(self.root, "depth", sid)),
-            "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
-            "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
-            "id": sid,
-        }
+        flow = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid)))
+        sample = Sample(
+            {
+                "turb": read_image(file_path(self.root, "turb", sid)),
+                "tilt": read_image(file_path(self.root, "tilt", sid)),
+                "gt": read_image(file_path(self.root, "gt", sid)),
+                "bwd_flow_px": flow,
+                "depth": read_depth_png(file_path(self.root, "depth", sid)),
+                "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
+                "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
+                "id": sid,
+            }
+        )
         h, w = sample["gt"].shape[-2:]
         for kind, key, channels in (
             ("turb", "turb", 3),
             ("tilt", "tilt", 3),
-            ("flow", "bwd_flow_px", 2),
+            ("bwd_flow_px", "bwd_flow_px", 2),
             ("depth", "depth", 1),
         ):
             if tuple(sample[key].shape) != (channels, h, w):
@@ -252,16 +260,17 @@ class OnTheFlySynthesis:
         )
         with torch.no_grad():
             res = self.simulators[g](gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
-            flow = backward_flow(res.fwd_flow_px)
-        return {
-            "turb": res.turb,
-            "tilt": res.tilt,
-            "gt": gt,
-            "bwd_flow_px": flow,
-            "flow": flow,
-            "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
-            "dr0": dr0.to(self.device),
-            "bin": torch.tensor([bin_index(dr0_bin(float(v))) for v in dr0], device=self.device),
-            "geometry": torch.full((gt.shape[0],), g, device=self.device),
-            "id": batch.get("id"),
-        }
+            flow = invert_flow(res.fwd_flow_px)
+        return Sample(
+            {
+                "turb": res.turb,
+                "tilt": res.tilt,
+                "gt": gt,
+                "bwd_flow_px": flow,
+                "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
+                "dr0": dr0.to(self.device),
+                "bin": torch.tensor([bin_index(dr0_bin(float(v))) for v in dr0], device=self.device),
+                "geometry": torch.full((gt.shape[0],), g, device=self.device),
+                "id": batch.get("id"),
+            }
+        )

@@ -57,7 +57,7 @@ from d2turb.io import (
     write_json,
     write_npy,
 )
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.sim import Simulator
 from d2turb.sim.geometry import footprint_px, geometry_bank
 from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
@@ -221,7 +221,7 @@ def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: 
         "clean": [str(c) for c in cfg.clean],
         "sources": len(sources),
         "files": {k: f"{k}/<id>{s}" for k, s in FILES.items()},
-        "flow": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, flow) ~ gt",
+        "bwd_flow_px": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, bwd_flow_px) ~ gt",
         "depth_encoding": "16-bit PNG, depth = value / 65535, far = 1",
     }
 
@@ -311,7 +311,7 @@ def _write_sample(root: Path, sid: str, sample: dict, meta: dict, shard: Path, l
     """The files of one sample, then its meta line: a sample is done once its line is in the shard."""
     for kind in ("turb", "tilt", "gt"):
         write_image(file_path(root, kind, sid), sample[kind], png_level)
-    write_npy(file_path(root, "flow", sid), sample["flow"].numpy().astype(np.float16))
+    write_npy(file_path(root, "bwd_flow_px", sid), sample["bwd_flow_px"].numpy().astype(np.float16))
     write_depth_png(file_path(root, "depth", sid), sample["depth"], png_level)
     with lock:
         append_line(shard, meta)
@@ -398,7 +398,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                 )
             else:
                 res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
-                turb, tilt, flow = res.turb, res.tilt, backward_flow(res.fwd_flow_px).float()
+                turb, tilt, flow = res.turb, res.tilt, invert_flow(res.fwd_flow_px).float()
             if not torch.isfinite(flow).all() or not torch.isfinite(turb).all():
                 raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
             turb, tilt, flow = turb.float().cpu(), tilt.float().cpu(), flow.cpu()
@@ -414,7 +414,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                     "turb": frames_b,
                     "tilt": tilt[b],
                     "gt": clean[b],
-                    "flow": flow[b],
+                    "bwd_flow_px": flow[b],
                     "depth": depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
                 }
                 writer.submit(_write_sample, root, plan.id, sample, meta, shard, shard_lock, cfg.png_level)

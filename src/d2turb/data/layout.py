@@ -6,8 +6,11 @@ out/.meta/rank-<r>.jsonl         per-rank append-only meta shards while generati
 out/turb/<id>.png                8-bit RGB turbulent image (blur + tilt)
 out/tilt/<id>.png                8-bit RGB tilt-only image (Eq. 8: blur module bypassed)
 out/gt/<id>.png                  8-bit RGB clean crop
-out/flow/<id>.npy                float16 (2, H, W) backward flow in px, x then y: warp(tilt, flow) ≈ gt
+out/bwd_flow_px/<id>.npy         float16 (2, H, W) backward flow in px, x then y: warp(tilt, bwd_flow_px) ≈ gt
 out/depth/<id>.png               16-bit grey relative depth, value = round(depth * 65535), far = 65535
+
+Datasets written before the flows were named by direction hold the same backward flows in ``out/flow/<id>.npy``;
+:func:`file_path` still finds them there (a ``DeprecationWarning`` once per process).
 """
 
 from __future__ import annotations
@@ -23,17 +26,27 @@ import torch
 from PIL import Image
 
 from d2turb.defaults import DEFAULT_PNG_LEVEL
+from d2turb.deprecation import AliasDict, warn_once
 from d2turb.errors import D2TurbError
 from d2turb.io import float_array, write_image
 from d2turb.sim import BINS
 
 FORMAT_VERSION = 1
 PATCH_MAX = 16384  # a dataset.json patch beyond this is damaged (make-dataset crops are far smaller)
-FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "flow": ".npy", "depth": ".png"}
+FILES = {"turb": ".png", "tilt": ".png", "gt": ".png", "bwd_flow_px": ".npy", "depth": ".png"}
+LEGACY_FOLDERS = {"bwd_flow_px": "flow"}  # a kind's folder in datasets written by earlier versions
 META_NAME = "meta.jsonl"
 CONFIG_NAME = "dataset.json"
 SHARD_DIR = ".meta"
 BIN_NAMES = tuple(BINS)  # D/r0 strength bins, defined once in d2turb.sim.params
+
+
+class Sample(AliasDict):
+    """A dataset sample (dict): one key per tensor; ``flow``, the deprecated name of ``bwd_flow_px``, still reads it
+    with a ``DeprecationWarning`` (once)."""
+
+    aliases = {"flow": "bwd_flow_px"}
+    what = "dataset sample"
 
 
 def bin_index(name: str) -> int:
@@ -67,11 +80,28 @@ def inside(root: str | os.PathLike, relative, what: str) -> Path:
 
 
 def file_path(root: Path, kind: str, sid: str) -> Path:
+    """``root/kind/<sid><ext>``; for a dataset of the earlier layout (``flow/<sid>.npy`` there, no
+    ``bwd_flow_px/<sid>.npy``) the earlier file, with a ``DeprecationWarning`` once. The kind ``flow`` is the
+    deprecated name of ``bwd_flow_px``."""
     try:
         check_sample_id(sid)
     except ValueError as exc:
         raise D2TurbError(f"{root}: {exc}") from exc
-    return Path(root) / kind / f"{sid}{FILES[kind]}"
+    if kind == "flow":
+        warn_once("file_path(flow)", "the dataset file kind 'flow' is deprecated; use 'bwd_flow_px'")
+        kind = "bwd_flow_px"
+    path = Path(root) / kind / f"{sid}{FILES[kind]}"
+    legacy = LEGACY_FOLDERS.get(kind)
+    if legacy is not None and not path.exists():
+        old = Path(root) / legacy / path.name
+        if old.exists():
+            warn_once(
+                "dataset flow/",
+                f"{root}: a dataset of the earlier layout; its flow/<id>.npy (backward flows) is read as "
+                "bwd_flow_px/<id>.npy, the name make-dataset now writes (rename the folder to silence this)",
+            )
+            return old
+    return path
 
 
 def write_depth_png(path: Path, depth: torch.Tensor, png_level: int = DEFAULT_PNG_LEVEL) -> None:

@@ -7,7 +7,8 @@ layout applies unchanged; the frames are stacked vertically ("filmstrip"):
     turb/<id>.png    8-bit RGB, (N·H) × W: frame f is rows f·H … (f+1)·H − 1
     tilt/<id>.png    same, tilt only
     gt/<id>.png      the clean crop (H × W), the same scene for every frame
-    flow/<id>.npy    float16 (N, 2, H, W) backward flow per frame: warp(tilt_f, flow_f) ≈ gt
+    bwd_flow_px/<id>.npy  float16 (N, 2, H, W) backward flow per frame: warp(tilt_f, bwd_flow_px_f) ≈ gt
+                     (``flow/<id>.npy`` in datasets of the earlier layout, still read)
     depth/<id>.png   16-bit depth of the crop (H × W)
 
 ``dataset.json`` records ``frames`` and ``sequence`` (fps, wind, wind_dir, boil).
@@ -21,10 +22,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
+from d2turb.data.layout import Sample, bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.sim.sequence import check_sequence_args, wind_speeds
 
 SEQUENCE_DEFAULTS = {"fps": 30.0, "wind": 1.0, "wind_dir": 0.0, "boil": 0.0}
@@ -52,7 +53,7 @@ def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, sett
     for res in sim.sequence(clean, frames=frames, depth=depth, dr0=dr0, generator=generator, **settings):
         turb.append(res.turb.float().cpu())
         tilt.append(res.tilt.float().cpu())
-        flow.append(backward_flow(res.fwd_flow_px).float().cpu())
+        flow.append(invert_flow(res.fwd_flow_px).float().cpu())
     return torch.cat(turb, -2), torch.cat(tilt, -2), torch.stack(flow, 1)
 
 
@@ -88,15 +89,16 @@ class SequenceDataset(Dataset):
         sid, n, p = rec["id"], self.frames, self.patch
         f0 = int(torch.randint(0, n - self.window + 1, ())) if self.window < n else 0
         sl = slice(f0, f0 + self.window)
-        flow = torch.from_numpy(load_flow(file_path(self.root, "flow", sid))[sl].astype(np.float32))
-        return {
-            "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
-            "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
-            "gt": read_image(file_path(self.root, "gt", sid)),
-            "bwd_flow_px": flow,
-            "flow": flow,
-            "depth": read_depth_png(file_path(self.root, "depth", sid)),
-            "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
-            "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
-            "id": sid,
-        }
+        flow = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid))[sl].astype(np.float32))
+        return Sample(
+            {
+                "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
+                "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
+                "gt": read_image(file_path(self.root, "gt", sid)),
+                "bwd_flow_px": flow,
+                "depth": read_depth_png(file_path(self.root, "depth", sid)),
+                "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
+                "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
+                "id": sid,
+            }
+        )

@@ -1,9 +1,10 @@
 """Simulated files from image files: what ``d2turb simulate`` (per image: NAME_turb.png, NAME_tilt.png,
-NAME_flow.npy, NAME_meta.json) and ``d2turb simulate-video`` (a clip: turb/NNNNNN.png, tilt/, flow/, meta.json,
-turb.mp4) write. The commands and the page both run these.
+NAME_fwd_flow_px.npy, NAME_meta.json) and ``d2turb simulate-video`` (a clip: turb/NNNNNN.png, tilt/, fwd_flow_px/,
+meta.json, turb.mp4) write. The commands and the page both run these.
 
-Flows on disk (``NAME_flow.npy``, ``flow/NNNNNN.npy``): float32 (2, H, W), the forward displacement Δ in px,
-x then y (``SimResult.fwd_flow_px``)."""
+Flows on disk (``NAME_fwd_flow_px.npy``, ``fwd_flow_px/NNNNNN.npy``): float32 (2, H, W), the forward displacement Δ
+in px, x then y (``SimResult.fwd_flow_px``): turb/tilt(x) ≈ clean(x + Δ(x)) (docs/flow.md). Earlier versions named
+them ``NAME_flow.npy`` and ``flow/NNNNNN.npy``."""
 
 from __future__ import annotations
 
@@ -59,7 +60,7 @@ def _write_outputs(out: Path, name: str, turb, tilt, flow, meta: dict, png_level
     if tilt is not None:
         write_image(out / f"{name}_tilt.png", tilt, png_level)
     if flow is not None:
-        write_npy(out / f"{name}_flow.npy", flow.numpy().astype("float32"))
+        write_npy(out / f"{name}_fwd_flow_px.npy", flow.numpy().astype("float32"))
     write_json(out / f"{name}_meta.json", meta)
 
 
@@ -90,7 +91,7 @@ def simulate_files(
         out: the output folder.
         params: the simulator's parameters; their D/r0 unless ``dr0_range`` draws one per image.
         depth: a depth spec of :func:`d2turb.depth.depth_for_image`; ``disparity``: its maps hold disparity.
-        save_flow: also write NAME_flow.npy, float32 (2, H, W): the forward displacement Δ in px, x then y.
+        save_flow: also write NAME_fwd_flow_px.npy, float32 (2, H, W): the forward displacement Δ in px, x then y.
         save_tilt: write NAME_tilt.png.
 
     Returns:
@@ -176,10 +177,11 @@ def _input_frames(path: Path, frames: int | None):
 
 def remove_stale_frames(out: Path, frames: int, kept: dict[str, bool]) -> None:
     """Frames an earlier run into ``out`` wrote beyond this run's ``frames`` (and all of those of a kind this run
-    did not write), so that turb/, tilt/ and flow/ match meta.json. Only names of this job's pattern
-    (six digits) are touched; a folder left empty is removed, and turb.mp4 when the earlier meta.json names it
-    and this run wrote none."""
-    for kind, suffix in (("turb", ".png"), ("tilt", ".png"), ("flow", ".npy")):
+    did not write), so that turb/, tilt/ and fwd_flow_px/ match meta.json (an earlier version's flow/ goes too).
+    Only names of this job's pattern (six digits) are touched; a folder left empty is removed, and turb.mp4 when the
+    earlier meta.json names it and this run wrote none."""
+    kept = {**kept, "flow": False}  # the earlier versions' name of fwd_flow_px/
+    for kind, suffix in (("turb", ".png"), ("tilt", ".png"), ("fwd_flow_px", ".npy"), ("flow", ".npy")):
         folder = out / kind
         if not folder.is_dir():
             continue
@@ -222,8 +224,8 @@ def simulate_video(
         src: a still image (the scene stays, the air moves), a video file or a folder of frames (used frame by
             frame).
         out: the output folder: turb/NNNNNN.png per frame, meta.json, turb.mp4 (``mp4`` and the video extra),
-            tilt/NNNNNN.png (``save_tilt``), flow/NNNNNN.npy (``save_flow``: float32 (2, H, W), the forward
-            displacement Δ in px, x then y).
+            tilt/NNNNNN.png (``save_tilt``), fwd_flow_px/NNNNNN.npy (``save_flow``: float32 (2, H, W), the
+            forward displacement Δ in px, x then y).
         frames: number of frames (default: 64 for an image, all frames of a video or folder).
         wind: transverse wind in m/s, or speeds from the aperture to the object interpolated along the path.
         wind_dir: drift direction in the image in degrees (0 = +x, 90 = +y); ``boil``: fraction of each layer's
@@ -288,7 +290,8 @@ def simulate_video(
             if save_tilt:
                 write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
             if save_flow:
-                write_npy(out / "flow" / f"{i:06d}.npy", res.fwd_flow_px[0].detach().cpu().numpy().astype(np.float32))
+                fwd = res.fwd_flow_px[0].detach().cpu().numpy().astype(np.float32)
+                write_npy(out / "fwd_flow_px" / f"{i:06d}.npy", fwd)
             if writer is not None:
                 writer.write(to_uint8(res.turb[0]))
             size = tuple(res.turb.shape[-2:])
@@ -296,7 +299,7 @@ def simulate_video(
             written += 1
         if written == 0:
             raise D2TurbError(f"{src}: no frames to simulate")
-    kept = {"turb": True, "tilt": save_tilt, "flow": save_flow, "mp4": mp4_path is not None}
+    kept = {"turb": True, "tilt": save_tilt, "fwd_flow_px": save_flow, "mp4": mp4_path is not None}
     try:
         remove_stale_frames(out, written, kept)
     except OSError as exc:

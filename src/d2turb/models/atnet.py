@@ -172,18 +172,19 @@ class ATNet(nn.Module):
         check_input(image)
         x, (h, w) = pad_to_multiple(image, 2)
         x_half = F.interpolate(x, scale_factor=0.5)  # nearest, as AT-Net
-        out = {}
+        extras = {}
         samples = []
         if self.training:  # one prior sample keeps its graph: it is supervised (extra_loss)
             prior, prior_half, _ = self.prior(x, x_half)
-            out["prior"], out["prior_half"] = prior[..., :h, :w], prior_half
+            extras["prior"], extras["prior_half"] = prior[..., :h, :w], prior_half
             samples.append(prior.detach())
         with torch.no_grad():  # Monte-Carlo dropout: K stochastic passes, σ = their per-pixel standard deviation
             samples += [self.prior(x, x_half)[0] for _ in range(self.mc_samples - len(samples))]
             sigma = torch.stack(samples).float().std(dim=0).to(x.dtype)
         restored, restored_half, feat = self.main(x, x_half, self.uncertainty_gain * sigma)
         restored = restored[..., :h, :w]
-        out.update(model_output(restored, restored, None, feat[..., :h, :w]))
+        out = model_output(restored, restored, None, feat[..., :h, :w])
+        out.update(extras)
         out["uncertainty"] = sigma[..., :h, :w]
         if self.training:
             out["restored_half"] = restored_half

@@ -1,7 +1,9 @@
 """What every restoration model's ``forward(image)`` returns: a :class:`ModelOutput` dict.
 
 Flows are named by direction: ``bwd_flow_px`` is the backward flow V̂ of the tilt rectifier, in pixels, x then y:
-``restored = warp(deblurred, bwd_flow_px)`` (Eq. 9), supervised by the datasets' ``bwd_flow_px`` (Eq. 12)."""
+``restored = warp(deblurred, bwd_flow_px)`` (Eq. 9), supervised by the datasets' ``bwd_flow_px`` (Eq. 12). One key per
+tensor: the deprecated names ``flow`` and ``pixel_flow`` (the authors' name) are not stored but still read, with a
+``DeprecationWarning`` once (:class:`ModelOutputDict`)."""
 
 from __future__ import annotations
 
@@ -9,14 +11,14 @@ from typing import TypedDict
 
 import torch
 
+from d2turb.deprecation import AliasDict
+
 
 class _ModelOutputKeys(TypedDict):
     deblurred: torch.Tensor  # Î_tilt (B, 3, H, W)
     restored: torch.Tensor  # Î_clean (B, 3, H, W)
     bwd_flow_px: torch.Tensor | None  # V̂ (B, 2, H, W); None for a model without a rectifier
     guide: torch.Tensor | None  # F_guide (B, C, H, W)
-    flow: torch.Tensor | None  # deprecated name of bwd_flow_px (the same tensor)
-    pixel_flow: torch.Tensor | None  # deprecated name of bwd_flow_px (the authors' name; the same tensor)
 
 
 class ModelOutput(_ModelOutputKeys, total=False):
@@ -29,22 +31,22 @@ class ModelOutput(_ModelOutputKeys, total=False):
     redegraded: torch.Tensor  # TurbNet, training: I = T ⊙ J + ε
 
 
+class ModelOutputDict(AliasDict):
+    """The dict a model returns: one key per tensor; the deprecated ``flow`` / ``pixel_flow`` read ``bwd_flow_px``."""
+
+    aliases = {"flow": "bwd_flow_px", "pixel_flow": "bwd_flow_px"}
+    what = "model output"
+
+
 def model_output(
     deblurred: torch.Tensor,
     restored: torch.Tensor,
     bwd_flow_px: torch.Tensor | None = None,
     guide: torch.Tensor | None = None,
 ) -> ModelOutput:
-    """A :class:`ModelOutput` with the deprecated names of ``bwd_flow_px`` beside it.
+    """A :class:`ModelOutput` (a :class:`ModelOutputDict`: ``flow`` / ``pixel_flow`` read ``bwd_flow_px``, warning).
 
     Shape:
         deblurred, restored: (B, 3, H, W); bwd_flow_px: (B, 2, H, W) in px, x then y, or None; guide: (B, C, H, W).
     """
-    return ModelOutput(
-        deblurred=deblurred,
-        restored=restored,
-        bwd_flow_px=bwd_flow_px,
-        guide=guide,
-        flow=bwd_flow_px,
-        pixel_flow=bwd_flow_px,
-    )
+    return ModelOutputDict(deblurred=deblurred, restored=restored, bwd_flow_px=bwd_flow_px, guide=guide)

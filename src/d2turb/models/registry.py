@@ -30,7 +30,7 @@ def _register(table: dict, kind: str, name: str):
 
 
 def register_model(name: str):
-    """Decorator: register a complete model (forward(image) -> dict with deblurred/restored/flow/guide)."""
+    """Decorator: register a complete model (forward(image) -> dict with deblurred/restored/bwd_flow_px/guide)."""
     return _register(_MODELS, "model", name)
 
 

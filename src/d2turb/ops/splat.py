@@ -1,4 +1,7 @@
-"""Backward flow from a forward displacement by density-based forward splatting (Eq. 12's V_bwd).
+"""Invert a displacement field by density-based forward splatting (Eq. 12's V_bwd from the simulator's Δ).
+
+:func:`invert_flow` turns a forward flow into the backward flow that undoes it, and a backward flow into the
+forward one (the inverse of the inverse).
 
 The simulator gives Δ with I_tilt(x) = I(x + Δ(x)) (Eq. 7, ``warp(I, Δ)``). The rectifier needs V
 with I_tilt(y + V(y)) = I(y) (Eq. 9, ``warp(I_tilt, V) ≈ I``). Pixel x of I_tilt shows the content
@@ -14,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from d2turb.deprecation import warn_once
 from d2turb.errors import D2TurbError
 from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import base_grid, warp
@@ -67,31 +71,48 @@ def check_flow(flow: torch.Tensor, name: str = "flow") -> None:
         raise D2TurbError(f"{name}: contains NaN or infinite values")
 
 
-def backward_flow(
-    forward_flow: torch.Tensor, min_density: float = 1e-3, fill_iterations: int = 8, refine_iterations: int = 0
+def invert_flow(
+    flow: torch.Tensor, min_density: float = 1e-3, fill_iterations: int = 8, refine_iterations: int = 0
 ) -> torch.Tensor:
-    """Invert a forward displacement Δ (``warp(I, Δ)`` = I_tilt) into V with ``warp(I_tilt, V) ≈ I``.
+    """The inverse displacement field: for Δ with ``warp(I, Δ)`` = J, the V with ``warp(J, V) ≈ I``.
 
-    forward_flow (B, 2, H, W) in pixels (channel 0 = x). ``min_density``: splatted weight below which
-    a pixel is a hole; holes are filled from neighbours (``fill_iterations`` 3×3 steps), then by −Δ.
-    ``refine_iterations`` > 0 adds fixed-point steps V ← −Δ(y + V) (off by default, see docs/flow.md).
+    A forward flow Δ (simulator: I_tilt = warp(I, Δ)) gives the backward flow V (warp(I_tilt, V) ≈ I, Eq. 9); a
+    backward flow gives the forward one. flow (B, 2, H, W) in pixels (channel 0 = x). ``min_density``: splatted
+    weight below which a pixel is a hole; holes are filled from neighbours (``fill_iterations`` 3×3 steps), then
+    by −flow. ``refine_iterations`` > 0 adds fixed-point steps V ← −Δ(y + V) (off by default, see docs/flow.md).
     """
-    check_flow(forward_flow, "forward_flow")
-    acc, den = splat(-forward_flow, forward_flow)
+    check_flow(flow, "flow")
+    acc, den = splat(-flow, flow)
     known = den > min_density
     v = acc / den.clamp_min(min_density)
-    v = _fill_holes(v, known, -forward_flow, fill_iterations)
+    v = _fill_holes(v, known, -flow, fill_iterations)
     for _ in range(refine_iterations):
-        v = -warp(forward_flow, v)
+        v = -warp(flow, v)
     return v
 
 
-class BackwardFlow(nn.Module):
-    """Module wrapper of :func:`backward_flow`."""
+def backward_flow(
+    forward_flow: torch.Tensor, min_density: float = 1e-3, fill_iterations: int = 8, refine_iterations: int = 0
+) -> torch.Tensor:
+    """Deprecated name of :func:`invert_flow` (warns once)."""
+    warn_once("backward_flow", "d2turb.ops.backward_flow is deprecated; use d2turb.ops.invert_flow")
+    return invert_flow(forward_flow, min_density, fill_iterations, refine_iterations)
+
+
+class InvertFlow(nn.Module):
+    """Module wrapper of :func:`invert_flow`."""
 
     def __init__(self, min_density: float = 1e-3, fill_iterations: int = 8, refine_iterations: int = 0):
         super().__init__()
         self.min_density, self.fill_iterations, self.refine_iterations = min_density, fill_iterations, refine_iterations
 
-    def forward(self, forward_flow: torch.Tensor) -> torch.Tensor:
-        return backward_flow(forward_flow, self.min_density, self.fill_iterations, self.refine_iterations)
+    def forward(self, flow: torch.Tensor) -> torch.Tensor:
+        return invert_flow(flow, self.min_density, self.fill_iterations, self.refine_iterations)
+
+
+class BackwardFlow(InvertFlow):
+    """Deprecated name of :class:`InvertFlow` (warns once)."""
+
+    def __init__(self, min_density: float = 1e-3, fill_iterations: int = 8, refine_iterations: int = 0):
+        warn_once("BackwardFlow", "d2turb.ops.BackwardFlow is deprecated; use d2turb.ops.InvertFlow")
+        super().__init__(min_density, fill_iterations, refine_iterations)

@@ -18,7 +18,8 @@ LABELS = ("input", "restored")
 
 def output_name(name: str, what: str, ext: str) -> str:
     """The one naming rule of restored outputs: ``NAME_restored.png``, ``NAME_restored.mp4``, ``NAME_compare.png``,
-    ``NAME_compare.mp4``, ``NAME_fused.png`` ... (``what`` without underscore, ``ext`` without dot)."""
+    ``NAME_compare.mp4``, ``NAME_fused.png``, ``NAME_bwd_flow_px.npy`` ... (``ext`` without dot; ``what`` is one word,
+    or for a flow its direction, ``flow`` and its unit: ``bwd_flow_px`` / ``fwd_flow_px``, docs/flow.md)."""
     return f"{name}_{what}.{ext}"
 
 

@@ -4,8 +4,9 @@
 One naming rule (docs/cli.md, :func:`d2turb.restore.compare.output_name`): every output is named after its input,
 ``NAME_<what>.<ext>``, NAME being an image's or a video's file stem, or a folder clip's folder name:
 ``NAME_restored.png`` (an image, a frame: a video's frames are NAME_NNNNNN), ``NAME_restored.mp4`` (a video, a
-clip), ``NAME_compare.png`` / ``NAME_compare.mp4`` (``--compare``), ``NAME_flow.npy``, ``NAME_deblurred.png``,
-``NAME_fused.png``."""
+clip), ``NAME_compare.png`` / ``NAME_compare.mp4`` (``--compare``), ``NAME_bwd_flow_px.npy`` (the backward flow V̂:
+warp(NAME_deblurred, V̂) ≈ NAME_restored), ``NAME_deblurred.png``, ``NAME_fused.png``; a clip's flows are
+``fwd_flow_px/NNNNNN.npy`` (forward: frame(x) ≈ restored(x + Δ(x))). Earlier versions named both ``flow``."""
 
 from __future__ import annotations
 
@@ -39,7 +40,7 @@ from d2turb.io import (
     write_npy,
 )
 from d2turb.io import named_error as _named  # an input's error, naming it
-from d2turb.ops.splat import backward_flow
+from d2turb.ops.splat import invert_flow
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
 from d2turb.sim import Optics, TurbulenceParams
@@ -62,7 +63,7 @@ def split_inputs(inputs: list) -> tuple[list[Path], list[Path]]:
 def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
     write_image(out_dir / output_name(stem, "restored", "png"), details["restored"], png_level)
     if save_flow:
-        write_npy(out_dir / output_name(stem, "flow", "npy"), details["bwd_flow_px"].numpy().astype(np.float32))
+        write_npy(out_dir / output_name(stem, "bwd_flow_px", "npy"), details["bwd_flow_px"].numpy().astype(np.float32))
     if save_intermediate:
         write_image(out_dir / output_name(stem, "deblurred", "png"), details["deblurred"], png_level)
 
@@ -110,7 +111,8 @@ def restore_files(
     """Restore images, folders of images and videos (frame by frame) with a model into the folder ``out``.
 
     Writes NAME_restored.png per image (a video's frames: NAME_NNNNNN_restored.png, and NAME_restored.mp4 with the
-    video extra), NAME_flow.npy (``save_flow``: float32 (2, H, W), the predicted backward flow V̂ in px, x then y)
+    video extra), NAME_bwd_flow_px.npy (``save_flow``: float32 (2, H, W), the predicted backward flow V̂ in px, x then
+    y: warp(NAME_deblurred, V̂) ≈ NAME_restored)
     and NAME_deblurred.png (``save_intermediate``: Î_tilt); with ``compare``, NAME_compare.png (input | restored,
     labelled; a video's of its middle frame) and for a video NAME_compare.mp4 (side by side). An unreadable input
     is reported in one ``error:`` line and skipped (``fail_fast``: raised).
@@ -392,9 +394,9 @@ def restore_clip_files(
 
     NAME is the video's stem or the folder's name. Writes FRAME_restored.png per frame (a folder's frames keep
     their stems; a video's are NAME_NNNNNN), NAME_restored.mp4 (video extra), FRAME_fused.png
-    (``save_intermediate``), flow/NNNNNN.npy (``save_flow``: float32 (2, H, W), the forward displacement of each
-    frame from the restored one, px, x then y) and with ``compare`` NAME_compare.mp4 (input | restored side by
-    side, video extra) and NAME_compare.png (the middle frame).
+    (``save_intermediate``), fwd_flow_px/NNNNNN.npy (``save_flow``: float32 (2, H, W), the forward displacement Δ
+    of each frame from the restored one, frame(x) ≈ restored(x + Δ(x)), px, x then y) and with ``compare``
+    NAME_compare.mp4 (input | restored side by side, video extra) and NAME_compare.png (the middle frame).
 
     Args:
         src: a video file or a folder of frames.
@@ -461,8 +463,8 @@ def restore_clip_files(
             if save_intermediate:
                 writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), frame.fused, png_level)
             if save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
-                fwd = backward_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
-                writer.submit(write_npy, out_dir / "flow" / f"{frame.index:06d}.npy", fwd)
+                fwd = invert_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
+                writer.submit(write_npy, out_dir / "fwd_flow_px" / f"{frame.index:06d}.npy", fwd)
             if video is not None:
                 video.write(frame.restored)
             count += 1

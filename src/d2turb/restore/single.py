@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from d2turb.deprecation import AliasDict
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
@@ -32,6 +33,13 @@ from d2turb.ops.warp import base_grid, sample_at
 
 _WARP_STRIP_PIXELS = 1 << 21  # output pixels per strip of the global warp (bounds its temporaries)
 _WINDOW_FLOOR = 1e-6  # tile windows never reach 0, so every pixel has a positive accumulated weight
+
+
+class RestoreDetails(AliasDict):
+    """What :meth:`Restorer.restore_with_details` returns: restored, deblurred, bwd_flow_px (``flow``: deprecated)."""
+
+    aliases = {"flow": "bwd_flow_px"}
+    what = "restore_with_details()"
 
 
 class IdentityRestorer(nn.Module):
@@ -157,14 +165,13 @@ class Restorer:
 
     def restore_with_details(self, image) -> dict:
         """dict(restored, deblurred, bwd_flow_px): images shaped like the input, and the model's backward flow V̂
-        (…, 2, H, W) in pixels, x then y (zero for a model without a rectifier); ``flow``: its deprecated name."""
+        (…, 2, H, W) in pixels, x then y, ``warp(deblurred, bwd_flow_px) ≈ restored`` (zero for a model without a
+        rectifier); ``flow``, its deprecated name, still reads it with a ``DeprecationWarning`` (once)."""
         x, single = self._as_batch(image)
         with torch.no_grad():
             outs = [self._restore_one(x[i : i + 1]) for i in range(x.shape[0])]
         result = {k: torch.cat([o[k] for o in outs]) for k in ("restored", "deblurred", "bwd_flow_px")}
-        result = {k: v[0] for k, v in result.items()} if single else result
-        result["flow"] = result["bwd_flow_px"]
-        return result
+        return RestoreDetails({k: v[0] for k, v in result.items()} if single else result)
 
     # -- internals --------------------------------------------------------------------------------
     @staticmethod
@@ -187,7 +194,8 @@ class Restorer:
         if not isinstance(out, dict) or ("restored" not in out and "deblurred" not in out):
             raise D2TurbError(f"model {self.name} did not return a dict with 'restored'/'deblurred'")
         deblurred = out.get("deblurred", out.get("restored"))
-        flow = out.get("bwd_flow_px", out.get("flow"))  # a model of another package may name it "flow" only
+        # a model of another package may name it "flow" only
+        flow = out["bwd_flow_px"] if "bwd_flow_px" in out else out.get("flow")
         if not all(torch.isfinite(v).all() for v in (deblurred, flow, out.get("restored")) if v is not None):
             raise D2TurbError(
                 f"model {self.name} produced NaN or infinite values; refusing to write them (corrupt weights?)"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -11,6 +10,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from d2turb.deprecation import warn_once
 from d2turb.errors import D2TurbError
 from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
@@ -27,7 +27,7 @@ class SimResult:
 
     Shape:
         turb, tilt, clean, blur: (B, C, H, W); fwd_flow_px: (B, 2, H, W), the forward displacement Δ in pixels, x then
-        y (tilt = warp(clean, fwd_flow_px); :func:`d2turb.ops.backward_flow` gives the backward flow that undoes it);
+        y (tilt = warp(clean, fwd_flow_px); :func:`d2turb.ops.invert_flow` gives the backward flow that undoes it);
         modulation M: (B, 1, H, W); dr0: (B,).
     """
 
@@ -41,12 +41,8 @@ class SimResult:
 
     @property
     def flow(self) -> torch.Tensor:
-        """Deprecated name of :attr:`fwd_flow_px`."""
-        warnings.warn(
-            "SimResult.flow is deprecated; use SimResult.fwd_flow_px (the forward displacement in px)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
+        """Deprecated name of :attr:`fwd_flow_px` (warns once)."""
+        warn_once("SimResult.flow", "SimResult.flow is deprecated; use SimResult.fwd_flow_px (the forward Δ in px)")
         return self.fwd_flow_px
 
 
