@@ -12,6 +12,7 @@ import sys
 
 import numpy as np
 
+from d2turb.clip import motion
 from d2turb.clip import strength as M
 from d2turb.io import list_images, read_image
 
@@ -28,7 +29,7 @@ for d in sorted(glob.glob(pattern)):
     meta = json.load(open(f"{d}/meta.json"))
     frames = [read_image(f) for f in list_images(f"{d}/turb")]
     true = np.stack([np.load(f) for f in sorted(glob.glob(f"{d}/flow/*.npy"))]).transpose(0, 2, 3, 1)
-    gray, crop = M._crop(M._gray_frames(frames), 320)
+    gray, crop = motion.centre_crop(motion.gray_frames(frames), 320)
     flows, mask, diag = M.register_clip(gray)
     seps = [8, 16, 32, 64]
     nd, pd_, ser = M.lag_sums(flows, mask, seps)

@@ -14,6 +14,7 @@ import sys
 import numpy as np
 from scipy import stats
 
+from d2turb.clip import motion
 from d2turb.clip import strength as M
 from d2turb.sim.tilt import dr0_from_tilt_variance
 
@@ -50,8 +51,8 @@ for path in sorted(glob.glob(sys.argv[1] if len(sys.argv) > 1 else "calib/*.npz"
         for k in z.files
         if k.startswith("num_dis_w")
     }
-used = [c for c in clips if c["valid_fraction"] >= M.MIN_VALID_FRACTION]
-print(f"{len(clips)} calibration clips, {len(used)} with valid area ≥ {M.MIN_VALID_FRACTION:.0%}")
+used = [c for c in clips if c["valid_fraction"] >= motion.MIN_VALID_FRACTION]
+print(f"{len(clips)} calibration clips, {len(used)} with valid area ≥ {motion.MIN_VALID_FRACTION:.0%}")
 
 
 def fit(cs):

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 from PIL import Image
 
-from d2turb.clip import strength as M
+from d2turb.clip import motion
 
 C = sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/clean"
 outdoor = [sorted(glob.glob(f"{C}/camvid/*"))[::22][:12], sorted(glob.glob(f"{C}/strecha_mvs/*"))[::3][:10],
@@ -36,8 +36,10 @@ def least_textured(n):
             im, s = centre_crop(f)
             if s < 256 or os.path.basename(f).rsplit(".", 1)[0] + ".png" in used:
                 continue
-            lam = M.structure_min_eigenvalue(np.asarray(im.convert("L"), np.float32))[M.MARGIN_PX : -M.MARGIN_PX]
-            scored.append((float((lam[:, M.MARGIN_PX : -M.MARGIN_PX] > M.TEXTURE_MIN).mean()), f))
+            lam = motion.structure_min_eigenvalue(np.asarray(im.convert("L"), np.float32))[
+                motion.MARGIN_PX : -motion.MARGIN_PX
+            ]
+            scored.append((float((lam[:, motion.MARGIN_PX : -motion.MARGIN_PX] > motion.TEXTURE_MIN).mean()), f))
     return [f for _, f in sorted(scored)[:n]]
 
 

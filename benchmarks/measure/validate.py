@@ -15,6 +15,7 @@ import zlib
 import cv2
 import numpy as np
 
+from d2turb.clip import motion
 from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
 from d2turb.io import list_images, read_image
@@ -47,7 +48,7 @@ def measure(frames, optics, cache):
                 json.loads(str(z["diag"])),
             )
         else:
-            gray, _ = M._crop(M._gray_frames(frames), 320)
+            gray, _ = motion.centre_crop(motion.gray_frames(frames), 320)
             try:
                 flows, mask, diag = M.register_measurable(gray)
             except D2TurbError as exc:

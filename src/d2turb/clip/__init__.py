@@ -3,8 +3,8 @@
 One room for the multi-frame work, ground floor up: ``registration`` (global shift and dense flow onto a
 reference), ``fusion`` (mean, robust, FBA, sharpest), ``deblur`` (the Wiener filter with the short-exposure OTF),
 ``blur`` (the blind blur estimate and deblur of a fused frame), ``pipeline`` (:class:`ClipRestorer`: the sliding
-window), ``strength`` (D/r0, r0, Cn² and θ0 from the image motion, :func:`measure_clip`). The commands ``restore
---temporal`` and ``measure`` call it.
+window), ``motion`` (the image motion a measurement reads) and ``strength`` (D/r0, r0, Cn² and θ0 from it,
+:func:`measure_clip`). The commands ``restore --temporal`` and ``measure`` call it.
 """
 
 from d2turb.clip.blur import BlindDeblur, BlurEstimate, GaussianDeblur, estimate_blur, ringing_index
@@ -20,15 +20,10 @@ from d2turb.clip.deblur import (
     wiener_padding,
 )
 from d2turb.clip.fusion import fourier_burst_accumulation, sharpest_fusion
+from d2turb.clip.motion import flow_variance_px2, registration_dr0, registration_tilt_variance
 from d2turb.clip.pipeline import DEFAULT_TEMPORAL, FUSIONS, ClipFrame, ClipRestorer, restore_clip, window_start
 from d2turb.clip.registration import DenseFlow, global_shift_px, remap
-from d2turb.clip.strength import (
-    Optics,
-    flow_variance_px2,
-    measure_clip,
-    registration_dr0,
-    registration_tilt_variance,
-)
+from d2turb.clip.strength import Optics, measure_clip
 
 __all__ = [
     "BALANCE_AT_2",

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
@@ -45,3 +46,14 @@ def image_otf(height: int, width: int, dr0: float, lambda_over_d_px: float, alph
         raise D2TurbError(f"λ/D in pixels must be positive and finite, got {lambda_over_d_px!r}")
     u = pixel_frequency_grid(height, width) * lambda_over_d_px
     return turbulence_otf(u, dr0, alpha)
+
+
+def short_exposure_width(dr0: float) -> float:
+    """s(D/r0): the σ (in units of λ/D) of the Gaussian whose OTF exp(−2π²s²u²) equals the tilt-removed mean OTF of
+    ``sim.otf.turbulence_otf`` (α = 1) where that falls to one half; σ_px = s·λ/(D·ifov). s(0) = 0.468 (Airy)."""
+
+    u = torch.linspace(0.0, 1.0, 4001, dtype=torch.float64)
+    otf = turbulence_otf(u, max(float(dr0), 0.0), alpha=1.0).numpy()
+    k = int(np.argmax(otf < 0.5))
+    u_half = float(np.interp(0.5, [otf[k], otf[k - 1]], [u[k].item(), u[k - 1].item()]))
+    return math.sqrt(math.log(2.0) / (2 * math.pi**2)) / u_half

@@ -386,3 +386,15 @@ def depth_modulation(
     if strategy == "power":
         return d.clamp_min(1e-12).pow(0.6) * (d > 0)
     return z_frac.clamp_min(1e-12).pow(0.6) * (z_frac > 0)  # Eq. 3
+
+
+def r0_cn2_theta0(dr0: float, optics: Optics) -> dict:
+    """r0 = D/(D/r0); with L: the constant-path Cn² from the spherical-wave r0 = (0.158625 k² Cn² L)^(−3/5)
+    (docs/physics.md §3) and θ0 = (2.914 k² Cn² L^(8/3) B(8/3, 8/3))^(−3/5) (spherical wave, constant Cn²)."""
+    out = {"r0_m": optics.aperture_m / dr0 if dr0 > 0 else math.inf, "cn2": None, "theta0_urad": None}
+    if optics.path_length_m is None or not dr0 > 0:
+        return out
+    cn2 = cn2_spherical(out["r0_m"], optics.path_length_m, optics.wavelength_m)
+    theta0 = isoplanatic_angle(cn2, optics.path_length_m, optics.wavelength_m, wave="spherical")
+    out.update(cn2=cn2, theta0_urad=theta0 * 1e6)
+    return out
