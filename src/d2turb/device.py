@@ -3,6 +3,7 @@ and the dataset generator use them."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 from dataclasses import dataclass
 
@@ -52,6 +53,20 @@ def resolve_device(name: str | torch.device | None = "auto", local_rank: int = 0
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one, else all)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+_M_ARENA_MAX = -8  # glibc's mallopt parameter (malloc.h)
+
+
+def limit_malloc_arenas(arenas: int = 2) -> bool:
+    """At most ``arenas`` glibc malloc arenas for the threads this process starts from now on (glibc only; elsewhere
+    a no-op returning False), as ``MALLOC_ARENA_MAX`` would. Each thread that allocates gets an arena of its own by
+    default, and frame-sized blocks freed in one stay held there: clip restoration's threads (deblur, writer,
+    encoder, OpenCV's pool) then raise the 1080p peak by about 75 MB (benchmarks/RESULTS.md, issue 35)."""
+    try:
+        return bool(ctypes.CDLL(None).mallopt(_M_ARENA_MAX, int(arenas)))
+    except (OSError, AttributeError):
+        return False
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.clip.blur import BlindDeblur
 from d2turb.clip.strength import measure_clip
 from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
-from d2turb.device import resolve_device
+from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
     BackgroundWriter,
@@ -416,6 +416,7 @@ def restore_clip_files(
     files = list_images(src) if src.is_dir() else []
     check_frame_sizes(src, files)
     device = resolve_device(device)
+    limit_malloc_arenas()  # before the threads of the stream start
     restorer, deblur_name, record = clip_restorer(
         src,
         temporal,
