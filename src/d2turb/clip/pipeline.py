@@ -88,7 +88,7 @@ class _Frame:
 
     def image(self) -> np.ndarray:
         """The frame as (H,W,C) float32 in [0,1] (bit-identical to the frame given: k/255 in float32)."""
-        return self.raw.astype(np.float32) / np.float32(255) if self.raw.dtype == np.uint8 else self.raw
+        return _as_float(self.raw) if self.raw.dtype == np.uint8 else self.raw
 
 
 def _as_float(image: np.ndarray) -> np.ndarray:
@@ -203,13 +203,10 @@ class ClipRestorer:
                     if length < 2:
                         raise D2TurbError(f"a clip needs at least 2 frames, got {length}")
                 else:
-                    if isinstance(item, np.ndarray) and item.dtype == np.uint8 and item.ndim == 3:
-                        raw = np.ascontiguousarray(item)  # an 8-bit frame as stored: held as it is
-                        gray = to_gray_u8(raw.astype(np.float32) / np.float32(255))  # as from k/255 floats
-                    else:
-                        raw = to_hwc(item)
-                        gray = to_gray_u8(raw)
-                        raw = _compact(raw)
+                    raw = to_hwc(item)  # float32 in [0, 1] (an 8-bit frame as k/255)
+                    gray = to_gray_u8(raw)
+                    stored = isinstance(item, np.ndarray) and item.dtype == np.uint8 and item.ndim == 3
+                    raw = np.ascontiguousarray(item) if stored else _compact(raw)  # 8-bit frames held as uint8
                     if shape is None:
                         check_registrable(*raw.shape[:2])
                         shape = raw.shape

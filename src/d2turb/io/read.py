@@ -203,18 +203,23 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         Image.MAX_IMAGE_PIXELS = saved
 
 
+def _decode(path: Path) -> tuple[np.ndarray | None, Image.Image | None]:
+    """(HxWx3 uint8 pixels, None) for an 8-bit RGB image (the common case), else (None, the opened image)."""
+    pixels = decode_plain_png(path, _limits["max_pixels"])
+    if pixels is not None:
+        return pixels, None
+    img = open_image(path)
+    if img.mode == "RGB" and min(img.size) >= 2:
+        return np.asarray(img), None
+    return None, img
+
+
 def read_frame(path: str | os.PathLike) -> np.ndarray | torch.Tensor:
     """An 8-bit RGB image as it is stored, (H, W, 3) uint8 (what clip restoration holds: no float copy, a quarter
     of the memory); any other image as :func:`read_image` gives it. Errors as :func:`read_image`."""
     path = Path(path)
-    pixels = decode_plain_png(path, _limits["max_pixels"])
-    if pixels is None:
-        img = open_image(path)
-        if img.mode == "RGB" and min(img.size) >= 2:
-            pixels = np.asarray(img)
-    if pixels is not None and pixels.dtype == np.uint8 and pixels.ndim == 3 and pixels.shape[2] == 3:
-        return np.ascontiguousarray(pixels)
-    return read_image(path)
+    pixels, img = _decode(path)
+    return np.ascontiguousarray(pixels) if pixels is not None else _other_image(path, img)
 
 
 def read_image(path: str | os.PathLike) -> torch.Tensor:
@@ -225,15 +230,16 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
     limit (:func:`set_max_pixels`), raise ``D2TurbError``.
     """
     path = Path(path)
-    pixels = decode_plain_png(path, _limits["max_pixels"])
-    if pixels is None:
-        img = open_image(path)
-        if img.mode == "RGB" and min(img.size) >= 2:
-            pixels = np.asarray(img)
+    pixels, img = _decode(path)
     if pixels is not None:  # the common case, in float32 (x/255 rounds as in float64); numpy: see float_array
         arr = pixels.transpose(2, 0, 1).astype(np.float32, order="C")
         arr /= np.float32(255.0)
         return torch.from_numpy(arr)
+    return _other_image(path, img)
+
+
+def _other_image(path: Path, img: Image.Image) -> torch.Tensor:
+    """An image that is not 8-bit RGB (grey, alpha, 16-bit, palette, float) as read_image's (3, H, W) tensor."""
     try:
         arr = _to_float_array(img, path)
     except (OSError, ValueError) as exc:
