@@ -155,9 +155,12 @@ class Mp4Writer:
         self._pending: collections.deque = collections.deque()
         self.frames = 0
 
-    def _encode(self, frame) -> None:
-        arr = None if frame is None else self._padded(frame)
-        for packet in self._stream.encode(None if arr is None else self._av.VideoFrame.from_ndarray(arr, "rgb24")):
+    def _encode(self, frame, index: int | None = None) -> None:
+        yuv = None
+        if frame is not None:  # to the encoder's yuv420p here, on one thread: swscale's threads vary the output
+            yuv = self._av.VideoFrame.from_ndarray(self._padded(frame), "rgb24").reformat(format="yuv420p", threads=1)
+            yuv.pts = index
+        for packet in self._stream.encode(yuv):
             self._container.mux(packet)
 
     def _wait(self, keep: int) -> None:
@@ -176,7 +179,7 @@ class Mp4Writer:
             h, w = frame.shape[-2:] if isinstance(frame, torch.Tensor) else np.shape(frame)[:2]
             self._stream.height, self._stream.width = h + h % 2, w + w % 2
         self._wait(1)
-        self._pending.append(self._pool.submit(self._encode, frame))
+        self._pending.append(self._pool.submit(self._encode, frame, self.frames))
         self.frames += 1
 
     def close(self) -> None:
