@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from d2turb.clip import ClipRestorer
-from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.blind import BlindDeblur
 from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for, remove_global_offset
 from d2turb.eval.metrics import psnr

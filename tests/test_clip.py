@@ -15,7 +15,7 @@ from scipy import ndimage
 from skimage import data as skdata
 
 from d2turb.clip import FUSIONS, ClipRestorer, PhysicsDeblur, wiener_padding, window_start
-from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.fusion import fourier_burst_accumulation
 from d2turb.clip.registration import DenseFlow, global_shift_px, remap, to_gray_u8, to_hwc
 from d2turb.errors import D2TurbError

@@ -16,7 +16,8 @@ from scipy import ndimage
 from skimage import data as skdata
 
 from d2turb.clip import ClipRestorer
-from d2turb.clip.blur import BlindDeblur, GaussianDeblur, estimate_blur, ringing_index
+from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.blur import GaussianDeblur, estimate_blur, ringing_index
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 
 
@@ -119,7 +120,7 @@ def test_physics_blind_deblur_on_a_known_physics_blur_gets_closer_to_the_scene()
     def mse(x):
         return float(((x - sharp)[:, 16:-16, 16:-16] ** 2).mean())
 
-    phys, gauss = BlindDeblur(), BlindDeblur("gaussian")
+    phys, gauss = BlindDeblur("physics"), BlindDeblur("gaussian")
     out_p, out_g = phys(blurred), gauss(blurred)
     assert phys.record["shape"] == "physics" and gauss.record["shape"] == "gaussian"
     assert mse(out_p) < mse(out_g) < mse(blurred)
@@ -224,7 +225,9 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
     assert main(["restore", str(tmp_path / "clip"), "--temporal", "4", "--out", str(tmp_path / "out")]) == 0
     assert calls == {"flow": 2 * 12, "read": 12}
     record = json.loads((tmp_path / "out" / "restore.json").read_text())
-    assert record["deblur"]["method"] == "blind" and record["deblur"]["source"] == "estimated on the fused frame"
+    assert record["deblur"]["method"] == "blind" and record["deblur"]["source"].startswith(
+        "estimated from the fused frame"
+    )
     assert record["frames"] == 12 and record["temporal"] == 4
     err = capsys.readouterr().err
     assert "measured" not in err
@@ -280,16 +283,21 @@ def test_unreliable_estimate_gives_no_deblur_and_one_note(tmp_path, capsys):
 
 def test_a_blur_that_varies_across_the_image_is_deblurred_only_where_all_of_it_is_blurred():
     """Top half sharp, bottom half blurred by 2.5 px (OpenCV): the tiles disagree, so the estimate is not confident;
-    the conservative deblur takes the lower quartile of the tiles (the sharp half: 0) and does nothing, with one
-    note; the same image blurred all over by 2.5 px is deblurred."""
+    the edge shapes' conservative deblur takes the lower quartile of the tiles (the sharp half: 0) and does nothing,
+    with one note, and the learned default does nothing either; the same image blurred all over by 2.5 px is
+    deblurred."""
     img = _crop("astronaut", 256)
     mixed = img.copy()
     mixed[128:] = cv2.GaussianBlur(img, (0, 0), 2.5)[128:]
     est = estimate_blur(mixed)
     assert not est.confident and "differs" in est.reason and est.sigma_low_px < 0.5, est
     t = torch.from_numpy(mixed).permute(2, 0, 1).contiguous()
-    deblur = BlindDeblur()
+    deblur = BlindDeblur("physics")
     assert torch.equal(deblur(t), t) and deblur.deblur is None and "sharp" in deblur.note, deblur.record
+    deblur = BlindDeblur()  # the learned default: finds the frame sharp, deblurs nothing either
+    out = deblur(t)
+    said = deblur.note + deblur.record.get("reason", "")
+    assert torch.equal(out, t) and deblur.deblur is None and "sharp" in said, deblur.record
     blurred = torch.from_numpy(cv2.GaussianBlur(img, (0, 0), 2.5)).permute(2, 0, 1).contiguous()
     deblur = BlindDeblur()
     deblur(blurred)

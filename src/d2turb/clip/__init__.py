@@ -7,7 +7,8 @@ window), ``motion`` (the image motion a measurement reads) and ``strength`` (D/r
 :func:`measure_clip`). The commands ``restore --temporal`` and ``measure`` call it.
 """
 
-from d2turb.clip.blur import BlindDeblur, BlurEstimate, GaussianDeblur, estimate_blur, ringing_index
+from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.blur import BlurEstimate, GaussianDeblur, estimate_blur, ringing_index
 from d2turb.clip.deblur import (
     BALANCE_AT_2,
     SHARPEST_DR0_SCALE,

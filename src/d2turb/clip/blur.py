@@ -312,139 +312,14 @@ class GaussianDeblur:
         return wiener_deconvolve(image, self._gain[size])
 
 
-def _physics_deblur(lod: float):
-    """``restore.clip.PhysicsDeblur`` at PHYSICS_DR0 and ``lod`` whose Wiener gain never falls below 1: a blind
-    width that overshoots the true one puts the assumed diffraction cut-off (1/λ(D·ifov) cycles/px) below the
-    image's, and the plain Wiener gain, 0 past it, would erase detail that is there (a loss of 1.2 dB on a
-    weak-turbulence clip of the blind test set); so frequencies are only ever boosted, never cut."""
-
-    class _Boost(PhysicsDeblur):
-        def __call__(self, image: torch.Tensor) -> torch.Tensor:
-            size = tuple(image.shape[-2:])
-            if size not in self._gain:
-                top, bottom, left, right = wiener_padding(*size)
-                shape = (size[0] + top + bottom, size[1] + left + right)
-                self._gain[size] = wiener_gain(self.otf(*size), self.balance, shape).clamp(min=1.0)
-            return wiener_deconvolve(image, self._gain[size])
-
-    return _Boost(PHYSICS_DR0, lod, balance=PHYSICS_BALANCE)
-
-
-class BlindDeblur:
-    """The default deblur of a clip's fused frames: the blur is estimated on the first fused frame it is given
-    (:func:`estimate_blur`; every later frame is deblurred with the same filter, no flicker), then, with ``shape``
-    "physics" (default), the physics Wiener filter (:class:`PhysicsDeblur`) at D/r0 ``PHYSICS_DR0`` and the
-    λ/(D·ifov) whose edge estimate is ``PHYSICS_SHARE``·σ (:func:`physics_lod_for_sigma`), or with "gaussian" a
-    :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ, each weakened by its ringing guard. Where the blur varies across
-    the image (tiles' spread above ``SPREAD_MAX``) the Gaussian at ``DEBLUR_SHARE`` of the lower quartile of the
-    tiles (conservative, either shape); otherwise not confident, or nothing to deblur: the frames pass unchanged.
-    ``record`` says what was used and why; ``note`` is the one line for the user (empty when the estimate was used
-    as is).
-
-    Args:
-        shape: "physics" (the short-exposure OTF family, default) or "gaussian" (round 1's Gaussian).
-
-    Returns:
-        Called on a fused frame: the deblurred frame (the frame itself when nothing is deblurred).
-
-    Shape:
-        (C, H, W) float32 in [0, 1] → (C, H, W) float32 in [0, 1].
-
-    Example:
-        >>> deblur = BlindDeblur()
-        >>> restorer = ClipRestorer(temporal=16, deblur=deblur)  # doctest: +SKIP
-        >>> deblur.record["sigma_px"]  # after the first frame  # doctest: +SKIP
-    """
-
-    def __init__(self, shape: str = "physics"):
-        if shape not in ("physics", "gaussian"):
-            raise D2TurbError(f"the blind deblur's shape must be 'physics' or 'gaussian', got {shape!r}")
-        self.shape = shape
-        self.deblur = None
-        self.record: dict | None = None
-        self.note = ""
-
-    def decide(self, fused: torch.Tensor) -> None:
-        est = estimate_blur(fused)
-        rec = {"method": "blind", "estimate": est.as_dict(), "sigma_px": 0.0, "source": "estimated on the fused frame"}
-        target = est.sigma_px
-        varies = est.tiles >= MIN_TILES and est.spread > SPREAD_MAX and est.edge_sigma_px < 0.95 * MAX_SIGMA_PX
-        if not est.confident and varies:
-            target = est.sigma_low_px  # the blur varies: deblur only what three quarters of the image has at least
-            rec["conservative"] = f"lower quartile of the tiles, {target:.2f} px ({est.reason})"
-        physics = self.shape == "physics" and "conservative" not in rec and target <= PHYSICS_MAX_SIGMA_PX
-        share = PHYSICS_SHARE if physics else DEBLUR_SHARE
-        if not est.confident and "conservative" not in rec:
-            self.note = f"no deblurring: the blur estimate is not reliable ({est.reason})"
-        elif target * share < MIN_DEBLUR_SIGMA_PX:
-            if "conservative" in rec:
-                self.note = f"no deblurring: {est.reason}, and a quarter of the image or more is sharp"
-            else:
-                rec["reason"] = f"estimated blur σ {est.sigma_px:.2f} px: as sharp as a sharp scene"
-        elif physics:
-            rec["shape"] = "physics"
-            rec["dr0_assumed"] = PHYSICS_DR0
-            for step in RINGING_STEPS:
-                sigma = target * PHYSICS_SHARE * step
-                if sigma < MIN_DEBLUR_SIGMA_PX:
-                    break
-                lod = physics_lod_for_sigma(sigma)
-                candidate = _physics_deblur(lod)
-                ring = ringing_index(fused, candidate(fused))
-                rec.setdefault("ringing_tried", []).append(
-                    {"sigma_px": sigma, "lambda_over_d_px": lod, "ringing_index": ring}
-                )
-                if ring <= PHYSICS_RINGING_MAX:
-                    self.deblur, rec["sigma_px"], rec["lambda_over_d_px"] = candidate, sigma, lod
-                    break
-            full = target * PHYSICS_SHARE
-            self._guard_note(rec, full)
-        else:
-            rec["shape"] = "gaussian"
-            for step in RINGING_STEPS:
-                sigma = target * DEBLUR_SHARE * step
-                if sigma < MIN_DEBLUR_SIGMA_PX:
-                    break
-                candidate = GaussianDeblur(sigma)
-                ring = ringing_index(fused, candidate(fused))
-                rec.setdefault("ringing_tried", []).append({"sigma_px": sigma, "ringing_index": ring})
-                if ring <= RINGING_MAX:
-                    self.deblur, rec["sigma_px"] = candidate, sigma
-                    break
-            self._guard_note(rec, target * DEBLUR_SHARE)
-            if self.deblur is not None and "conservative" in rec and not self.note:
-                self.note = f"deblurring conservatively at σ {rec['sigma_px']:.2f} px: {est.reason}"
-        if self.note:
-            rec["note"] = self.note
-        self.record = rec
-
-    def _guard_note(self, rec: dict, full: float) -> None:
-        if self.deblur is None:
-            self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
-        elif rec["sigma_px"] < full:
-            self.note = f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {full:.2f} by the ringing guard"
-
-    def describe(self) -> str:
-        if self.record is None:
-            return "blind (estimated on the first fused frame)"
-        if self.deblur is None:
-            return "none (blind estimate: nothing to deblur or not reliable)"
-        e = self.record["estimate"]
-        if self.record.get("shape") == "physics":
-            return (
-                f"blind physics Wiener at λ/(D·ifov) {self.record['lambda_over_d_px']:.2f} px, D/r0 {PHYSICS_DR0:g} "
-                f"(edge estimate {e['sigma_px']:.2f} px)"
-            )
-        return f"blind Gaussian Wiener at σ {self.deblur.sigma_px:.2f} px (edge estimate {e['sigma_px']:.2f} px)"
-
-    def __call__(self, fused: torch.Tensor) -> torch.Tensor:
-        if self.record is None:
-            self.decide(fused)
-        return fused if self.deblur is None else self.deblur(fused)
+def physics_deblur_at(lod: float) -> PhysicsDeblur:
+    """``PhysicsDeblur`` at PHYSICS_DR0 and ``lod`` whose Wiener gain never falls below 1 (``boost_only``: a blind
+    width that overshoots the true one would otherwise erase detail past its assumed diffraction cut-off, a loss of
+    1.2 dB on a weak-turbulence clip of the blind test set)."""
+    return PhysicsDeblur(PHYSICS_DR0, lod, balance=PHYSICS_BALANCE, boost_only=True)
 
 
 __all__ = [
-    "BlindDeblur",
     "BlurEstimate",
     "GaussianDeblur",
     "estimate_blur",

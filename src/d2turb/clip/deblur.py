@@ -106,6 +106,9 @@ class PhysicsDeblur:
         modulation: mean depth modulation M in (0, 1].
         alpha: exponent of the tilt removal in the short-exposure OTF (1: all of the tilt removed).
         jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
+        boost_only: keep the Wiener gain ≥ 1, so no frequency is ever attenuated: for an estimated OTF, whose
+            width may overshoot the true one and put the assumed diffraction cut-off (1/λ(D·ifov) cycles/px) below
+            the image's, where the plain gain (0 past it) would erase detail that is there.
 
     Example:
         >>> deblur = PhysicsDeblur(dr0=2.0)
@@ -121,6 +124,7 @@ class PhysicsDeblur:
         modulation: float = 1.0,
         alpha: float = 1.0,
         jitter_px: float = 0.0,
+        boost_only: bool = False,
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
             raise D2TurbError(f"dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}", param="dr0")
@@ -135,6 +139,7 @@ class PhysicsDeblur:
             raise D2TurbError(f"the residual registration jitter must be in [0, 20] px, got {jitter_px!r}")
         self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
         self.modulation, self.alpha, self.jitter_px = float(modulation), float(alpha), float(jitter_px)
+        self.boost_only = bool(boost_only)
         self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
 
     def otf(self, height: int, width: int) -> torch.Tensor:
@@ -163,5 +168,6 @@ class PhysicsDeblur:
         if size not in self._gain:
             top, bottom, left, right = wiener_padding(*size)
             shape = (size[0] + top + bottom, size[1] + left + right)
-            self._gain[size] = wiener_gain(self.otf(*size), self.balance, shape)
+            gain = wiener_gain(self.otf(*size), self.balance, shape)
+            self._gain[size] = gain.clamp(min=1.0) if self.boost_only else gain
         return wiener_deconvolve(image, self._gain[size])

@@ -112,7 +112,8 @@ class ClipRestorer:
             accumulation: each frequency mostly from the frames that kept it best) or "sharpest" (per coefficient the
             frame that kept it best; ``clip/fusion.py``).
         deblur: "none", a :class:`PhysicsDeblur`, a :class:`BlindDeblur` (what ``restore --temporal`` uses), or any
-            callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``).
+            callable (3,H,W) → (3,H,W) (e.g. a model's ``restore``); one with an ``observe`` method is first given
+            each :class:`ClipFrame` (its flow, before the deblur).
         preset: registration accuracy, a key of ``d2turb.clip.registration.DIS_PRESETS`` (default "fast": the flow at
             half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
         stabilise: remove a global shift per frame (camera shake) before the dense registration.
@@ -163,10 +164,13 @@ class ClipRestorer:
         if self.deblur is None:
             yield from fused
             return
+        observe = getattr(self.deblur, "observe", None)  # a deblur that reads more than the fused frame
         with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-deblur") as pool:
             pending: collections.deque = collections.deque()
             try:
                 for frame in fused:
+                    if observe is not None:
+                        observe(frame)
                     pending.append((frame, pool.submit(self.deblur, frame.fused)))
                     if len(pending) > 1:
                         yield self._deblurred(*pending.popleft())

@@ -18,7 +18,7 @@ from scipy import ndimage
 from skimage.registration import phase_cross_correlation
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
-from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.blind import BlindDeblur
 from d2turb.data.sequence import SequenceDataset
 from d2turb.defaults import DEFAULT_FUSION
 from d2turb.errors import D2TurbError
@@ -108,6 +108,8 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
             continue
         images = {"input": frames[o.index], "temporal mean": temporal_mean, "fused": o.fused}
         for name, fn in deblurs.items():
+            if hasattr(fn, "observe"):  # as ClipRestorer does for its own deblur (the blind one reads the flow)
+                fn.observe(o)
             images[f"fused + {name}"] = fn(o.fused)
         for row, img in images.items():
             img = img.clamp(0, 1)

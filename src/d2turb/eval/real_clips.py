@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.registration import DenseFlow, to_gray_u8, to_hwc
 from d2turb.defaults import DEFAULT_FUSION, DEFAULT_REAL_CLIP_FRAMES, DEFAULT_TEMPORAL
 from d2turb.errors import D2TurbError
@@ -379,6 +379,12 @@ def _estimate_cell(entry: dict) -> str:
         return "–"
     used = record.get("sigma_px", 0.0)
     text = f"σ {est['sigma_px']:.2f} px ({'confident' if est['confident'] else 'not confident'}); used {used:.2f}"
+    if "learned" in record:
+        b = record["learned"]
+        text = (
+            f"learned D/r0 {b['dr0']:.2f}, λ/(D·ifov) {b['lambda_over_d_px']:.2f} px, M {b['modulation']:.2f}; edges "
+            + text
+        )
     if "lambda_over_d_px" in record:
         text += f", λ/(D·ifov) {record['lambda_over_d_px']:.2f} px"
     return text

@@ -223,6 +223,33 @@ def _build_for_loading(name: str, config: dict, source: Path) -> nn.Module:
     return net
 
 
+def _verified_config(path: Path, tensors: dict, metadata: dict) -> dict:
+    """The config of a ``save_pretrained`` file, once its checksum matches its tensors."""
+    if CONFIG_KEY not in metadata or CHECKSUM_KEY not in metadata:
+        raise D2TurbError(f"{path}: not a d2turb weights file (no config or checksum in its metadata)")
+    if tensors_sha256(tensors) != metadata[CHECKSUM_KEY]:
+        raise D2TurbError(f"{path}: checksum mismatch, the weights file is corrupt or was modified")
+    try:
+        config = dict(json.loads(metadata[CONFIG_KEY]))
+        if not isinstance(config["name"], str):
+            raise TypeError(config["name"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise D2TurbError(f"{path}: unreadable model config in its metadata") from exc
+    return config
+
+
+def read_verified(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict]:
+    """(tensors, config) of a file written by :func:`save_pretrained`, its checksum verified; for networks outside
+    the model registry (e.g. ``d2turb.clip.blur_net``), which build themselves from the config."""
+    path = Path(path)
+    if not path.is_file():
+        raise D2TurbError(f"{path}: weights file not found")
+    if path.suffix.lower() != ".safetensors":
+        raise D2TurbError(f"{path}: weights file must end in .safetensors")
+    tensors, metadata = _read_safetensors(path)
+    return tensors, _verified_config(path, tensors, metadata)
+
+
 def load_pretrained(
     path: str | os.PathLike,
     device="cpu",
@@ -248,17 +275,8 @@ def load_pretrained(
     if path.suffix.lower() == ".safetensors":
         tensors, metadata = _read_safetensors(path)
     if CONFIG_KEY in metadata or CHECKSUM_KEY in metadata:
-        if CONFIG_KEY not in metadata or CHECKSUM_KEY not in metadata:
-            raise D2TurbError(f"{path}: not a d2turb weights file (no config or checksum in its metadata)")
-        if tensors_sha256(tensors) != metadata[CHECKSUM_KEY]:
-            raise D2TurbError(f"{path}: checksum mismatch, the weights file is corrupt or was modified")
-        try:
-            config = dict(json.loads(metadata[CONFIG_KEY]))
-            name = config.pop("name")
-            if not isinstance(name, str):
-                raise TypeError(name)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise D2TurbError(f"{path}: unreadable model config in its metadata") from exc
+        config = _verified_config(path, tensors, metadata)
+        name = config.pop("name")
         version = metadata.get(FORMAT_KEY, "1")
         if version not in ("1", FORMAT):
             raise D2TurbError(

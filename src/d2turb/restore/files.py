@@ -21,7 +21,7 @@ from PIL import Image, ImageOps
 from tqdm import tqdm
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
-from d2turb.clip.blur import BlindDeblur
+from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import measure_clip
 from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
 from d2turb.device import limit_malloc_arenas, resolve_device
