@@ -2,7 +2,8 @@
 
 One room for the multi-frame work, ground floor up: ``registration`` (global shift and dense flow onto a
 reference), ``fusion`` (mean, robust, FBA, sharpest), ``deblur`` (the Wiener filter with the short-exposure OTF),
-``blur`` (the blind blur estimate and deblur of a fused frame), ``pipeline`` (:class:`ClipRestorer`: the sliding
+``blur`` (the edge estimate of a fused frame's blur), ``blur_net`` (the learned estimate), ``blind`` (the
+default blind deblur that uses them), ``pipeline`` (:class:`ClipRestorer`: the sliding
 window), ``motion`` (the image motion a measurement reads) and ``strength`` (D/r0, r0, Cn² and θ0 from it,
 :func:`measure_clip`). The commands ``restore --temporal`` and ``measure`` call it.
 """

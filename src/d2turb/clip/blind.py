@@ -37,8 +37,9 @@ SHAPES = ("learned", "physics", "gaussian")
 # clips (docs/clips.md)
 LEARNED_SHRINK = 0.25
 # the learned shape's deblur models D/r0 at most this: the physics OTF's halo at larger D/r0 is what a fused frame
-# matches least (the registration's residual blur and Gaussian-like blurs have none); on the validation clips the cap
-# kept 90 / 89 / 100 % of the oracle's gain (uncapped 92 / 83 / 101 %) and removed its worst losses (docs/clips.md)
+# matches least (the registration's residual blur and Gaussian-like blurs have none); on the 48 window-16 validation
+# clips (first network, no ringing guard) the cap kept 90 / 89 / 100 % of the oracle's gain against 92 / 83 / 101 %
+# uncapped, and the worst clip lost 0.93 dB instead of 2.63 (docs/clips.md)
 LEARNED_MAX_DR0 = 2.5
 # the learned blur's MTF at 0.25 cycles/px (M·T(0.25·λ/(D·ifov); D/r0) + 1 − M) at or above which the frame is
 # taken as sharp (nothing to deblur): the sharp samples of the training are taught M 0.1, an MTF of 0.9+
@@ -52,9 +53,10 @@ class BlindDeblur:
     (every later frame is deblurred with the same filter, no flicker). With ``shape`` "learned" (default) the
     network of ``clip.blur_net`` reads the frame and the first window's registered motion (:meth:`observe`) and the
     physics Wiener filter (:class:`PhysicsDeblur`, gain ≥ 1) runs at its D/r0, λ/(D·ifov) (shrunk by its
-    uncertainty, ``LEARNED_SHRINK``) and depth modulation; nothing when the edge estimate (:func:`estimate_blur`)
-    finds the frame as sharp as a sharp scene. With "physics" (round 2) the physics filter at D/r0 ``PHYSICS_DR0``
-    and the λ/(D·ifov) whose edge estimate is ``PHYSICS_SHARE``·σ (:func:`physics_lod_for_sigma`); with "gaussian"
+    uncertainty, ``LEARNED_SHRINK``) and depth modulation; nothing when the learned blur keeps most of the contrast
+    (a sharp frame) or the edge estimate (:func:`estimate_blur`) finds too few edges. With "physics" (round 2) the
+    physics filter at D/r0 ``PHYSICS_DR0`` and the λ/(D·ifov) whose edge estimate is ``PHYSICS_SHARE``·σ
+    (:func:`physics_lod_for_sigma`); with "gaussian"
     (round 1) a :class:`GaussianDeblur` at ``DEBLUR_SHARE``·σ; for these two, where the blur varies across the
     image (tiles' spread above ``SPREAD_MAX``) the Gaussian at ``DEBLUR_SHARE`` of the lower quartile of the tiles
     (conservative), and an unreliable edge estimate deblurs nothing. Every shape is weakened by its ringing guard.

@@ -10,7 +10,7 @@ and predicts (ln D/r0, ln λ/(D·ifov), logit M) with a log-variance each (Gauss
 the physics Wiener filter at those parameters (``PhysicsDeblur``), i.e. what the deblur at the clip's true optics
 and strength would do. Trained on fused frames of simulated clips from the train folders of the fixed split, with
 optics, strength, wind, noise and JPEG drawn per clip (``benchmarks/blur_net/``). Written here because no library
-estimates turbulence blur; the network is ~0.06 M parameters, one forward on 8 patches.
+estimates turbulence blur; the network has 0.04 M parameters, one forward on 8 patches.
 """
 
 from __future__ import annotations

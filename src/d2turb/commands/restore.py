@@ -52,8 +52,9 @@ def register(sub):
         metavar="none|physics|MODEL",
         help="after fusion: none, physics (Wiener with the turbulence OTF at --dr0, or at the D/r0 measured on the "
         "clip's first 64 frames by d2turb measure, refused when it refuses) or a weights name/path; default auto: "
-        "physics at a given --dr0, else a blind deblur with the blur estimated on the fused frame (a Gaussian "
-        "Wiener filter with a ringing guard; none, with a note, when the estimate is not reliable)",
+        "physics at a given --dr0, else a blind deblur: the fused frame's D/r0, λ/(D·ifov) and depth modulation "
+        "estimated by a small network from the frame and the registered motion, the physics Wiener filter at them "
+        "with a ringing guard (none, with a note, when the frame has too few edges)",
     )
     clip.add_argument(
         "--dr0", type=float, default=None, metavar="X", help="D/r0 of the path for --deblur physics (default: measured)"
