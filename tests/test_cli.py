@@ -313,3 +313,52 @@ def test_library_errors_name_the_parameter_the_command_line_its_flag(tmp_path, c
     rc, _, err = run_cli(capsys, ["simulate", str(image), "--out", str(tmp_path / "o"), "--ifov", "1"])
     assert rc == 2
     assert one_error_line(err).startswith("error: ifov_rad (--ifov) = 1 rad")
+
+
+@pytest.mark.parametrize(
+    ("argv", "options", "given"),
+    [
+        (["restore", "a.png", "--out", "o"], "d2turb.restore.files.RestoreOptions", set()),
+        (["restore", "a.mp4", "--temporal", "4", "--out", "o"], "d2turb.restore.files.ClipOptions", {"params"}),
+        (["simulate", "a.png", "--out", "o"], "d2turb.data.simulate.SimulateOptions", {"save_tilt"}),
+    ],
+)
+def test_every_job_option_is_an_argument_of_its_command(argv, options, given):
+    """The commands build their job's options by field name (JobOptions.from_args): each field is an argument of the
+    command (or, ``given``, set by the command itself), so a renamed flag cannot leave an option at its default."""
+    import dataclasses
+    import importlib
+
+    from d2turb.cli import build_parser
+
+    module, name = options.rsplit(".", 1)
+    cls = getattr(importlib.import_module(module), name)
+    args = build_parser().parse_args(argv)
+    fields = {f.name for f in dataclasses.fields(cls)}
+    assert {f for f in fields if not hasattr(args, f)} == given
+    built = cls.from_args(args, **{f: getattr(cls(), f) for f in given})
+    assert all(getattr(built, f) == getattr(args, f) for f in fields - given)
+
+
+def test_job_options_by_keyword_as_the_old_signatures_took_them(tmp_path):
+    """restore_files / restore_clip_files / clip_restorer / simulate_files take one options value; the keyword form
+    of their earlier signatures still works (a keyword replaces that field of the options), an unknown keyword is a
+    TypeError as it was."""
+    from d2turb.data.simulate import SimulateOptions, simulate_files
+    from d2turb.restore.files import ClipOptions, RestoreOptions, clip_restorer, restore_files
+    from d2turb.sim import TurbulenceParams
+
+    assert RestoreOptions.of(None, tile=256) == RestoreOptions(tile=256)
+    assert RestoreOptions.of(ClipOptions(tile=64, dr0=2.0), compare=True) == RestoreOptions(tile=64, compare=True)
+    assert ClipOptions.of(ClipOptions(passes=3), passes=1).passes == 1
+    with pytest.raises(TypeError, match="deblur"):
+        RestoreOptions.of(None, deblur="none")  # a clip's option is not an image restoration's
+    with pytest.raises(TypeError, match="tiles"):
+        restore_files([tmp_path / "a.png"], tmp_path / "o", tiles=3)
+    image = rgb(tmp_path / "a.png", 24, 32)
+    assert simulate_files([image], tmp_path / "s", TurbulenceParams(dr0=2.0), seed=3, save_tilt=False) == 0
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["a_meta.json", "a_turb.png"]
+    same = simulate_files([image], tmp_path / "t", TurbulenceParams(dr0=2.0), SimulateOptions(seed=3, save_tilt=False))
+    assert same == 0 and (tmp_path / "s" / "a_turb.png").read_bytes() == (tmp_path / "t" / "a_turb.png").read_bytes()
+    restorer, name, record = clip_restorer(tmp_path, 4, deblur="physics", dr0=2.0, passes=1, fusion="robust")
+    assert restorer.passes == 1 and restorer.fusion == "robust" and record["dr0"] == 2.0 and name.startswith("physics")

@@ -121,21 +121,9 @@ def run(args) -> int:
     if args.temporal is not None:
         return run_clips(args)
     # lazy: see d2turb.commands
-    from d2turb.restore.files import restore_files
+    from d2turb.restore.files import RestoreOptions, restore_files
 
-    return restore_files(
-        args.inputs,
-        args.out,
-        args.weights,
-        tile=args.tile,
-        overlap=args.overlap,
-        device=args.device,
-        save_flow=args.save_flow,
-        save_intermediate=args.save_intermediate,
-        png_level=args.png_level,
-        fail_fast=args.fail_fast,
-        compare=args.compare,
-    )
+    return restore_files(args.inputs, args.out, args.weights, RestoreOptions.from_args(args))
 
 
 def _optics(args) -> dict:
@@ -148,28 +136,10 @@ def _optics(args) -> dict:
 def run_clips(args) -> int:
     """``restore CLIP --temporal N``: register, fuse and deblur across frames (d2turb.restore.files)."""
     # lazy: see d2turb.commands
-    from d2turb.restore.files import restore_clip_files
+    from d2turb.restore.files import ClipOptions, restore_clip_files
 
     if len(args.inputs) != 1:
         n = len(args.inputs)
         raise D2TurbError(f"--temporal restores one clip per run (a video or a folder of frames), not {n}")
-    return restore_clip_files(
-        args.inputs[0],
-        args.out,
-        args.temporal,
-        deblur=args.deblur,
-        dr0=args.dr0,
-        params=_optics(args) if args.deblur in ("physics", "auto") else {},
-        passes=args.passes,
-        preset=args.preset,
-        fusion=args.fusion,
-        fps=args.fps,
-        tile=args.tile,
-        overlap=args.overlap,
-        device=args.device,
-        save_flow=args.save_flow,
-        save_intermediate=args.save_intermediate,
-        png_level=args.png_level,
-        fail_fast=args.fail_fast,
-        compare=args.compare,
-    )
+    params = _optics(args) if args.deblur in ("physics", "auto") else {}
+    return restore_clip_files(args.inputs[0], args.out, args.temporal, ClipOptions.from_args(args, params=params))

@@ -105,20 +105,7 @@ def physics_params(args, dr0=None):
 
 def run(args):
     # lazy: see d2turb.commands
-    from d2turb.data.simulate import simulate_files
+    from d2turb.data.simulate import SimulateOptions, simulate_files
 
-    return simulate_files(
-        args.inputs,
-        args.out,
-        physics_params(args, args.dr0),
-        dr0_range=args.dr0_range,
-        depth=args.depth,
-        disparity=args.disparity,
-        seed=args.seed,
-        batch=args.batch,
-        save_flow=args.save_flow,
-        save_tilt=not args.no_tilt,
-        png_level=args.png_level,
-        device=args.device,
-        fail_fast=args.fail_fast,
-    )
+    options = SimulateOptions.from_args(args, save_tilt=not args.no_tilt)
+    return simulate_files(args.inputs, args.out, physics_params(args, args.dr0), options)

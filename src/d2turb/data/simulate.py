@@ -9,6 +9,7 @@ them ``NAME_flow.npy`` and ``flow/NNNNNN.npy``."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import re
 import sys
@@ -18,12 +19,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH, DEFAULT_DEPTH, DEFAULT_DEVICE, DEFAULT_PNG_LEVEL
+from d2turb.defaults import BATCH_PIXELS, DEFAULT_BATCH, DEFAULT_DEPTH, DEFAULT_DEVICE
 from d2turb.depth import check_depth_spec, depth_for_image
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
     FileJob,
+    JobOptions,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -64,21 +66,29 @@ def _write_outputs(out: Path, name: str, turb, tilt, flow, meta: dict, png_level
     write_json(out / f"{name}_meta.json", meta)
 
 
+@dataclasses.dataclass(frozen=True)
+class SimulateOptions(JobOptions):
+    """The options of :func:`simulate_files` (``d2turb simulate``), besides :class:`~d2turb.io.JobOptions`' device,
+    save_flow (NAME_fwd_flow_px.npy, float32 (2, H, W): the forward displacement Δ in px, x then y), png_level and
+    fail_fast.
+
+    Args:
+        dr0_range: draw each image's D/r0 from this range (:func:`~d2turb.sim.sample_dr0`) instead of the params'.
+        depth: a depth spec of :func:`d2turb.depth.depth_for_image`; ``disparity``: its maps hold disparity.
+        seed: of the one generator of the whole job; batch: images simulated together (the result depends on both).
+        save_tilt: write NAME_tilt.png.
+    """
+
+    dr0_range: tuple[float, float] | None = None
+    depth: str = DEFAULT_DEPTH
+    disparity: bool = False
+    seed: int = 0
+    batch: int = DEFAULT_BATCH
+    save_tilt: bool = True
+
+
 def simulate_files(
-    inputs: list,
-    out,
-    params: TurbulenceParams,
-    *,
-    dr0_range: tuple[float, float] | None = None,
-    depth: str = DEFAULT_DEPTH,
-    disparity: bool = False,
-    seed: int = 0,
-    batch: int = DEFAULT_BATCH,
-    save_flow: bool = False,
-    save_tilt: bool = True,
-    png_level: int = DEFAULT_PNG_LEVEL,
-    device: str = DEFAULT_DEVICE,
-    fail_fast: bool = False,
+    inputs: list, out, params: TurbulenceParams, options: SimulateOptions | None = None, **kwargs
 ) -> int:
     """Simulate turbulence on image files into the folder ``out`` (``d2turb simulate``).
 
@@ -90,13 +100,14 @@ def simulate_files(
         inputs: image files and folders of images.
         out: the output folder.
         params: the simulator's parameters; their D/r0 unless ``dr0_range`` draws one per image.
-        depth: a depth spec of :func:`d2turb.depth.depth_for_image`; ``disparity``: its maps hold disparity.
-        save_flow: also write NAME_fwd_flow_px.npy, float32 (2, H, W): the forward displacement Δ in px, x then y.
-        save_tilt: write NAME_tilt.png.
+        options, kwargs: the job's :class:`SimulateOptions`, or its fields as keywords (``seed=1``); a keyword
+            given with ``options`` replaces that field of it.
 
     Returns:
         The exit status: 0 all done, 1 some inputs failed, 2 all failed.
     """
+    o = SimulateOptions.of(options, **kwargs)
+    depth, disparity, seed, batch, device = o.depth, o.disparity, o.seed, o.batch, o.device
     if batch < 1:
         raise D2TurbError(f"batch must be at least 1, got {batch}", param="batch")
     paths = expand_inputs(inputs)
@@ -106,11 +117,11 @@ def simulate_files(
     out = check_output_dir(out, inputs=paths)
     sim = Simulator(params, device=device)
     gen = torch.Generator().manual_seed(seed)
-    if dr0_range is not None:
-        strengths = sample_dr0(len(paths), *dr0_range, generator=gen).tolist()
+    if o.dr0_range is not None:
+        strengths = sample_dr0(len(paths), *o.dr0_range, generator=gen).tolist()
     else:
         strengths = [params.dr0] * len(paths)
-    job = FileJob("simulate", len(paths), fail_fast, max_pending=2 * batch, compute_device=device)
+    job = FileJob("simulate", len(paths), o.fail_fast, max_pending=2 * batch, compute_device=device)
 
     def read(item: tuple) -> tuple:
         path, _ = item
@@ -130,8 +141,8 @@ def simulate_files(
             dr0 = torch.tensor([item[1] for item in group], dtype=torch.float64)
             res = sim(images, depth=depths, dr0=dr0, generator=gen)
             turb = res.turb.float().cpu()
-            tilt = res.tilt.float().cpu() if save_tilt else None
-            flow = res.fwd_flow_px.float().cpu() if save_flow else None
+            tilt = res.tilt.float().cpu() if o.save_tilt else None
+            flow = res.fwd_flow_px.float().cpu() if o.save_flow else None
             modulation = res.modulation.flatten(1).mean(1).tolist()
             for b, (path, value, image, _) in enumerate(group):
                 meta = dict(
@@ -155,7 +166,7 @@ def simulate_files(
                     None if tilt is None else tilt[b],
                     None if flow is None else flow[b],
                     meta,
-                    png_level,
+                    o.png_level,
                 )
                 print(f"{path.name}: D/r0 = {value:.3g} ({dr0_bin(value)}) -> {out / (path.stem + '_turb.png')}")
     return job.finish()

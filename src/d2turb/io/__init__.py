@@ -17,7 +17,7 @@ from d2turb.io.atomic import (
     write_npy,
     write_text,
 )
-from d2turb.io.jobs import FileJob, named_error
+from d2turb.io.jobs import FileJob, JobOptions, named_error
 from d2turb.io.png import encode_png, float_array, to_uint8, write_image
 from d2turb.io.read import (
     FLOAT_TOLERANCE,
@@ -43,6 +43,7 @@ __all__ = [
     "NAME_MAX",
     "BackgroundWriter",
     "FileJob",
+    "JobOptions",
     "FolderLock",
     "atomic_path",
     "cache_dir",

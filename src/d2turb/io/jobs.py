@@ -1,17 +1,56 @@
 """The skeleton of the batch jobs over input files (``d2turb simulate``, ``d2turb restore``): every readable input
 is processed, a bad one is reported in one ``error:`` line and skipped (:class:`~d2turb.errors.FileErrors`), the
 outputs are written in the background (:class:`~d2turb.io.writer.BackgroundWriter`) and a progress bar runs over
-the inputs; the job ends with the summary line and exit status of ``FileErrors``."""
+the inputs; the job ends with the summary line and exit status of ``FileErrors``. Their options are one value:
+:class:`JobOptions`, and a subclass of it per job."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from tqdm import tqdm
 
+from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_PNG_LEVEL
 from d2turb.errors import D2TurbError, FileErrors
 from d2turb.io.writer import BackgroundWriter
+
+
+@dataclasses.dataclass(frozen=True)
+class JobOptions:
+    """What every file job takes beside its inputs; each job's options are a subclass
+    (:class:`~d2turb.restore.files.RestoreOptions`, :class:`~d2turb.restore.files.ClipOptions`,
+    :class:`~d2turb.data.simulate.SimulateOptions`), and its command builds them from its parsed arguments
+    (:meth:`from_args`).
+
+    Args:
+        device: where the job computes (``auto``, ``cpu``, ``cuda``, ``cuda:N``).
+        save_flow: also write the flow of each output (its direction and unit are the job's).
+        png_level: PNG compression level, 0-9.
+        fail_fast: raise the first input's error instead of reporting it and going on.
+    """
+
+    device: str = DEFAULT_DEVICE
+    save_flow: bool = False
+    png_level: int = DEFAULT_PNG_LEVEL
+    fail_fast: bool = False
+
+    @classmethod
+    def of(cls, options: JobOptions | None = None, /, **overrides):
+        """``options`` (None: the defaults) as this class, with ``overrides`` in place of its fields: the keyword
+        form of a job's call (``restore_files(paths, out, tile=256)``). The fields ``options`` shares with this
+        class are kept; an unknown keyword raises TypeError, as a function's does."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        values = {} if options is None else {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+        return cls(**{**{k: v for k, v in values.items() if k in names}, **overrides})
+
+    @classmethod
+    def from_args(cls, args, **values):
+        """These options from a command's parsed arguments: each field from the argument of its name (when the
+        command has one), ``values`` in place of those."""
+        given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
+        return cls(**{**given, **values})
 
 
 def named_error(path: Path, exc: D2TurbError) -> D2TurbError:

@@ -11,6 +11,7 @@ warp(NAME_deblurred, V̂) ≈ NAME_restored), ``NAME_deblurred.png``, ``NAME_fus
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import sys
 from pathlib import Path
@@ -23,12 +24,13 @@ from tqdm import tqdm
 from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
 from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import measure_clip
-from d2turb.defaults import DEFAULT_DEVICE, DEFAULT_FUSION, DEFAULT_PNG_LEVEL
+from d2turb.defaults import DEFAULT_FUSION
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
     BackgroundWriter,
     FileJob,
+    JobOptions,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -94,20 +96,44 @@ def _video_frames(path: Path) -> int | None:
         return None
 
 
-def restore_files(
-    inputs: list,
-    out,
-    weights=None,
-    *,
-    tile: int = 512,
-    overlap: int = 64,
-    device: str = DEFAULT_DEVICE,
-    save_flow: bool = False,
-    save_intermediate: bool = False,
-    png_level: int = DEFAULT_PNG_LEVEL,
-    fail_fast: bool = False,
-    compare: bool = False,
-) -> int:
+@dataclasses.dataclass(frozen=True)
+class RestoreOptions(JobOptions):
+    """The options of :func:`restore_files` (``d2turb restore``), besides :class:`~d2turb.io.JobOptions`'s device,
+    save_flow, png_level and fail_fast.
+
+    Args:
+        tile, overlap: tiling of large images, px (a model's deblur).
+        save_intermediate: also write NAME_deblurred.png (a clip's: FRAME_fused.png).
+        compare: also write NAME_compare.png (input | restored, labelled) and for a video or clip NAME_compare.mp4.
+    """
+
+    tile: int = 512
+    overlap: int = 64
+    save_intermediate: bool = False
+    compare: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ClipOptions(RestoreOptions):
+    """The options of :func:`restore_clip_files` (``d2turb restore --temporal``) and :func:`clip_restorer`, besides
+    :class:`RestoreOptions`'.
+
+    Args:
+        deblur, dr0, params: see :func:`clip_deblur`.
+        passes, preset, fusion: registration rounds, DIS preset, fusion of the registered frames.
+        fps: frame rate of a folder clip's mp4 (None: 30).
+    """
+
+    deblur: str = "auto"
+    dr0: float | None = None
+    params: dict | None = None
+    passes: int = 2
+    preset: str = "fast"
+    fusion: str = DEFAULT_FUSION
+    fps: float | None = None
+
+
+def restore_files(inputs: list, out, weights=None, options: RestoreOptions | None = None, **kwargs) -> int:
     """Restore images, folders of images and videos (frame by frame) with a model into the folder ``out``.
 
     Writes NAME_restored.png per image (a video's frames: NAME_NNNNNN_restored.png, and NAME_restored.mp4 with the
@@ -119,16 +145,19 @@ def restore_files(
 
     Args:
         weights: as :class:`~d2turb.restore.Restorer` takes them (None: the recommended shipped model).
-        tile, overlap: tiling of large images, px.
+        options: :class:`RestoreOptions` (None: the defaults); ``kwargs``: any of its fields by name (``tile=256``),
+            in place of the value in ``options``.
 
     Returns:
         The exit status: 0 all done, 1 some inputs failed, 2 all failed.
     """
+    o = RestoreOptions.of(options, **kwargs)
+    tile, overlap, device, compare, png_level = o.tile, o.overlap, o.device, o.compare, o.png_level
     images, videos = split_inputs(inputs)
     out_dir = check_output_dir(out, inputs=images + videos)
     restorer = Restorer(weights, device=resolve_device(device), tile=tile, overlap=overlap, progress=True)
-    job = FileJob("restore", len(images) + len(videos), fail_fast, max_pending=4, compute_device=restorer.device)
-    options = (save_flow, save_intermediate, png_level)
+    job = FileJob("restore", len(images) + len(videos), o.fail_fast, max_pending=4, compute_device=restorer.device)
+    saved = (o.save_flow, o.save_intermediate, png_level)
     count = 0
 
     def restored(path: Path) -> tuple:
@@ -138,7 +167,7 @@ def restore_files(
 
     with _no_empty_out(out_dir), job:
         for path, (image, details) in job.each(images, restored, named=True, desc="restore", unit="img"):
-            job.submit(_save, out_dir, path.stem, details, *options)
+            job.submit(_save, out_dir, path.stem, details, *saved)
             if compare:
                 job.submit(_save_compare, out_dir, path.stem, image, details["restored"], png_level)
             count += 1
@@ -165,7 +194,7 @@ def restore_files(
                         bar.close()
                         job.record(exc, video)
                         break
-                    job.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *options)
+                    job.submit(_save, out_dir, f"{video.stem}_{i:06d}", details, *saved)
                     if compare and i == pick:
                         job.submit(_save_compare, out_dir, video.stem, frame, details["restored"], png_level)
                     if mp4 is not None:
@@ -335,18 +364,7 @@ def clip_deblur(
 
 
 def clip_restorer(
-    src,
-    temporal: int,
-    *,
-    deblur: str = "auto",
-    dr0: float | None = None,
-    params: dict | None = None,
-    passes: int = 2,
-    preset: str = "fast",
-    fusion: str = DEFAULT_FUSION,
-    device="cpu",
-    tile: int = 512,
-    overlap: int = 64,
+    src, temporal: int, options: ClipOptions | None = None, **kwargs
 ) -> tuple[ClipRestorer, str, dict | None]:
     """The :class:`~d2turb.clip.ClipRestorer` of ``d2turb restore CLIP --temporal N`` with its deblur: the one place
     that builds it (``restore --temporal`` and ``evaluate --real-clips`` both call it, so their defaults agree).
@@ -354,41 +372,24 @@ def clip_restorer(
     Args:
         src: the clip (a video file or a folder of frames; read here only when the physics deblur measures D/r0).
         temporal: frames per window.
-        deblur, dr0, params, device, tile, overlap: see :func:`clip_deblur`.
-        passes, preset, fusion: registration rounds, DIS preset, fusion (restore's defaults).
+        options: :class:`ClipOptions` (None: restore's defaults; ``kwargs``: its fields by name, in place of those);
+            of them this reads deblur, dr0, params, device, tile, overlap (see :func:`clip_deblur`) and passes,
+            preset, fusion.
 
     Returns:
         (the restorer, its deblur already set; the deblur's description; its record for restore.json, None for the
         blind deblur until it has seen a fused frame: then ``restorer.deblur.record``).
     """
-    restorer = ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)
+    o = ClipOptions.of(options, **kwargs)
+    deblur, fusion = o.deblur, o.fusion
+    restorer = ClipRestorer(temporal=temporal, passes=o.passes, fusion=fusion, preset=o.preset)
     restorer.deblur, name, record = clip_deblur(
-        deblur, Path(src), dr0=dr0, params=params, device=device, tile=tile, overlap=overlap, fusion=fusion
+        deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
     )
     return restorer, name, record
 
 
-def restore_clip_files(
-    src,
-    out,
-    temporal: int,
-    *,
-    deblur: str = "auto",
-    dr0: float | None = None,
-    params: dict | None = None,
-    passes: int = 2,
-    preset: str = "fast",
-    fusion: str = DEFAULT_FUSION,
-    fps: float | None = None,
-    tile: int = 512,
-    overlap: int = 64,
-    device: str = DEFAULT_DEVICE,
-    save_flow: bool = False,
-    save_intermediate: bool = False,
-    png_level: int = DEFAULT_PNG_LEVEL,
-    fail_fast: bool = False,
-    compare: bool = False,
-) -> int:
+def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = None, **kwargs) -> int:
     """Restore a clip across frames into the folder ``out`` (``d2turb restore --temporal``): registration to a
     sliding window of ``temporal`` frames, fusion, deblurring (:class:`~d2turb.clip.ClipRestorer`).
 
@@ -400,13 +401,14 @@ def restore_clip_files(
 
     Args:
         src: a video file or a folder of frames.
-        deblur, dr0, params: see :func:`clip_deblur`.
-        passes, preset, fusion: registration rounds, DIS preset, fusion of the registered frames.
-        fps: frame rate of a folder clip's mp4 (default 30).
+        options: :class:`ClipOptions` (None: the defaults); ``kwargs``: its fields by name, in place of those
+            (``dr0=2.0, compare=True``).
 
     Returns:
         The exit status: 0, or 1 when some frames could not be read (2 when none could).
     """
+    o = ClipOptions.of(options, **kwargs)
+    fps, passes, preset, fusion, png_level = o.fps, o.passes, o.preset, o.fusion, o.png_level
     src = Path(src)
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
@@ -415,28 +417,17 @@ def restore_clip_files(
     ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)  # bad settings first, in one line
     files = list_images(src) if src.is_dir() else []
     check_frame_sizes(src, files)
-    device = resolve_device(device)
+    device = resolve_device(o.device)
     limit_malloc_arenas()  # before the threads of the stream start
-    restorer, deblur_name, record = clip_restorer(
-        src,
-        temporal,
-        deblur=deblur,
-        dr0=dr0,
-        params=params,
-        passes=passes,
-        preset=preset,
-        fusion=fusion,
-        device=device,
-        tile=tile,
-        overlap=overlap,
-    )
+    restorer, deblur_name, record = clip_restorer(src, temporal, dataclasses.replace(o, device=device))
     out_dir = check_output_dir(out, inputs=files or [src])
-    errors = FileErrors(2, fail_fast)  # per frame: a bad one is reported and skipped
+    errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
     names, frames = clip_frames(src, errors, as_stored=True)
     fps = video_fps(src) if is_video(src) else (fps or 30.0)
     total = _video_frames(src) if is_video(src) else len(files)  # the bar's total (unreadable frames aside)
     name = src.stem if is_video(src) else src.resolve().name
     mp4 = out_dir / output_name(name, "restored", "mp4")
+    compare = o.compare
     side = out_dir / output_name(name, "compare", "mp4") if compare else None
     if not can_write_mp4():
         print(f"note: no mp4 written; {VIDEO_HINT}")
@@ -461,9 +452,9 @@ def restore_clip_files(
                     last = (before, frame.restored)
                 if side_video is not None:
                     side_video.write(side_by_side([before, frame.restored]))
-            if save_intermediate:
+            if o.save_intermediate:
                 writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), frame.fused, png_level)
-            if save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
+            if o.save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
                 fwd = invert_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
                 writer.submit(write_npy, out_dir / "fwd_flow_px" / f"{frame.index:06d}.npy", fwd)
             if video is not None:
