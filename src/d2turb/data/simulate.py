@@ -25,7 +25,6 @@ from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
     FileJob,
-    JobOptions,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -36,6 +35,7 @@ from d2turb.io import (
     write_json,
     write_npy,
 )
+from d2turb.io.jobs import JobOptions  # the options of every file job
 from d2turb.sim import Simulator, TurbulenceParams, dr0_bin, sample_dr0
 from d2turb.sim.sequence import check_sequence_args, wind_speeds
 from d2turb.sim.tilt import path_nodes

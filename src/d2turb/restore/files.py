@@ -30,7 +30,6 @@ from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
     BackgroundWriter,
     FileJob,
-    JobOptions,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -42,6 +41,7 @@ from d2turb.io import (
     write_npy,
 )
 from d2turb.io import named_error as _named  # an input's error, naming it
+from d2turb.io.jobs import JobOptions  # the options of every file job
 from d2turb.ops.splat import invert_flow
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
