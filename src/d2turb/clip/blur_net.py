@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from d2turb.errors import D2TurbError
+from d2turb.models.weights import load_state_dict_strict, read_verified
 
 PATCH_PX = 48  # side of the patches read (a few widths of the widest blur trained on, λ/(D·ifov) 4 px at D/r0 5)
 PATCH_STRIDE_PX = 24  # candidate patches on a grid of half a patch
@@ -134,8 +135,6 @@ class LearnedBlur:
 def load_blur_net(path: str | Path | None = None) -> BlurNet:
     """The blur network from a weights file written by ``save_pretrained`` (default: the shipped one), strictly
     loaded and checksum-verified; one ``D2TurbError`` line when it is missing or does not match."""
-    from d2turb.models.weights import load_state_dict_strict, read_verified
-
     path = Path(path) if path is not None else SHIPPED
     tensors, config = read_verified(path)
     if config.pop("name", None) != NAME:

@@ -317,7 +317,7 @@ def clip_deblur(
     Args:
         choice: ``none``; ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 that
             ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused when it refuses);
-            ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blur.BlindDeblur`,
+            ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blind.BlindDeblur`,
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
