@@ -1,6 +1,6 @@
-"""The default deblur of a clip's fused frames, blind (docs/clips.md, "the blind deblur"): which filter, how strong,
-and the guards that keep it from ringing. The estimates it reads: the learned one of ``clip.blur_net`` (default) and
-the edge one of ``clip.blur``."""
+"""The default deblur of a clip's fused frames, blind (docs/clips.md, "the learned blur estimate"): which filter,
+how strong, and the guards that keep it from ringing. The estimates it reads: the learned one of ``clip.blur_net``
+(default) and the edge one of ``clip.blur``."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Blind blur estimate of an image (the fused frame of a clip) and a Wiener deblur with it that does not ring
-(docs/clips.md, "the blind deblur").
+(docs/clips.md, "the blind deblur, rounds 1 and 2").
 
 Blur model: the image is a sharp scene convolved with a Gaussian of σ px (the turbulence's short-exposure blur,
 the residual misregistration the fusion averaged, the optics). At an ideal step edge of height A blurred to σ the

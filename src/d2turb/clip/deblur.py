@@ -1,5 +1,5 @@
 """Deconvolution of a fused frame: the Wiener filter with the short-exposure turbulence OTF (docs/physics.md §4,
-docs/clips.md). The blind deblur (``d2turb.clip.blur``) chooses its OTF; the pipeline (``d2turb.clip.pipeline``)
+docs/clips.md). The blind deblur (``d2turb.clip.blind``) chooses its OTF; the pipeline (``d2turb.clip.pipeline``)
 applies either after fusion."""
 
 from __future__ import annotations
