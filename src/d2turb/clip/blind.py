@@ -127,34 +127,22 @@ class BlindDeblur:
         elif physics:
             rec["shape"] = "physics"
             rec["dr0_assumed"] = PHYSICS_DR0
-            for step in RINGING_STEPS:
-                sigma = target * PHYSICS_SHARE * step
-                if sigma < MIN_DEBLUR_SIGMA_PX:
-                    break
-                lod = physics_lod_for_sigma(sigma)
-                candidate = physics_deblur_at(lod)
-                ring = ringing_index(fused, candidate(fused))
-                rec.setdefault("ringing_tried", []).append(
-                    {"sigma_px": sigma, "lambda_over_d_px": lod, "ringing_index": ring}
-                )
-                if ring <= PHYSICS_RINGING_MAX:
-                    self.deblur, rec["sigma_px"], rec["lambda_over_d_px"] = candidate, sigma, lod
-                    break
-            full = target * PHYSICS_SHARE
-            self._guard_note(rec, full)
+            sigmas = [x for x in (target * PHYSICS_SHARE * k for k in RINGING_STEPS) if x >= MIN_DEBLUR_SIGMA_PX]
+            tries = (
+                ({"sigma_px": x, "lambda_over_d_px": lod}, physics_deblur_at(lod))
+                for x, lod in ((x, physics_lod_for_sigma(x)) for x in sigmas)
+            )
+            used = self._guarded(fused, rec, tries, PHYSICS_RINGING_MAX)
+            if used:
+                rec["sigma_px"], rec["lambda_over_d_px"] = used["sigma_px"], used["lambda_over_d_px"]
+            self._guard_note(rec, "sigma_px", target * PHYSICS_SHARE)
         else:
             rec["shape"] = "gaussian"
-            for step in RINGING_STEPS:
-                sigma = target * DEBLUR_SHARE * step
-                if sigma < MIN_DEBLUR_SIGMA_PX:
-                    break
-                candidate = GaussianDeblur(sigma)
-                ring = ringing_index(fused, candidate(fused))
-                rec.setdefault("ringing_tried", []).append({"sigma_px": sigma, "ringing_index": ring})
-                if ring <= RINGING_MAX:
-                    self.deblur, rec["sigma_px"] = candidate, sigma
-                    break
-            self._guard_note(rec, target * DEBLUR_SHARE)
+            sigmas = [x for x in (target * DEBLUR_SHARE * k for k in RINGING_STEPS) if x >= MIN_DEBLUR_SIGMA_PX]
+            used = self._guarded(fused, rec, (({"sigma_px": x}, GaussianDeblur(x)) for x in sigmas), RINGING_MAX)
+            if used:
+                rec["sigma_px"] = used["sigma_px"]
+            self._guard_note(rec, "sigma_px", target * DEBLUR_SHARE)
             if self.deblur is not None and "conservative" in rec and not self.note:
                 self.note = f"deblurring conservatively at σ {rec['sigma_px']:.2f} px: {est.reason}"
         if self.note:
@@ -183,35 +171,43 @@ class BlindDeblur:
         dr0 = min(max(b.dr0, 0.05), LEARNED_MAX_DR0)
         full = min(max(b.lambda_over_d_px * math.exp(-self.shrink * b.log_sd[1]), 0.05), 50.0)
         m = min(max(b.modulation, 1e-3), 1.0)
-        for step in RINGING_STEPS:
-            lod = full * step
-            candidate = PhysicsDeblur(dr0, max(lod, 0.05), balance=default_balance(dr0), modulation=m, boost_only=True)
-            ring = ringing_index(fused, candidate(fused))
-            rec.setdefault("ringing_tried", []).append({"lambda_over_d_px": lod, "ringing_index": ring})
-            if ring <= LEARNED_RINGING_MAX:
-                self.deblur = candidate
-                rec.update(dr0=dr0, lambda_over_d_px=lod, modulation=m, sigma_px=short_exposure_width(dr0) * lod)
-                break
-        if self.deblur is None:
-            self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
-        elif rec["lambda_over_d_px"] < full:
-            self.note = (
-                f"deblurring at λ/(D·ifov) {rec['lambda_over_d_px']:.2f} px, weakened from {full:.2f} by the ringing "
-                "guard"
-            )
+
+        def deblur_at(lod: float) -> PhysicsDeblur:
+            return PhysicsDeblur(dr0, max(lod, 0.05), balance=default_balance(dr0), modulation=m, boost_only=True)
+
+        tries = (({"lambda_over_d_px": full * k}, deblur_at(full * k)) for k in RINGING_STEPS)
+        used = self._guarded(fused, rec, tries, LEARNED_RINGING_MAX)
+        if used:
+            lod = used["lambda_over_d_px"]
+            rec.update(dr0=dr0, lambda_over_d_px=lod, modulation=m, sigma_px=short_exposure_width(dr0) * lod)
+        self._guard_note(rec, "lambda_over_d_px", full)
         if self.note:
             rec["note"] = self.note
         self.record = rec
+
+    def _guarded(self, fused: torch.Tensor, rec: dict, tries, limit: float) -> dict | None:
+        """The ringing guard of every shape: ``tries`` yields (entry, deblur) from the full deblur to the weakest;
+        each is run on ``fused`` and recorded in ``rec["ringing_tried"]`` with its :func:`ringing_index`; the first
+        at or under ``limit`` becomes the deblur and its entry is returned (None: every one overshoots)."""
+        for entry, candidate in tries:
+            entry["ringing_index"] = ringing_index(fused, candidate(fused))
+            rec.setdefault("ringing_tried", []).append(entry)
+            if entry["ringing_index"] <= limit:
+                self.deblur = candidate
+                return entry
+        return None
 
     def _no_deblur(self, rec: dict, note: str) -> None:
         self.note = rec["note"] = note
         self.record = rec
 
-    def _guard_note(self, rec: dict, full: float) -> None:
+    def _guard_note(self, rec: dict, key: str, full: float) -> None:
+        """The note when the guard weakened the deblur (``rec[key]`` below ``full``) or stopped it."""
         if self.deblur is None:
             self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
-        elif rec["sigma_px"] < full:
-            self.note = f"deblurring at σ {rec['sigma_px']:.2f} px, weakened from {full:.2f} by the ringing guard"
+        elif rec[key] < full:
+            name = {"sigma_px": "σ", "lambda_over_d_px": "λ/(D·ifov)"}[key]
+            self.note = f"deblurring at {name} {rec[key]:.2f} px, weakened from {full:.2f} by the ringing guard"
 
     def describe(self) -> str:
         if self.record is None:

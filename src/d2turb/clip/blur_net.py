@@ -39,6 +39,8 @@ NAME = "blur-net"
 
 
 def _gray(image) -> np.ndarray:
+    """The mean of the channels, (H, W) float32: what the network was trained on (not ``clip.blur``'s luma weights;
+    the patches are normalised, so only the channels' mix matters, and changing it means retraining)."""
     a = image.detach().cpu().float().numpy() if isinstance(image, torch.Tensor) else np.asarray(image, np.float32)
     if a.ndim == 3 and a.shape[0] in (1, 3) and a.shape[-1] not in (1, 3):
         a = a.mean(0)
