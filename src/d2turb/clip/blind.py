@@ -27,7 +27,7 @@ from d2turb.clip.blur import (
     ringing_index,
 )
 from d2turb.clip.blur_net import PATCH_PX, estimate_blur_params, load_blur_net
-from d2turb.clip.deblur import PhysicsDeblur, default_balance
+from d2turb.clip.deblur import PhysicsDeblur, default_balance, fusion_prior
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import short_exposure_width, turbulence_otf
 
@@ -68,6 +68,8 @@ class BlindDeblur:
             (round 1).
         weights: the learned shape's network (a ``blur_net`` weights file; default: the shipped one).
         shrink: the learned λ/(D·ifov) is used at exp(−shrink·sd) of itself, sd the network's uncertainty of its ln.
+        fusion: the fusion of the frames it deblurs, which sets the learned shape's Wiener prior
+            (:func:`~d2turb.clip.deblur.fusion_prior`).
 
     Returns:
         Called on a fused frame: the deblurred frame (the frame itself when nothing is deblurred).
@@ -81,12 +83,12 @@ class BlindDeblur:
         >>> deblur.record["sigma_px"]  # after the first frame  # doctest: +SKIP
     """
 
-    def __init__(self, shape: str = "learned", weights=None, shrink: float = LEARNED_SHRINK):
+    def __init__(self, shape: str = "learned", weights=None, shrink: float = LEARNED_SHRINK, fusion: str = "mean"):
         if shape not in SHAPES:
             raise D2TurbError(f"the blind deblur's shape must be one of {', '.join(SHAPES)}, got {shape!r}")
         if not math.isfinite(shrink) or shrink < 0:
             raise D2TurbError(f"the learned estimate's shrink must be finite and >= 0, got {shrink!r}")
-        self.shape, self.shrink = shape, float(shrink)
+        self.shape, self.shrink, self.prior = shape, float(shrink), fusion_prior(fusion)
         self.net = load_blur_net(weights) if shape == "learned" and weights is not None else None  # None: shipped
         self.bwd_flow_px = None  # a registered frame's flow of the first window (observe), read by the learned shape
         self.deblur = None
@@ -173,7 +175,8 @@ class BlindDeblur:
         m = min(max(b.modulation, 1e-3), 1.0)
 
         def deblur_at(lod: float) -> PhysicsDeblur:
-            return PhysicsDeblur(dr0, max(lod, 0.05), balance=default_balance(dr0), modulation=m, boost_only=True)
+            balance = default_balance(dr0, self.prior)
+            return PhysicsDeblur(dr0, max(lod, 0.05), balance, modulation=m, boost_only=True, prior=self.prior)
 
         tries = (({"lambda_over_d_px": full * k}, deblur_at(full * k)) for k in RINGING_STEPS)
         used = self._guarded(fused, rec, tries, LEARNED_RINGING_MAX)

@@ -13,7 +13,7 @@ estimate on sharp images is ``SCENE_SIGMA_PX`` (median over the clean validation
 absolute deviation of ln σ over the tiles) and the number of tiles give the confidence.
 
 Deblur: a Wiener filter with the Gaussian OTF exp(−2π²σ_d²|f|²), σ_d = ``DEBLUR_SHARE``·σ_blur (under-correcting
-is safe, over-correcting rings), and the Laplacian smoothness prior of ``restore.clip``. Ringing guard: the share of
+is safe, over-correcting rings), and the Laplacian smoothness prior of ``clip.deblur``. Ringing guard: the share of
 the change that overshoots the fused frame's local range (:func:`ringing_index`, halos and bands do; a correct
 deblur of a blurred edge barely does); above ``RINGING_MAX`` σ_d is reduced until it passes, or no deblur.
 """
@@ -58,7 +58,7 @@ RINGING_STEPS = (1.0, 0.75, 0.5)  # factors on σ_d tried in turn by the guard
 # The physics-shaped deblur (the default shape): the turbulence OTF family of ``sim.otf`` at an assumed D/r0 =
 # ``PHYSICS_DR0``, its λ/(D·ifov) chosen so that the edge estimate of that OTF's blur (``compute_physics_response``,
 # on the synthetic step edges of the ratio table) equals ``PHYSICS_SHARE``·σ_blur, and the Wiener filter of the
-# physics deblur (``restore.clip.PhysicsDeblur``) with a prior of weight ``PHYSICS_BALANCE``, its gain kept ≥ 1.
+# physics deblur (``clip.deblur.PhysicsDeblur``) with a Laplacian prior weighing ``PHYSICS_BALANCE``, gain ≥ 1.
 # Calibration against the simulator's known blur: the fused frame's edge estimate is 1.00× (median; 10–90 %:
 # 0.73–1.18×) the estimate of its true OTF on the step edges on 39 validation clips, 0.74× (0.53–0.92×) on the 15
 # fixed test clips, 0.70–1.16× on skimage scenes (tests/test_clip_blind.py): no bias correction. Grid (docs/clips.md:
@@ -294,7 +294,7 @@ def ringing_index(fused: torch.Tensor, restored: torch.Tensor, radius: int = 2) 
 
 
 class GaussianDeblur:
-    """Wiener deconvolution of a Gaussian blur of ``sigma_px`` with the Laplacian prior of ``restore.clip``."""
+    """Wiener deconvolution of a Gaussian blur of ``sigma_px`` with the Laplacian prior (``deblur.prior_power``)."""
 
     def __init__(self, sigma_px: float, balance: float = DEBLUR_BALANCE):
         if not math.isfinite(sigma_px) or not 0 < sigma_px <= 20:
@@ -308,7 +308,7 @@ class GaussianDeblur:
         if size not in self._gain:
             top, bottom, left, right = wiener_padding(*size)
             shape = (size[0] + top + bottom, size[1] + left + right)
-            self._gain[size] = wiener_gain(gaussian_otf(shape, self.sigma_px), self.balance, shape)
+            self._gain[size] = wiener_gain(gaussian_otf(shape, self.sigma_px), self.balance, shape, "laplacian")
         return wiener_deconvolve(image, self._gain[size])
 
 
@@ -316,7 +316,7 @@ def physics_deblur_at(lod: float) -> PhysicsDeblur:
     """``PhysicsDeblur`` at PHYSICS_DR0 and ``lod`` whose Wiener gain never falls below 1 (``boost_only``: a blind
     width that overshoots the true one would otherwise erase detail past its assumed diffraction cut-off, a loss of
     1.2 dB on a weak-turbulence clip of the blind test set)."""
-    return PhysicsDeblur(PHYSICS_DR0, lod, balance=PHYSICS_BALANCE, boost_only=True)
+    return PhysicsDeblur(PHYSICS_DR0, lod, balance=PHYSICS_BALANCE, boost_only=True, prior="laplacian")
 
 
 __all__ = [

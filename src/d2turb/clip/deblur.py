@@ -12,19 +12,22 @@ from d2turb.errors import D2TurbError
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
 
-# Laplacian prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3). What limits the deconvolution of a
-# fused frame is the residual misregistration, whose variance scales like the tilt variance, ∝ (D/r0)^(5/3)
-# (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md).
-BALANCE_AT_2 = 0.002
+# Prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3), on the gradient prior (``prior_power``). What
+# limits the deconvolution of a fused frame is the residual misregistration, whose variance scales like the tilt
+# variance, ∝ (D/r0)^(5/3) (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md,
+# "The Wiener filter's prior"). LAPLACIAN_BALANCE_AT_2: the same for the Laplacian prior (the default until then).
+BALANCE_AT_2 = 0.00025
+LAPLACIAN_BALANCE_AT_2 = 0.002
 
 
-def default_balance(dr0: float) -> float:
-    return BALANCE_AT_2 * (dr0 / 2.0) ** (5 / 3)
+def default_balance(dr0: float, prior: str = "gradient") -> float:
+    return (LAPLACIAN_BALANCE_AT_2 if prior == "laplacian" else BALANCE_AT_2) * (dr0 / 2.0) ** (5 / 3)
 
 
 # The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
 # left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
-# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md).
+# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md) and the Laplacian prior: the selection
+# keeps noise that the gradient prior lets through (24 validation clips: −1.7 / −1.1 / −1.2 dB against it).
 SHARPEST_DR0_SCALE = 0.3  # 0.6 / 0.5 / 0.4 / 0.3: 0.3 best in every bin (docs/clips.md), still below the mean + Wiener
 
 
@@ -33,12 +36,37 @@ def deblur_dr0(dr0: float, fusion: str) -> float:
     return dr0 * SHARPEST_DR0_SCALE if fusion == "sharpest" else dr0
 
 
-def laplacian_power(height: int, width: int) -> torch.Tensor:
-    """|L(f)|² of the 5-point discrete Laplacian on the rfft2 grid: the Wiener filter's smoothness prior (natural
-    images have a spectrum falling like 1/f², so noise amplification is penalised most where signal is weakest)."""
+def fusion_prior(fusion: str) -> str:
+    """The Wiener prior (:func:`prior_power`) of the physics deblur of a frame fused by ``fusion``."""
+    return "laplacian" if fusion == "sharpest" else "gradient"
+
+
+PRIORS = ("gradient", "laplacian")
+
+
+def prior_power(height: int, width: int, prior: str = "gradient") -> torch.Tensor:
+    """The Wiener filter's smoothness prior on the rfft2 grid, the shape of its noise-to-signal ratio.
+
+    ``gradient``: |∇(f)|² = Σ_axes (2 − 2·cos 2πf) of the first differences, ≈ (2π|f|)². Natural images have a power
+    spectrum falling like 1/f², and what corrupts a fused frame has a flat one (sensor noise; the residual
+    misregistration, whose error s·∇I has the spectrum f²·1/f²), so the ratio grows like f²: the classical Wiener
+    filter for natural images. ``laplacian``: |L(f)|² of the 5-point Laplacian, ≈ (2π|f|)⁴, the prior of
+    scikit-image's ``restoration.wiener``; it damps mid frequencies more (the blur-width deblurs of ``clip.blur``
+    were tuned with it).
+    """
     fy = torch.fft.fftfreq(height, dtype=torch.float64)[:, None]
     fx = torch.fft.rfftfreq(width, dtype=torch.float64)[None, :]
-    return (4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)) ** 2
+    gradient = 4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)
+    if prior == "gradient":
+        return gradient
+    if prior == "laplacian":
+        return gradient**2
+    raise D2TurbError(f"unknown Wiener prior {prior!r}; choose one of {', '.join(PRIORS)}", param="prior")
+
+
+def laplacian_power(height: int, width: int) -> torch.Tensor:
+    """|L(f)|² of the 5-point discrete Laplacian on the rfft2 grid (``prior_power(..., "laplacian")``)."""
+    return prior_power(height, width, "laplacian")
 
 
 def _smooth_size(n: int) -> int:
@@ -70,7 +98,7 @@ def wiener_padding(height: int, width: int) -> tuple[int, int, int, int]:
 
 
 def wiener_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
-    """Apply a Wiener filter's gain G = H / (H² + balance·|L|²) (see :func:`wiener_gain`) to the rfft2 of the
+    """Apply a Wiener filter's gain G = H / (H² + balance·P) (see :func:`wiener_gain`) to the rfft2 of the
     mirror-padded image (the form of scikit-image's ``restoration.wiener``, here with the OTF given directly).
 
     Shape:
@@ -86,9 +114,9 @@ def wiener_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     return out.clamp_(0, 1)
 
 
-def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int]) -> torch.Tensor:
-    """G = H / (H² + balance·|L|²) on the rfft2 grid of ``shape``, float32."""
-    return (otf / (otf * otf + balance * laplacian_power(*shape))).float()
+def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int], prior: str = "gradient") -> torch.Tensor:
+    """G = H / (H² + balance·P) on the rfft2 grid of ``shape``, float32; P = :func:`prior_power` of ``prior``."""
+    return (otf / (otf * otf + balance * prior_power(*shape, prior))).float()
 
 
 class PhysicsDeblur:
@@ -102,7 +130,8 @@ class PhysicsDeblur:
 
     Args:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
-        balance: weight of the Laplacian smoothness prior (regularisation); default ``default_balance(dr0)``.
+        balance: weight of the smoothness prior (regularisation); default ``default_balance(dr0, prior)``.
+        prior: its shape (:func:`prior_power`): ``gradient`` (default) or ``laplacian``.
         modulation: mean depth modulation M in (0, 1].
         alpha: exponent of the tilt removal in the short-exposure OTF (1: all of the tilt removed).
         jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
@@ -125,10 +154,13 @@ class PhysicsDeblur:
         alpha: float = 1.0,
         jitter_px: float = 0.0,
         boost_only: bool = False,
+        prior: str = "gradient",
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
             raise D2TurbError(f"dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}", param="dr0")
-        balance = default_balance(dr0) if balance is None else balance
+        if prior not in PRIORS:
+            raise D2TurbError(f"unknown Wiener prior {prior!r}; choose one of {', '.join(PRIORS)}", param="prior")
+        balance = default_balance(dr0, prior) if balance is None else balance
         if not math.isfinite(balance) or balance <= 0:
             raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
         if not math.isfinite(lambda_over_d_px) or not 0.05 <= lambda_over_d_px <= 50:
@@ -139,8 +171,15 @@ class PhysicsDeblur:
             raise D2TurbError(f"the residual registration jitter must be in [0, 20] px, got {jitter_px!r}")
         self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
         self.modulation, self.alpha, self.jitter_px = float(modulation), float(alpha), float(jitter_px)
-        self.boost_only = bool(boost_only)
+        self.boost_only, self.prior = bool(boost_only), prior
         self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
+
+    @classmethod
+    def for_fusion(cls, dr0: float, lambda_over_d_px: float, fusion: str = "mean", **kwargs) -> PhysicsDeblur:
+        """The physics deblur of a frame fused by ``fusion`` on a path of ``dr0``: the OTF at :func:`deblur_dr0`, the
+        prior of :func:`fusion_prior` weighted by the path's ``default_balance``; ``kwargs`` as the constructor's."""
+        prior = fusion_prior(fusion)
+        return cls(deblur_dr0(dr0, fusion), lambda_over_d_px, default_balance(dr0, prior), prior=prior, **kwargs)
 
     def otf(self, height: int, width: int) -> torch.Tensor:
         """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding`` (float64)."""
@@ -168,6 +207,6 @@ class PhysicsDeblur:
         if size not in self._gain:
             top, bottom, left, right = wiener_padding(*size)
             shape = (size[0] + top + bottom, size[1] + left + right)
-            gain = wiener_gain(self.otf(*size), self.balance, shape)
+            gain = wiener_gain(self.otf(*size), self.balance, shape, self.prior)
             self._gain[size] = gain.clamp(min=1.0) if self.boost_only else gain
         return wiener_deconvolve(image, self._gain[size])

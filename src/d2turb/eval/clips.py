@@ -17,7 +17,7 @@ import torch
 from scipy import ndimage
 from skimage.registration import phase_cross_correlation
 
-from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
+from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
 from d2turb.data.sequence import SequenceDataset
 from d2turb.defaults import DEFAULT_FUSION
@@ -82,13 +82,11 @@ def _deblurs(names: list[str], device: str) -> dict[str, Callable | str]:
 
 def physics_deblur_for(record: dict, depth: torch.Tensor, fusion: str = "mean") -> PhysicsDeblur:
     """The physics deblur at the clip's true D/r0 and optics, with the mean depth modulation of Eq. 4 (after the
-    sharpest fusion, the OTF of a weaker turbulence: :func:`~d2turb.clip.deblur_dr0`)."""
+    sharpest fusion, the OTF of a weaker turbulence and the Laplacian prior: :meth:`PhysicsDeblur.for_fusion`)."""
     params = TurbulenceParams(**{k: v for k, v in record.get("params", {}).items() if k in _PARAM_KEYS})
     m = depth_modulation(depth[None], params.modulation, params.offset_s)
     dr0 = float(record["dr0"])
-    return PhysicsDeblur(
-        deblur_dr0(dr0, fusion), params.lambda_over_d_px, balance=default_balance(dr0), modulation=float(m.mean())
-    )
+    return PhysicsDeblur.for_fusion(dr0, params.lambda_over_d_px, fusion, modulation=float(m.mean()))
 
 
 _PARAM_KEYS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "modulation", "offset_s")
@@ -168,7 +166,7 @@ def evaluate_clips(
             if fn == "physics":
                 fn = physics_deblur_for(record, item["depth"], fusion)
             elif fn == "blind":
-                fn = BlindDeblur()  # decides on this clip's first fused frame
+                fn = BlindDeblur(fusion=fusion)  # decides on this clip's first fused frame
             deblurs[name] = fn
         restorer = ClipRestorer(temporal=temporal, preset=preset, passes=passes, fusion=fusion)
         frame_means = _clip_scores(item, deblurs, restorer, stride)

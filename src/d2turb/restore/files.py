@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image, ImageOps
 from tqdm import tqdm
 
-from d2turb.clip import ClipRestorer, PhysicsDeblur, deblur_dr0, default_balance
+from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import measure_clip
 from d2turb.defaults import DEFAULT_FUSION
@@ -321,14 +321,14 @@ def clip_deblur(
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
-        fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
-            (:func:`~d2turb.clip.deblur_dr0`).
+        fusion: the clip's fusion; after ``sharpest`` the deblur models a weaker blur with another prior
+            (:meth:`~d2turb.clip.PhysicsDeblur.for_fusion`).
     """
     if choice == "none":
         return None, "none", {"method": "none"}
     params = dict(params or {})
     if choice == "auto" and dr0 is None:
-        blind = BlindDeblur()
+        blind = BlindDeblur(fusion=fusion)
         return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
     if choice in ("physics", "auto"):
         source, measured = "given (--dr0)", None
@@ -346,7 +346,7 @@ def clip_deblur(
                 params["ifov_rad"] = o.wavelength_m / (o.aperture_m * measured["lambda_over_d_px"])
                 optics = "λ/(D·ifov) of d2turb measure's estimate"
         p = _turbulence_params(params, dr0=min(dr0, 10.0))
-        deblur = PhysicsDeblur(deblur_dr0(p.dr0, fusion), p.lambda_over_d_px, balance=default_balance(p.dr0))
+        deblur = PhysicsDeblur.for_fusion(p.dr0, p.lambda_over_d_px, fusion)
         model = "" if deblur.dr0 == p.dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
         record = {
             "method": "physics",
@@ -357,6 +357,7 @@ def clip_deblur(
             "lambda_over_d_px": p.lambda_over_d_px,
             "optics": optics,
             "balance": deblur.balance,
+            "prior": deblur.prior,
         }
         return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px{model})", record
     restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
