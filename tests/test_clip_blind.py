@@ -1,7 +1,7 @@
 """The blind deblur of clips (d2turb.clip.blur) and the default clip path, against independent oracles: a known
 Gaussian blur (OpenCV), the simulator's known short-exposure OTF (its MTF50), identical sharp frames (nothing to
 deblur), a moving square (fallback to the frame), a count of the dense-flow computations, what the output folder's
-restore.json says."""
+restore.json says, OpenCV's JPEG codec (a real block grid)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ from skimage import data as skdata
 
 from d2turb.clip import ClipRestorer
 from d2turb.clip.blind import BlindDeblur
-from d2turb.clip.blur import GaussianDeblur, estimate_blur, ringing_index
+from d2turb.clip.blur import BLOCK_RISE_MAX, GaussianDeblur, blockiness_index, estimate_blur, ringing_index
+from d2turb.clip.deblur import PhysicsDeblur
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 
 
@@ -167,6 +168,46 @@ def test_blind_deblur_sharpens_a_blurred_clip_and_beats_none():
     gauss = BlindDeblur("gaussian")
     assert np.mean([mse(gauss(o.fused)) for o in outs]) < 0.85 * fused
     assert 1.4 <= deblur.record["estimate"]["sigma_px"] <= 2.6, deblur.record
+
+
+def _jpeg(img: np.ndarray, quality: int) -> torch.Tensor:
+    """``img`` (H, W, 3 float) through OpenCV's JPEG encoder and decoder: a real codec's 8-px block grid."""
+    ok, buf = cv2.imencode(".jpg", (img[..., ::-1] * 255).round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return torch.from_numpy(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255).permute(2, 0, 1)
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_blockiness_index_finds_a_jpeg_grid_at_any_phase(scene):
+    """Natural scenes, sharp or blurred, score about 1; through JPEG at quality 20 well above it, also when the crop
+    moves the grid by 3 and 5 px."""
+    img = _crop(scene, 197)
+    chw = torch.from_numpy(img).permute(2, 0, 1)
+    assert blockiness_index(chw) < 1.1 and blockiness_index(chw[:, 5:, 3:]) < 1.1
+    assert blockiness_index(torch.from_numpy(cv2.GaussianBlur(img, (0, 0), 2.0)).permute(2, 0, 1)) < 1.1
+    coded = _jpeg(img, 20)
+    assert blockiness_index(coded) > 1.5 and blockiness_index(coded[:, 5:, 3:]) > 1.5
+
+
+def test_blind_deblur_does_not_lift_a_codec_grid():
+    """A blurred scene through JPEG (quality 70): the plain Wiener filter at the learned estimate lifts the grid
+    far above the guard's limit; the blind deblur keeps its rise under it. Without the codec the guard lets the
+    deblur run (and it brings the frame closer to the scene)."""
+    img = _crop("coffee", 192)
+    blurred = cv2.GaussianBlur(img, (0, 0), 1.5)
+    coded = _jpeg(blurred, 70)
+    deblur = BlindDeblur()
+    out = deblur(coded)
+    learned = deblur.record["learned"]
+    plain = PhysicsDeblur(min(learned["dr0"], 2.5), learned["lambda_over_d_px"], modulation=learned["modulation"])
+    assert blockiness_index(plain(coded)) - blockiness_index(coded) > 3 * BLOCK_RISE_MAX
+    assert blockiness_index(out) - blockiness_index(coded) <= BLOCK_RISE_MAX, deblur.record
+    clean = torch.from_numpy(blurred).permute(2, 0, 1)
+    deblur = BlindDeblur()
+    out = deblur(clean)
+    sharp = torch.from_numpy(img).permute(2, 0, 1)
+    assert deblur.deblur is not None, deblur.record
+    assert float(((out - sharp)[:, 8:-8, 8:-8] ** 2).mean()) < float(((clean - sharp)[:, 8:-8, 8:-8] ** 2).mean())
 
 
 def test_ringing_index_separates_a_matched_deblur_from_an_overdone_one():

@@ -9,6 +9,7 @@ import math
 import torch
 
 from d2turb.clip.blur import (
+    BLOCK_RISE_MAX,
     DEBLUR_SHARE,
     MAX_SIGMA_PX,
     MIN_DEBLUR_SIGMA_PX,
@@ -21,6 +22,7 @@ from d2turb.clip.blur import (
     RINGING_STEPS,
     SPREAD_MAX,
     GaussianDeblur,
+    blockiness_index,
     estimate_blur,
     physics_deblur_at,
     physics_lod_for_sigma,
@@ -174,15 +176,20 @@ class BlindDeblur:
         full = min(max(b.lambda_over_d_px * math.exp(-self.shrink * b.log_sd[1]), 0.05), 50.0)
         m = min(max(b.modulation, 1e-3), 1.0)
 
-        def deblur_at(lod: float) -> PhysicsDeblur:
-            balance = default_balance(dr0, self.prior)
-            return PhysicsDeblur(dr0, max(lod, 0.05), balance, modulation=m, boost_only=True, prior=self.prior)
+        def deblur_at(lod: float, prior: str) -> PhysicsDeblur:
+            balance = default_balance(dr0, prior)
+            return PhysicsDeblur(dr0, max(lod, 0.05), balance, modulation=m, boost_only=True, prior=prior)
 
-        tries = (({"lambda_over_d_px": full * k}, deblur_at(full * k)) for k in RINGING_STEPS)
+        # the fusion's prior, then the Laplacian's stiffer one (which amplifies a codec grid less), each weakening
+        priors = dict.fromkeys((self.prior, "laplacian"))
+        tries = (
+            ({"lambda_over_d_px": full * k, "prior": p}, deblur_at(full * k, p)) for p in priors for k in RINGING_STEPS
+        )
         used = self._guarded(fused, rec, tries, LEARNED_RINGING_MAX)
         if used:
             lod = used["lambda_over_d_px"]
             rec.update(dr0=dr0, lambda_over_d_px=lod, modulation=m, sigma_px=short_exposure_width(dr0) * lod)
+            rec["prior"] = used["prior"]
         self._guard_note(rec, "lambda_over_d_px", full)
         if self.note:
             rec["note"] = self.note
@@ -190,12 +197,17 @@ class BlindDeblur:
 
     def _guarded(self, fused: torch.Tensor, rec: dict, tries, limit: float) -> dict | None:
         """The ringing guard of every shape: ``tries`` yields (entry, deblur) from the full deblur to the weakest;
-        each is run on ``fused`` and recorded in ``rec["ringing_tried"]`` with its :func:`ringing_index`; the first
-        at or under ``limit`` becomes the deblur and its entry is returned (None: every one overshoots)."""
+        each is run on ``fused`` and recorded in ``rec["ringing_tried"]`` with its :func:`ringing_index` and the rise
+        of its :func:`blockiness_index`; the first at or under ``limit`` that raises the codec grid by at most
+        ``BLOCK_RISE_MAX`` becomes the deblur and its entry is returned (None: every one overshoots)."""
+        blocks = None
         for entry, candidate in tries:
-            entry["ringing_index"] = ringing_index(fused, candidate(fused))
+            out = candidate(fused)
+            blocks = blockiness_index(fused) if blocks is None else blocks
+            entry["ringing_index"] = ringing_index(fused, out)
+            entry["block_rise"] = blockiness_index(out) - blocks
             rec.setdefault("ringing_tried", []).append(entry)
-            if entry["ringing_index"] <= limit:
+            if entry["ringing_index"] <= limit and entry["block_rise"] <= BLOCK_RISE_MAX:
                 self.deblur = candidate
                 return entry
         return None
@@ -205,12 +217,14 @@ class BlindDeblur:
         self.record = rec
 
     def _guard_note(self, rec: dict, key: str, full: float) -> None:
-        """The note when the guard weakened the deblur (``rec[key]`` below ``full``) or stopped it."""
+        """The note when the guard weakened the deblur (``rec[key]`` below ``full``, or the stiffer prior) or stopped
+        it."""
         if self.deblur is None:
-            self.note = "no deblurring: every deblur of the estimated blur overshoots the edges (ringing guard)"
-        elif rec[key] < full:
+            self.note = "no deblurring: every deblur of the estimated blur overshoots the edges or the codec's blocks"
+        elif rec[key] < full or rec.get("prior", self.prior) != self.prior:
             name = {"sigma_px": "σ", "lambda_over_d_px": "λ/(D·ifov)"}[key]
-            self.note = f"deblurring at {name} {rec[key]:.2f} px, weakened from {full:.2f} by the ringing guard"
+            prior = f", {rec['prior']} prior" if rec.get("prior", self.prior) != self.prior else ""
+            self.note = f"deblurring at {name} {rec[key]:.2f} px{prior}, weakened from {full:.2f} by the ringing guard"
 
     def describe(self) -> str:
         if self.record is None:
