@@ -180,10 +180,11 @@ class BlindDeblur:
             balance = default_balance(dr0, prior)
             return PhysicsDeblur(dr0, max(lod, 0.05), balance, modulation=m, boost_only=True, prior=prior)
 
-        # the fusion's prior, then the Laplacian's stiffer one (which amplifies a codec grid less), each weakening
+        # from the strongest deblur to the weakest; at each strength the fusion's prior, then the Laplacian's stiffer
+        # one, which amplifies a codec grid less
         priors = dict.fromkeys((self.prior, "laplacian"))
         tries = (
-            ({"lambda_over_d_px": full * k, "prior": p}, deblur_at(full * k, p)) for p in priors for k in RINGING_STEPS
+            ({"lambda_over_d_px": full * k, "prior": p}, deblur_at(full * k, p)) for k in RINGING_STEPS for p in priors
         )
         used = self._guarded(fused, rec, tries, LEARNED_RINGING_MAX)
         if used:
@@ -217,14 +218,16 @@ class BlindDeblur:
         self.record = rec
 
     def _guard_note(self, rec: dict, key: str, full: float) -> None:
-        """The note when the guard weakened the deblur (``rec[key]`` below ``full``, or the stiffer prior) or stopped
-        it."""
+        """The note when the guard weakened the deblur (``rec[key]`` below ``full``, a stiffer prior) or stopped it."""
         if self.deblur is None:
             self.note = "no deblurring: every deblur of the estimated blur overshoots the edges or the codec's blocks"
-        elif rec[key] < full or rec.get("prior", self.prior) != self.prior:
+        elif rec[key] < full:
             name = {"sigma_px": "σ", "lambda_over_d_px": "λ/(D·ifov)"}[key]
-            prior = f", {rec['prior']} prior" if rec.get("prior", self.prior) != self.prior else ""
-            self.note = f"deblurring at {name} {rec[key]:.2f} px{prior}, weakened from {full:.2f} by the ringing guard"
+            self.note = f"deblurring at {name} {rec[key]:.2f} px, weakened from {full:.2f} by the ringing guard"
+        if self.deblur is not None and rec.get("prior", self.prior) != self.prior:
+            self.note = (self.note + "; " if self.note else "") + (
+                f"the {rec['prior']} prior: the {self.prior} prior's deblur lifts the codec's block grid"
+            )
 
     def describe(self) -> str:
         if self.record is None:
