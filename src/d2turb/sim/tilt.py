@@ -62,11 +62,19 @@ def layer_tilt_correlation(s) -> tuple[np.ndarray, np.ndarray]:
     return (v0 + v2) / norm, (v0 - v2) / norm
 
 
+@lru_cache(maxsize=8)
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """numpy's Gauss–Legendre nodes and weights on [-1, 1], computed once per n (read-only: shared by callers)."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.flags.writeable = w.flags.writeable = False
+    return x, w
+
+
 def path_nodes(geometry: str, layer_z_frac: float = 0.5, n_layers: int = 48) -> tuple[np.ndarray, np.ndarray]:
     """Layer positions t = z/L and normalised weights: Gauss–Legendre on [0, 1] × (1 − t)^(5/3)."""
     if geometry == "layer":
         return np.array([float(layer_z_frac)]), np.array([1.0])
-    x, w = np.polynomial.legendre.leggauss(n_layers)
+    x, w = _gauss_legendre(n_layers)
     t = 0.5 * (x + 1)
     w = 0.5 * w * (1 - t) ** (5 / 3)
     return t, w / w.sum()
@@ -443,13 +451,17 @@ def differential_tilt_covariance(
     t, w = path_nodes(geometry, layer_z_frac, n_layers)
     phi = math.radians(wind_dir_deg)
     wind_hat = np.array([math.cos(phi), math.sin(phi)])  # (x, y), 0 = +x, as simulate-video --wind-dir
+    # all layers at once (K, N, M, 2): one _tilt_tensor call instead of three per layer (measure fits ~900 of these
+    # per clip); the elementwise arithmetic and the layer sum's order are those of a loop over the layers, so the
+    # result is the same to the bit
+    alpha = footprint_per_px * t / (1 - t)  # (K,)
+    move = (wind_per_frame / (1 - t))[:, None, None] * lag[None, :, None] * wind_hat  # (K, M, 2)
+    ar = alpha[:, None, None, None] * sep[None, :, None, :]  # (K, N, 1, 2)
+    c_same, c_minus, c_plus = _tilt_tensor(
+        np.stack(np.broadcast_arrays(move[:, None], ar - move[:, None], ar + move[:, None]))
+    )
+    layers = np.moveaxis(2 * c_same - c_minus - c_plus, -1, 2)  # (K, N, 2, M)
     out = np.zeros((len(sep), 2, len(lag)))
-    for tk, wk in zip(t, w):
-        alpha = footprint_per_px * tk / (1 - tk)
-        move = (wind_per_frame / (1 - tk)) * lag[:, None] * wind_hat  # (M, 2)
-        ar = alpha * sep[:, None, :]  # (N, 1, 2)
-        c_same = _tilt_tensor(np.broadcast_to(move, (len(sep), len(lag), 2)))
-        c_minus = _tilt_tensor(ar - move[None])
-        c_plus = _tilt_tensor(ar + move[None])
-        out += wk * np.moveaxis(2 * c_same - c_minus - c_plus, -1, 1)
+    for wk, layer in zip(w, layers):
+        out += wk * layer
     return out * (1.0 - boil) ** (np.abs(lag) / 2)
