@@ -102,6 +102,38 @@ class RestormerConfig:
     in_channels: int = 3
 
 
+def add_decoder(module: nn.Module, stage, arch: RestormerConfig) -> None:
+    """The latent level, decoder, refinement and output of the Restormer U-Net (the layout Restormer, AdaIR, TurbNet
+    and TMT share), set on ``module`` after its encoder (``patch_embed`` or embeddings, ``encoder_level1-3``,
+    ``down1_2``, ``down2_3``, ``down3_4``), in the order that makes their state_dict keys and parameter order:
+    latent, up4_3, reduce_chan_level3, decoder_level3, up3_2, reduce_chan_level2, decoder_level2, up2_1,
+    decoder_level1, refinement, output. ``stage(channels, level, n=None)``: the blocks of one level (``n`` of
+    them, else ``arch.num_blocks[level]``)."""
+    dim, bias = arch.dim, arch.bias
+    module.latent = stage(dim * 8, 3)
+    module.up4_3 = Upsample(dim * 8)
+    module.reduce_chan_level3 = nn.Conv2d(dim * 8, dim * 4, 1, bias=bias)
+    module.decoder_level3 = stage(dim * 4, 2)
+    module.up3_2 = Upsample(dim * 4)
+    module.reduce_chan_level2 = nn.Conv2d(dim * 4, dim * 2, 1, bias=bias)
+    module.decoder_level2 = stage(dim * 2, 1)
+    module.up2_1 = Upsample(dim * 2)
+    module.decoder_level1 = stage(dim * 2, 0)
+    module.refinement = stage(dim * 2, 0, arch.num_refinement_blocks)
+    module.output = nn.Conv2d(dim * 2, arch.in_channels, 3, padding=1, bias=bias)
+    module.guide_channels = dim * 2
+
+
+def decode(module: nn.Module, e1: torch.Tensor, e2: torch.Tensor, e3: torch.Tensor) -> torch.Tensor:
+    """The refinement feature (``2·dim`` channels) from the encoder's levels 1-3 through the layers of
+    :func:`add_decoder` (the level-3 features go down once more to the latent level first)."""
+    lat = module.latent(module.down3_4(e3))
+    d3 = module.decoder_level3(module.reduce_chan_level3(torch.cat([module.up4_3(lat), e3], 1)))
+    d2 = module.decoder_level2(module.reduce_chan_level2(torch.cat([module.up3_2(d3), e2], 1)))
+    d1 = module.decoder_level1(torch.cat([module.up2_1(d2), e1], 1))
+    return module.refinement(d1)
+
+
 @register_backbone("restormer")
 class Restormer(nn.Module):
     """Restormer(**config): the fields of :class:`RestormerConfig` as keywords; ``self.arch`` holds them."""
@@ -126,27 +158,12 @@ class Restormer(nn.Module):
         self.down2_3 = Downsample(dim * 2)
         self.encoder_level3 = stage(dim * 4, 2)
         self.down3_4 = Downsample(dim * 4)
-        self.latent = stage(dim * 8, 3)
-        self.up4_3 = Upsample(dim * 8)
-        self.reduce_chan_level3 = nn.Conv2d(dim * 8, dim * 4, 1, bias=bias)
-        self.decoder_level3 = stage(dim * 4, 2)
-        self.up3_2 = Upsample(dim * 4)
-        self.reduce_chan_level2 = nn.Conv2d(dim * 4, dim * 2, 1, bias=bias)
-        self.decoder_level2 = stage(dim * 2, 1)
-        self.up2_1 = Upsample(dim * 2)
-        self.decoder_level1 = stage(dim * 2, 0)
-        self.refinement = stage(dim * 2, 0, arch.num_refinement_blocks)
-        self.output = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
-        self.guide_channels = dim * 2
+        add_decoder(self, stage, arch)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x, (h, w) = pad_to_multiple(image, self.multiple)
         e1 = self.encoder_level1(self.patch_embed(x))
         e2 = self.encoder_level2(self.down1_2(e1))
         e3 = self.encoder_level3(self.down2_3(e2))
-        lat = self.latent(self.down3_4(e3))
-        d3 = self.decoder_level3(self.reduce_chan_level3(torch.cat([self.up4_3(lat), e3], 1)))
-        d2 = self.decoder_level2(self.reduce_chan_level2(torch.cat([self.up3_2(d3), e2], 1)))
-        d1 = self.decoder_level1(torch.cat([self.up2_1(d2), e1], 1))
-        guide = self.refinement(d1)  # F_guide (Eq. 8)
+        guide = decode(self, e1, e2, e3)  # F_guide (Eq. 8)
         return self.output(guide)[..., :h, :w] + image, guide[..., :h, :w]  # global residual

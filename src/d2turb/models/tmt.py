@@ -24,7 +24,7 @@ from torch import nn
 from d2turb.models.common import ChannelLayerNorm, check_input, pad_to_multiple, transposed_attention
 from d2turb.models.output import ModelOutput, model_output
 from d2turb.models.registry import register_model
-from d2turb.models.restormer import GDFN, RestormerConfig
+from d2turb.models.restormer import GDFN, RestormerConfig, add_decoder, decode
 
 
 class ShuffleAttention(nn.Module):
@@ -72,11 +72,6 @@ class Downsample(nn.Sequential):  # conv to cout/4 channels, pixel-unshuffle: (c
         super().__init__(nn.Conv2d(cin, cout // 4, 3, padding=1, bias=False), nn.PixelUnshuffle(2))
 
 
-class Upsample(nn.Sequential):  # conv doubles channels, pixel-shuffle: (C, H, W) -> (C/2, 2H, 2W)
-    def __init__(self, dim: int):
-        super().__init__(nn.Conv2d(dim, dim * 2, 3, padding=1, bias=False), nn.PixelShuffle(2))
-
-
 @register_model("tmt")
 class TMT(nn.Module):
     """forward(image) -> ModelOutput {"deblurred" = "restored", "bwd_flow_px": None, "guide": refinement feature
@@ -106,18 +101,7 @@ class TMT(nn.Module):
         self.down2_3 = Downsample(dim * 2, dim * 3)  # + the ¼-scale embedding = 4·dim
         self.encoder_level3 = stage(dim * 4, 2)
         self.down3_4 = Downsample(dim * 4, dim * 8)
-        self.latent = stage(dim * 8, 3)
-        self.up4_3 = Upsample(dim * 8)
-        self.reduce_chan_level3 = nn.Conv2d(dim * 8, dim * 4, 1, bias=bias)
-        self.decoder_level3 = stage(dim * 4, 2)
-        self.up3_2 = Upsample(dim * 4)
-        self.reduce_chan_level2 = nn.Conv2d(dim * 4, dim * 2, 1, bias=bias)
-        self.decoder_level2 = stage(dim * 2, 1)
-        self.up2_1 = Upsample(dim * 2)
-        self.decoder_level1 = stage(dim * 2, 0)
-        self.refinement = stage(dim * 2, 0, arch.num_refinement_blocks)
-        self.output = nn.Conv2d(dim * 2, in_channels, 3, padding=1, bias=bias)
-        self.guide_channels = dim * 2
+        add_decoder(self, stage, arch)
 
     def forward(self, image: torch.Tensor) -> ModelOutput:
         check_input(image)
@@ -128,11 +112,7 @@ class TMT(nn.Module):
         e1 = self.encoder_level1(self.embed1(x))
         e2 = self.encoder_level2(torch.cat([self.embed2(x2), self.down1_2(e1)], 1))
         e3 = self.encoder_level3(torch.cat([self.embed3(x4), self.down2_3(e2)], 1))
-        lat = self.latent(self.down3_4(e3))
-        d3 = self.decoder_level3(self.reduce_chan_level3(torch.cat([self.up4_3(lat), e3], 1)))
-        d2 = self.decoder_level2(self.reduce_chan_level2(torch.cat([self.up3_2(d3), e2], 1)))
-        d1 = self.decoder_level1(torch.cat([self.up2_1(d2), e1], 1))
-        guide = self.refinement(d1)
+        guide = decode(self, e1, e2, e3)
         out = self.output(guide)[..., :h, :w] + image
         return model_output(out, out, None, guide[..., :h, :w])
 
