@@ -1,6 +1,6 @@
 """The Wiener filter's prior (d2turb.clip.deblur) against an independent computation: the squared FFT of the
 finite-difference stencils it stands for (numpy's FFT of the kernels on the grid, not the closed form); the prior
-and OTF chosen per fusion."""
+and OTF chosen per path and fusion."""
 
 from __future__ import annotations
 
@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from d2turb.clip import PhysicsDeblur, prior_power
-from d2turb.clip.deblur import BALANCE_AT_2, LAPLACIAN_BALANCE_AT_2, SHARPEST_DR0_SCALE, default_balance
+from d2turb.clip.deblur import (
+    BALANCE_AT_2,
+    LAPLACIAN_BALANCE_AT_2,
+    SHARPEST_DR0_SCALE,
+    default_balance,
+    fusion_prior,
+)
 from d2turb.errors import D2TurbError
 
 
@@ -36,14 +42,16 @@ def test_priors_are_the_power_of_their_difference_stencils(shape):
 
 
 def test_the_prior_and_otf_follow_the_fusion():
-    """After the mean (and the other linear fusions) the gradient prior at the path's D/r0; after the sharpest
-    fusion the OTF of a weaker turbulence with the Laplacian prior, each at its own weight."""
+    """At a given D/r0 the Laplacian prior at its weight, after the sharpest fusion with the OTF of a weaker
+    turbulence; the blind deblur's prior is the gradient after the mean and the Laplacian after the sharpest fusion."""
     mean = PhysicsDeblur.for_fusion(3.0, 2.0, "mean")
     sharpest = PhysicsDeblur.for_fusion(3.0, 2.0, "sharpest", modulation=0.8)
-    assert (mean.prior, mean.dr0, mean.balance) == ("gradient", 3.0, pytest.approx(BALANCE_AT_2 * 1.5 ** (5 / 3)))
+    laplacian_weight = LAPLACIAN_BALANCE_AT_2 * 1.5 ** (5 / 3)
+    assert (mean.prior, mean.dr0, mean.balance) == ("laplacian", 3.0, pytest.approx(laplacian_weight))
     assert sharpest.prior == "laplacian" and sharpest.dr0 == pytest.approx(3.0 * SHARPEST_DR0_SCALE)
-    assert sharpest.balance == pytest.approx(LAPLACIAN_BALANCE_AT_2 * 1.5 ** (5 / 3)) and sharpest.modulation == 0.8
-    assert PhysicsDeblur(3.0).balance == default_balance(3.0)
-    assert PhysicsDeblur(3.0, prior="laplacian").balance == default_balance(3.0, "laplacian")
+    assert sharpest.balance == pytest.approx(laplacian_weight) and sharpest.modulation == 0.8
+    assert (fusion_prior("mean"), fusion_prior("sharpest")) == ("gradient", "laplacian")
+    assert PhysicsDeblur(3.0).balance == default_balance(3.0) == pytest.approx(laplacian_weight)
+    assert PhysicsDeblur(3.0, prior="gradient").balance == pytest.approx(BALANCE_AT_2 * 1.5 ** (5 / 3))
     with pytest.raises(D2TurbError, match="prior"):
         PhysicsDeblur(3.0, prior="tv")

@@ -12,15 +12,16 @@ from d2turb.errors import D2TurbError
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
 
-# Prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3), on the gradient prior (``prior_power``). What
-# limits the deconvolution of a fused frame is the residual misregistration, whose variance scales like the tilt
-# variance, ∝ (D/r0)^(5/3) (docs/physics.md §2); BALANCE_AT_2 was chosen on the validation clips (docs/clips.md,
-# "The Wiener filter's prior"). LAPLACIAN_BALANCE_AT_2: the same for the Laplacian prior (the default until then).
+# Prior weight of the physics deblur: BALANCE_AT_2 · (D/r0 / 2)^(5/3) on the gradient prior (``prior_power``), the
+# blind deblur's; LAPLACIAN_BALANCE_AT_2 on the Laplacian prior, the deblur at a given D/r0's. What limits the
+# deconvolution of a fused frame is the residual misregistration, whose variance scales like the tilt variance,
+# ∝ (D/r0)^(5/3) (docs/physics.md §2); both constants were chosen on the validation clips (docs/clips.md, "The Wiener
+# filter's prior").
 BALANCE_AT_2 = 0.00025
 LAPLACIAN_BALANCE_AT_2 = 0.002
 
 
-def default_balance(dr0: float, prior: str = "gradient") -> float:
+def default_balance(dr0: float, prior: str = "laplacian") -> float:
     return (LAPLACIAN_BALANCE_AT_2 if prior == "laplacian" else BALANCE_AT_2) * (dr0 / 2.0) ** (5 / 3)
 
 
@@ -37,7 +38,9 @@ def deblur_dr0(dr0: float, fusion: str) -> float:
 
 
 def fusion_prior(fusion: str) -> str:
-    """The Wiener prior (:func:`prior_power`) of the physics deblur of a frame fused by ``fusion``."""
+    """The Wiener prior (:func:`prior_power`) of the blind deblur of a frame fused by ``fusion``. The deblur at a
+    given D/r0 keeps the Laplacian: at the true, large D/r0 the gradient prior's sharper frame gained with the global
+    offset removed but lost plain PSNR (the fixed test clips' medium and strong bins; the demo's strong bin)."""
     return "laplacian" if fusion == "sharpest" else "gradient"
 
 
@@ -131,7 +134,7 @@ class PhysicsDeblur:
     Args:
         dr0: D/r0 of the path; lambda_over_d_px: λ/(D·ifov), the diffraction angle in pixels (2 = Nyquist).
         balance: weight of the smoothness prior (regularisation); default ``default_balance(dr0, prior)``.
-        prior: its shape (:func:`prior_power`): ``gradient`` (default) or ``laplacian``.
+        prior: its shape (:func:`prior_power`): ``laplacian`` (default) or ``gradient`` (the blind deblur's).
         modulation: mean depth modulation M in (0, 1].
         alpha: exponent of the tilt removal in the short-exposure OTF (1: all of the tilt removed).
         jitter_px: σ per axis of the residual registration error of the frames fused (0: a single frame).
@@ -154,7 +157,7 @@ class PhysicsDeblur:
         alpha: float = 1.0,
         jitter_px: float = 0.0,
         boost_only: bool = False,
-        prior: str = "gradient",
+        prior: str = "laplacian",
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
             raise D2TurbError(f"dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}", param="dr0")
@@ -177,9 +180,9 @@ class PhysicsDeblur:
     @classmethod
     def for_fusion(cls, dr0: float, lambda_over_d_px: float, fusion: str = "mean", **kwargs) -> PhysicsDeblur:
         """The physics deblur of a frame fused by ``fusion`` on a path of ``dr0``: the OTF at :func:`deblur_dr0`, the
-        prior of :func:`fusion_prior` weighted by the path's ``default_balance``; ``kwargs`` as the constructor's."""
-        prior = fusion_prior(fusion)
-        return cls(deblur_dr0(dr0, fusion), lambda_over_d_px, default_balance(dr0, prior), prior=prior, **kwargs)
+        Laplacian prior weighted by the path's ``default_balance``; ``kwargs`` as the constructor's."""
+        balance = default_balance(dr0, "laplacian")
+        return cls(deblur_dr0(dr0, fusion), lambda_over_d_px, balance, prior="laplacian", **kwargs)
 
     def otf(self, height: int, width: int) -> torch.Tensor:
         """The effective OTF on the rfft2 grid of a (height, width) image after ``wiener_padding`` (float64)."""
