@@ -224,10 +224,12 @@ class BlindDeblur:
         elif rec[key] < full:
             name = {"sigma_px": "σ", "lambda_over_d_px": "λ/(D·ifov)"}[key]
             self.note = f"deblurring at {name} {rec[key]:.2f} px, weakened from {full:.2f} by the ringing guard"
-        if self.deblur is not None and rec.get("prior", self.prior) != self.prior:
-            self.note = (self.note + "; " if self.note else "") + (
-                f"the {rec['prior']} prior: the {self.prior} prior's deblur lifts the codec's block grid"
-            )
+        if self.deblur is not None and rec.get("prior", self.prior) != self.prior:  # the stiffer prior: why
+            own = [t for t in rec["ringing_tried"] if t.get("prior") == self.prior and t[key] == rec[key]]
+            grid = bool(own) and own[-1]["block_rise"] > BLOCK_RISE_MAX
+            why = "lifts the codec's block grid" if grid else "overshoots the edges"
+            said = f"the {rec['prior']} prior: the {self.prior} one {why}"
+            self.note = f"{self.note}; {said}" if self.note else said
 
     def describe(self) -> str:
         if self.record is None:
