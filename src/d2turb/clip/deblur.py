@@ -47,7 +47,7 @@ def fusion_prior(fusion: str) -> str:
 PRIORS = ("gradient", "laplacian")
 
 
-def prior_power(height: int, width: int, prior: str = "gradient") -> torch.Tensor:
+def prior_power(height: int, width: int, prior: str = "laplacian") -> torch.Tensor:
     """The Wiener filter's smoothness prior on the rfft2 grid, the shape of its noise-to-signal ratio.
 
     ``gradient``: |∇(f)|² = Σ_axes (2 − 2·cos 2πf) of the first differences, ≈ (2π|f|)². Natural images have a power
@@ -117,7 +117,7 @@ def wiener_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     return out.clamp_(0, 1)
 
 
-def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int], prior: str = "gradient") -> torch.Tensor:
+def wiener_gain(otf: torch.Tensor, balance: float, shape: tuple[int, int], prior: str = "laplacian") -> torch.Tensor:
     """G = H / (H² + balance·P) on the rfft2 grid of ``shape``, float32; P = :func:`prior_power` of ``prior``."""
     return (otf / (otf * otf + balance * prior_power(*shape, prior))).float()
 
