@@ -189,6 +189,18 @@ def test_blockiness_index_finds_a_jpeg_grid_at_any_phase(scene):
     assert blockiness_index(coded) > 1.5 and blockiness_index(coded[:, 5:, 3:]) > 1.5
 
 
+def test_blockiness_index_of_frames_too_small_for_a_grid_is_one():
+    """Axes shorter than two 8-px blocks show no grid: 1, with no empty-slice warning (a NaN would refuse every
+    deblur of a tiny clip)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert blockiness_index(torch.rand(3, 12, 10)) == 1.0
+        assert blockiness_index(torch.zeros(3, 1, 1)) == 1.0
+        assert blockiness_index(_jpeg(_crop("coffee", 40), 20)[:, :12]) > 1.5  # the long axis is still read
+
+
 def test_blind_deblur_does_not_lift_a_codec_grid():
     """A blurred scene through JPEG (quality 70): the Wiener filter at the learned estimate, unguarded, lifts the grid
     far above the guard's limit; the blind deblur keeps its rise under it. Without the codec the guard lets the

@@ -29,7 +29,7 @@ from d2turb.clip.blur import (
     ringing_index,
 )
 from d2turb.clip.blur_net import PATCH_PX, estimate_blur_params, load_blur_net
-from d2turb.clip.deblur import PhysicsDeblur, default_balance, fusion_prior
+from d2turb.clip.deblur import PhysicsDeblur, fusion_prior
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import short_exposure_width, turbulence_otf
 
@@ -176,9 +176,8 @@ class BlindDeblur:
         full = min(max(b.lambda_over_d_px * math.exp(-self.shrink * b.log_sd[1]), 0.05), 50.0)
         m = min(max(b.modulation, 1e-3), 1.0)
 
-        def deblur_at(lod: float, prior: str) -> PhysicsDeblur:
-            balance = default_balance(dr0, prior)
-            return PhysicsDeblur(dr0, max(lod, 0.05), balance, modulation=m, boost_only=True, prior=prior)
+        def deblur_at(lod: float, prior: str) -> PhysicsDeblur:  # at the prior's default_balance
+            return PhysicsDeblur(dr0, max(lod, 0.05), modulation=m, boost_only=True, prior=prior)
 
         # from the strongest deblur to the weakest; at each strength the fusion's prior, then the Laplacian's stiffer
         # one, which amplifies a codec grid less

@@ -309,13 +309,14 @@ def blockiness_index(image: torch.Tensor, block: int = CODEC_BLOCK_PX) -> float:
     amplifies it turns it into a lattice.
 
     Shape:
-        image: (C, H, W), H and W above ``block``.
+        image: (C, H, W); an axis shorter than two blocks shows no grid (1 for an image that small both ways).
     """
     g = image.detach().float().cpu().numpy().mean(0)
-    ratios = []
+    ratios = [1.0]
     for d in (np.abs(np.diff(g, axis=1)), np.abs(np.diff(g, axis=0)).T):
-        phase = np.array([d[:, p::block].mean() for p in range(block)])
-        ratios.append(float(phase.max() / max(float(np.median(phase)), 1e-12)))
+        if d.shape[1] >= 2 * block:
+            phase = np.array([d[:, p::block].mean() for p in range(block)])
+            ratios.append(float(phase.max() / max(float(np.median(phase)), 1e-12)))
     return max(ratios)
 
 

@@ -19,10 +19,17 @@ from d2turb.sim.params import MAX_DR0
 # filter's prior").
 BALANCE_AT_2 = 0.00025
 LAPLACIAN_BALANCE_AT_2 = 0.002
+PRIORS = {"gradient": BALANCE_AT_2, "laplacian": LAPLACIAN_BALANCE_AT_2}  # each prior's weight at D/r0 = 2
+
+
+def _checked(prior: str) -> str:
+    if prior not in PRIORS:
+        raise D2TurbError(f"unknown Wiener prior {prior!r}; choose one of {', '.join(PRIORS)}", param="prior")
+    return prior
 
 
 def default_balance(dr0: float, prior: str = "laplacian") -> float:
-    return (LAPLACIAN_BALANCE_AT_2 if prior == "laplacian" else BALANCE_AT_2) * (dr0 / 2.0) ** (5 / 3)
+    return PRIORS[_checked(prior)] * (dr0 / 2.0) ** (5 / 3)
 
 
 # The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
@@ -44,9 +51,6 @@ def fusion_prior(fusion: str) -> str:
     return "laplacian" if fusion == "sharpest" else "gradient"
 
 
-PRIORS = ("gradient", "laplacian")
-
-
 def prior_power(height: int, width: int, prior: str = "laplacian") -> torch.Tensor:
     """The Wiener filter's smoothness prior on the rfft2 grid, the shape of its noise-to-signal ratio.
 
@@ -60,11 +64,7 @@ def prior_power(height: int, width: int, prior: str = "laplacian") -> torch.Tens
     fy = torch.fft.fftfreq(height, dtype=torch.float64)[:, None]
     fx = torch.fft.rfftfreq(width, dtype=torch.float64)[None, :]
     gradient = 4 - 2 * torch.cos(2 * math.pi * fx) - 2 * torch.cos(2 * math.pi * fy)
-    if prior == "gradient":
-        return gradient
-    if prior == "laplacian":
-        return gradient**2
-    raise D2TurbError(f"unknown Wiener prior {prior!r}; choose one of {', '.join(PRIORS)}", param="prior")
+    return gradient if _checked(prior) == "gradient" else gradient**2
 
 
 def laplacian_power(height: int, width: int) -> torch.Tensor:
@@ -161,9 +161,7 @@ class PhysicsDeblur:
     ):
         if not isinstance(dr0, (int, float)) or not math.isfinite(dr0) or not 0 < dr0 <= MAX_DR0:
             raise D2TurbError(f"dr0 must be in (0, {MAX_DR0:g}], got {dr0!r}", param="dr0")
-        if prior not in PRIORS:
-            raise D2TurbError(f"unknown Wiener prior {prior!r}; choose one of {', '.join(PRIORS)}", param="prior")
-        balance = default_balance(dr0, prior) if balance is None else balance
+        balance = default_balance(dr0, prior) if balance is None else balance  # (checks the prior)
         if not math.isfinite(balance) or balance <= 0:
             raise D2TurbError(f"the Wiener balance must be positive and finite, got {balance!r}")
         if not math.isfinite(lambda_over_d_px) or not 0.05 <= lambda_over_d_px <= 50:
@@ -174,7 +172,7 @@ class PhysicsDeblur:
             raise D2TurbError(f"the residual registration jitter must be in [0, 20] px, got {jitter_px!r}")
         self.dr0, self.lambda_over_d_px, self.balance = float(dr0), float(lambda_over_d_px), float(balance)
         self.modulation, self.alpha, self.jitter_px = float(modulation), float(alpha), float(jitter_px)
-        self.boost_only, self.prior = bool(boost_only), prior
+        self.boost_only, self.prior = bool(boost_only), _checked(prior)
         self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
 
     @classmethod

@@ -321,8 +321,8 @@ def clip_deblur(
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
         params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
-        fusion: the clip's fusion; after ``sharpest`` the deblur models a weaker blur with another prior
-            (:meth:`~d2turb.clip.PhysicsDeblur.for_fusion`).
+        fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
+            (:meth:`~d2turb.clip.PhysicsDeblur.for_fusion`) and the blind one keeps the Laplacian prior.
     """
     if choice == "none":
         return None, "none", {"method": "none"}
