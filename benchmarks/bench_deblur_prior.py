@@ -27,13 +27,11 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
-from skimage.registration import phase_cross_correlation
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_fusion_peer import MARGIN, psnr_offset_removed  # noqa: E402
+from bench_fusion_peer import MARGIN, global_offset, move, psnr_offset_removed  # noqa: E402
 
 from d2turb.clip import SHARPEST_DR0_SCALE, ClipRestorer, PhysicsDeblur  # noqa: E402
 from d2turb.data.sequence import SequenceDataset  # noqa: E402
@@ -62,21 +60,23 @@ def deblur(base: PhysicsDeblur, prior: str, weight: float, dr0_scale: float = 1.
     return PhysicsDeblur(base.dr0 * dr0_scale, base.lambda_over_d_px, balance, base.modulation, prior=prior)
 
 
+def radius(h: int, w: int) -> np.ndarray:
+    """|f| (cycles/px) on the fft2 grid of an (h, w) image."""
+    return np.sqrt(np.fft.fftfreq(h)[:, None] ** 2 + np.fft.fftfreq(w)[None] ** 2)
+
+
 def band_index(h: int, w: int) -> np.ndarray:
-    r = np.sqrt(np.fft.fftfreq(h)[:, None] ** 2 + np.fft.fftfreq(w)[None] ** 2)
-    return np.minimum((r / 0.5 * BANDS).astype(int), BANDS - 1)
+    return np.minimum((radius(h, w) / 0.5 * BANDS).astype(int), BANDS - 1)
 
 
 def aligned_spectra(images: dict, gt: np.ndarray, ref: str) -> dict:
     """Spectra of the images moved by the global offset of ``ref`` onto ``gt`` (border cropped), and of ``gt``."""
-    shift, _, _ = phase_cross_correlation(gt.mean(2), images[ref].mean(2), upsample_factor=20, normalization=None)
-    m = np.float32([[1, 0, shift[1]], [0, 1, shift[0]]])
+    shift = global_offset(images[ref], gt)
     h, w = gt.shape[:2]
     c = (slice(MARGIN, h - MARGIN), slice(MARGIN, w - MARGIN))
     out = {"gt": np.fft.fft2(gt[c], axes=(0, 1)).astype(np.complex64)}
     for k, v in images.items():
-        moved = cv2.warpAffine(v, m, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-        out[k] = np.fft.fft2(moved[c], axes=(0, 1)).astype(np.complex64)
+        out[k] = np.fft.fft2(move(v, shift)[c], axes=(0, 1)).astype(np.complex64)
     return out
 
 
@@ -94,8 +94,7 @@ def fit_bands(frames: list[dict], inputs: tuple[str, ...]) -> np.ndarray:
 
 
 def apply_bands(images: list[np.ndarray], coef: np.ndarray) -> np.ndarray:
-    h, w = images[0].shape[:2]
-    r = np.sqrt(np.fft.fftfreq(h)[:, None] ** 2 + np.fft.fftfreq(w)[None] ** 2)
+    r = radius(*images[0].shape[:2])
     centres = (np.arange(BANDS) + 0.5) / BANDS * 0.5
     gains = [np.interp(r, centres, coef[:, i])[..., None] for i in range(len(images))]
     total = sum(g * np.fft.fft2(im, axes=(0, 1)) for g, im in zip(gains, images))

@@ -67,14 +67,26 @@ for path in sys.argv[2:]:
 """
 
 
+def global_offset(image: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """The global sub-pixel shift (dy, dx) that moves ``image`` (H,W,C) onto ``truth``: phase correlation of the grey
+    images, 1/20 px."""
+    shift, _, _ = phase_cross_correlation(truth.mean(2), image.mean(2), upsample_factor=20, normalization=None)
+    return shift
+
+
+def move(image: np.ndarray, shift) -> np.ndarray:
+    """``image`` (H,W,C) shifted by (dy, dx) px, bicubic, borders mirrored."""
+    h, w = image.shape[:2]
+    m = np.float32([[1, 0, shift[1]], [0, 1, shift[0]]])
+    return cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+
 def psnr_offset_removed(image: np.ndarray, truth: np.ndarray, margin: int = MARGIN) -> float:
     """PSNR (dB, range 1) of ``image`` (H,W,C) against ``truth`` after the global sub-pixel shift between them is
-    removed (phase correlation of the grey images, 1/20 px; bicubic resampling), both cropped by ``margin`` px."""
+    removed (:func:`global_offset`, :func:`move`), both cropped by ``margin`` px."""
     image, truth = np.asarray(image, np.float32), np.asarray(truth, np.float32)
-    shift, _, _ = phase_cross_correlation(truth.mean(2), image.mean(2), upsample_factor=20, normalization=None)
-    m = np.float32([[1, 0, shift[1]], [0, 1, shift[0]]])
+    moved = move(image, global_offset(image, truth))
     h, w = image.shape[:2]
-    moved = cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
     crop = (slice(margin, h - margin), slice(margin, w - margin))
     mse = float(np.mean((np.clip(moved, 0, 1)[crop] - truth[crop]) ** 2))
     return 10 * np.log10(1 / max(mse, 1e-10))
