@@ -14,9 +14,12 @@ DEFAULT_DEPTH = "prior"
 # 512²): bounds the blur's FFT planes
 DEFAULT_BATCH = 8
 BATCH_PIXELS = 1 << 21
-# `--fusion` of clip restoration (d2turb.clip): the plain mean is the default (chosen on the validation clips)
+# `--fusion` of clip restoration (d2turb.clip): before a deblur the plain mean (its blur is the mean short-exposure
+# OTF that the Wiener filter models), with `--deblur none` the sharpest coefficients (+1.6 to +2.3 dB over the mean on
+# the validation and test clips; docs/clips.md, "Sharpest-coefficient fusion")
 CLIP_FUSIONS = ("mean", "robust", "fba", "sharpest")
 DEFAULT_FUSION = "mean"
+FUSION_WITHOUT_DEBLUR = "sharpest"
 # the clip pipeline's window (d2turb.clip.DEFAULT_TEMPORAL), the default of `evaluate --real-clips --temporal`
 DEFAULT_TEMPORAL = 24
 # `evaluate --real-clips --max-frames`: frames read per clip (the 1080p clip costs about 1 s of CPU per frame)

@@ -34,7 +34,7 @@ def register(sub):
         "--real-clips",
         metavar="DIR",
         help="folder of real clips (videos, folders of frames): each restored once with the defaults of restore "
-        "--temporal; contact sheets, blind estimate, residual motion, NIQE/PIQE of input | --deblur none | default "
+        "--temporal; contact sheets, blind estimate, residual motion, NIQE/PIQE of input | mean fusion | default "
         "(docs/clips.md)",
     )
     p.add_argument(

@@ -14,7 +14,7 @@ from d2turb.commands.common import (
     parse_params,
     wait_passively,
 )
-from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
 
 
@@ -85,10 +85,11 @@ def register(sub):
     )
     clip.add_argument(
         "--fusion",
-        default=DEFAULT_FUSION,
+        default=None,
         choices=CLIP_FUSIONS,
-        help="fusion of the registered frames: mean (default), robust, fba (Fourier burst accumulation), sharpest "
-        "(each pyramid coefficient from the frame that kept it best: sharper; docs/clips.md)",
+        help="fusion of the registered frames: mean, robust, fba (Fourier burst accumulation), sharpest (each pyramid "
+        f"coefficient from the frame that kept it best: sharper; docs/clips.md); default {FUSION_WITHOUT_DEBLUR} with "
+        f"--deblur none, else {DEFAULT_FUSION} (its blur is the one the deblur models)",
     )
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
     p.add_argument("--out", required=True, help="output folder")

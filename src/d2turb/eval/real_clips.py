@@ -1,12 +1,12 @@
 """Real clips report (``d2turb evaluate --real-clips DIR``): each clip of a folder restored once with the defaults of
 ``d2turb restore CLIP --temporal N``, and per clip a contact sheet, the blind estimate used, the residual
-frame-to-frame motion and NIQE / PIQE of the input, the ``--deblur none`` output and the default (docs/clips.md,
-"Real clips report").
+frame-to-frame motion and NIQE / PIQE of the input, the default's fused frame before its deblur (the mean fusion:
+``--deblur none --fusion mean``) and the default (docs/clips.md, "Real clips report").
 
 A clip is a video file directly in DIR or in one of its sub-folders, or a sub-folder of at least
 ``MIN_CLIP_FRAMES`` image frames of one size (DIR itself too, when it holds such frames); anything else is listed
 as not a clip, with the reason. One registration pass per clip: its :class:`~d2turb.clip.ClipFrame` gives both the
-``--deblur none`` output (``fused``) and the default (``restored``).
+mean-fused frame (``fused``) and the default (``restored``).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ ZOOM = 3  # nearest-neighbour zoom of the crop
 PANEL_PX = 480  # width of each column of the sheet
 MOTION_PRESET = "fast"  # DIS preset of the residual-motion measurement (the restoration's default registration)
 COLUMNS = ("input", "none", "default")
-LABELS = {"input": "input", "none": "--deblur none", "default": "default (blind deblur)"}
+LABELS = {"input": "input", "none": "mean fusion (no deblur)", "default": "default (blind deblur)"}
 
 
 # ---- which entries are clips ---------------------------------------------------------------------------------------
@@ -170,7 +170,7 @@ def _font(size: int):
 
 
 def contact_sheet(images: dict[str, torch.Tensor], window: tuple[int, int, int], title: str = "") -> np.ndarray:
-    """Columns input | --deblur none | default: the whole frame (scaled to ``PANEL_PX`` wide, the crop outlined)
+    """Columns input | mean fusion | default: the whole frame (scaled to ``PANEL_PX`` wide, the crop outlined)
     above its crop ``window`` = (y, x, side) zoomed ×``ZOOM`` or more (nearest neighbour), labelled → (H, W, 3)
     uint8."""
     y, x, side = window
@@ -391,7 +391,7 @@ def _estimate_cell(entry: dict) -> str:
 
 
 def markdown(results: dict) -> str:
-    """The report's table: per clip NIQE / PIQE of input, --deblur none and default, residual motion, estimate."""
+    """The report's table: per clip NIQE / PIQE of input, mean fusion and default, residual motion, estimate."""
     s = results["settings"]
     lines = [
         f"# Real clips report: `{results['data']}`",
@@ -399,7 +399,8 @@ def markdown(results: dict) -> str:
         f"Window {s['temporal']}, first {s['max_frames']} frames per clip; NIQE / PIQE (lower = more natural "
         f"statistics, no ground truth) mean over every {s['score_stride']}th frame; motion: {s['motion']}.",
         "",
-        "| clip | frames | NIQE input / none / default | PIQE input / none / default | motion input → default (px) "
+        "| clip | frames | NIQE input / mean fusion / default | PIQE input / mean fusion / default "
+        "| motion input → default (px) "
         "| blind estimate | deblur | note |",
         "|---|---:|---|---|---|---|---|---|",
     ]

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import measure_clip
-from d2turb.defaults import DEFAULT_FUSION
+from d2turb.defaults import DEFAULT_FUSION, FUSION_WITHOUT_DEBLUR
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
@@ -120,7 +120,9 @@ class ClipOptions(RestoreOptions):
 
     Args:
         deblur, dr0, params: see :func:`clip_deblur`.
-        passes, preset, fusion: registration rounds, DIS preset, fusion of the registered frames.
+        passes, preset: registration rounds, DIS preset.
+        fusion: fusion of the registered frames; None: the sharpest with ``deblur="none"``, the mean before a deblur
+            (:attr:`fusion_used`).
         fps: frame rate of a folder clip's mp4 (None: 30).
     """
 
@@ -129,8 +131,16 @@ class ClipOptions(RestoreOptions):
     params: dict | None = None
     passes: int = 2
     preset: str = "fast"
-    fusion: str = DEFAULT_FUSION
+    fusion: str | None = None
     fps: float | None = None
+
+    @property
+    def fusion_used(self) -> str:
+        """The fusion the clip gets: ``fusion`` if given, else the sharpest without a deblur (the sharper frame) and the
+        mean before one (the Wiener filter models the mean's blur; docs/clips.md)."""
+        if self.fusion is not None:
+            return self.fusion
+        return FUSION_WITHOUT_DEBLUR if self.deblur == "none" else DEFAULT_FUSION
 
 
 def restore_files(inputs: list, out, weights=None, options: RestoreOptions | None = None, **kwargs) -> int:
@@ -375,14 +385,14 @@ def clip_restorer(
         temporal: frames per window.
         options: :class:`ClipOptions` (None: restore's defaults; ``kwargs``: its fields by name, in place of those);
             of them this reads deblur, dr0, params, device, tile, overlap (see :func:`clip_deblur`) and passes,
-            preset, fusion.
+            preset, fusion (:attr:`ClipOptions.fusion_used`).
 
     Returns:
         (the restorer, its deblur already set; the deblur's description; its record for restore.json, None for the
         blind deblur until it has seen a fused frame: then ``restorer.deblur.record``).
     """
     o = ClipOptions.of(options, **kwargs)
-    deblur, fusion = o.deblur, o.fusion
+    deblur, fusion = o.deblur, o.fusion_used
     restorer = ClipRestorer(temporal=temporal, passes=o.passes, fusion=fusion, preset=o.preset)
     restorer.deblur, name, record = clip_deblur(
         deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
@@ -409,7 +419,7 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
         The exit status: 0, or 1 when some frames could not be read (2 when none could).
     """
     o = ClipOptions.of(options, **kwargs)
-    fps, passes, preset, fusion, png_level = o.fps, o.passes, o.preset, o.fusion, o.png_level
+    fps, passes, preset, fusion, png_level = o.fps, o.passes, o.preset, o.fusion_used, o.png_level
     src = Path(src)
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
@@ -437,7 +447,9 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
     if compare:
         frames = _kept(frames, inputs)
     pick, last = (total or 0) // 2, None  # NAME_compare.png: the middle frame (the last one, if fewer were read)
-    print(f"restoring {src} over windows of {temporal} frames, deblur: {deblur_name}", file=sys.stderr)
+    print(
+        f"restoring {src} over windows of {temporal} frames, fusion: {fusion}, deblur: {deblur_name}", file=sys.stderr
+    )
     count = 0
     with _no_empty_out(out_dir), contextlib.ExitStack() as stack:
         # one writer thread, one frame queued: the PNGs keep pace (~0.1 s a 1080p frame) at 80 MB less peak than 2 + 2
