@@ -144,6 +144,30 @@ def test_memory_stays_bounded_on_a_long_stream():
     assert max(h[0] for h in held) <= 6 and max(h[1] for h in held) <= 4 * 6, held
 
 
+def test_the_pyramids_held_never_exceed_one_window_even_at_the_clip_end(monkeypatch):
+    """Each registered frame's pyramid lives while a window holds it: at every output, the pyramids alive are at
+    most one window's (+1, the frame just registered), also once the clip's end is read, when every later window is
+    ready at once (the registration used to run ahead then: 1.5 windows at 1080p, 0.3 GB)."""
+    import weakref
+
+    import d2turb.clip.pipeline as pipeline
+
+    made = []  # weak references: a pyramid is alive while the restorer holds it
+    make = pipeline.sharp_coefficients
+
+    def tracked(*args, **kwargs):
+        out = make(*args, **kwargs)
+        made.append(weakref.ref(out))
+        return out
+
+    monkeypatch.setattr(pipeline, "sharp_coefficients", tracked)
+    rng = np.random.default_rng(7)
+    base = _scene(32)
+    frames = (np.clip(base + 0.01 * rng.standard_normal(base.shape), 0, 1).astype(np.float32) for _ in range(40))
+    counts = [sum(r() is not None for r in made) for _ in ClipRestorer(temporal=8, fusion="sharpest").restore(frames)]
+    assert len(counts) == 40 and max(counts) <= 8 + 1, counts
+
+
 def test_restore_without_a_deblur_fuses_the_sharpest_unless_told(tmp_path):
     """``restore --temporal N --deblur none`` (no ``--fusion``): the sharpest fusion, measurably closer to the sharp
     scene than ``--fusion mean`` on frames of one scene blurred by different known kernels; restore.json names the

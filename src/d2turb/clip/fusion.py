@@ -168,7 +168,7 @@ class SharpestFusion:
 
     def __init__(self):
         self.members: set[int] = set()
-        self.best = None  # per level: [amplitude (h,w) f32, coefficient (h,w,C) f32, frame index (h,w) int64]
+        self.best = None  # per level: [amplitude (h,w), coefficient (h,w,C): float16 as held; frame index (h,w) int32]
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
         self.detail_sum = None  # per level: Σ over the members of their details (h,w,C) f32 (the mean's details)
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
@@ -188,7 +188,11 @@ class SharpestFusion:
             self.detail_sum = [np.zeros(d.shape, np.float32) for d in window[ids[0]].details]
             self.amps = {}
             self.best = [
-                [np.full(d.shape[:2], -1.0, np.float32), np.zeros(d.shape, np.float32), np.full(d.shape[:2], -1)]
+                [
+                    np.full(d.shape[:2], -1.0, np.float16),
+                    np.zeros(d.shape, np.float16),
+                    np.full(d.shape[:2], -1, np.int32),
+                ]
                 for d in window[ids[0]].details
             ]
         staying = [j for j in ids if j in self.members]
@@ -221,7 +225,7 @@ class SharpestFusion:
             for j in ids:
                 if j in self.members:
                     continue
-                a = window[j].amplitude[level].astype(np.float32)
+                a = window[j].amplitude[level]
                 better = a > amp
                 np.copyto(amp, a, where=better)
                 np.copyto(who, j, where=better)
