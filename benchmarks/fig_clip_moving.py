@@ -2,10 +2,12 @@
 and a cyclist moving through a static street, camera shake) against the same run without the moving-object fallback.
 
     python benchmarks/fig_clip_moving.py [--clip ../shared/data/real/dost_street_clip] [--temporal 16]
+        [--deblur auto|none|physics] [--fusion mean|sharpest|...]
         [--out docs/images/clip_moving_dost.jpg] [--json benchmarks/results/clip_moving_dost.json]
 
 Both runs are ``d2turb restore CLIP --temporal 16`` (``d2turb.restore.files.clip_restorer``, default options: two
-registration rounds, mean fusion, the blind deblur); the second sets ``ClipRestorer.fallback = False``. The regions
+registration rounds, mean fusion, the blind deblur; ``--deblur none``: the sharpest fusion, restore's default without a
+deblur); the second sets ``ClipRestorer.fallback = False``. The regions
 shown are found, not chosen: the largest connected areas where the default run used the single frame (fallback share
 > 0.5) in the middle frame. Per region the figure shows input | without fallback | default | fallback share, and the
 JSON holds each region's box, its share of single frame and the mean absolute difference of each output against the
@@ -29,12 +31,13 @@ CROP_PX = 200  # side of each crop around a region's centre
 ZOOM = 2
 
 
-def restore(files: list[Path], temporal: int, fallback: bool, pick: int) -> tuple[np.ndarray, np.ndarray]:
-    """(restored frame ``pick`` (H,W,3) float32, its fallback share (H,W)) of the default clip restoration."""
+def restore(files: list[Path], temporal: int, fallback: bool, pick: int, **options) -> tuple[np.ndarray, np.ndarray]:
+    """(restored frame ``pick`` (H,W,3) float32, its fallback share (H,W)) of the clip restoration with restore's
+    defaults (``options``: ClipOptions fields, e.g. deblur, fusion)."""
     from d2turb.io import read_image
     from d2turb.restore.files import clip_restorer
 
-    restorer, _, _ = clip_restorer(files[0].parent, temporal)
+    restorer, _, _ = clip_restorer(files[0].parent, temporal, **options)
     restorer.fallback = fallback
     for out in restorer.restore(read_image(f) for f in files):
         if out.index == pick:
@@ -60,6 +63,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clip", default=str(DEFAULT_CLIP))
     ap.add_argument("--temporal", type=int, default=16)
+    ap.add_argument("--deblur", default="auto", help="restore's --deblur (default auto)")
+    ap.add_argument("--fusion", default=None, help="restore's --fusion (default: restore's for that deblur)")
     ap.add_argument("--out", default="clip_moving_dost.jpg")
     ap.add_argument("--json")
     args = ap.parse_args()
@@ -72,8 +77,9 @@ def main() -> None:
     files = list_images(clip)
     pick = len(files) // 2
     frame = read_image(files[pick]).permute(1, 2, 0).numpy()
-    default, share = restore(files, args.temporal, True, pick)
-    plain, _ = restore(files, args.temporal, False, pick)
+    options = {"deblur": args.deblur, "fusion": args.fusion}
+    default, share = restore(files, args.temporal, True, pick, **options)
+    plain, _ = restore(files, args.temporal, False, pick, **options)
     rows, record = [], []
     for x, y, w, h, area in regions(share):
         cx, cy = x + w // 2, y + h // 2
@@ -108,7 +114,14 @@ def main() -> None:
         cv2.putText(head, text, (i * CROP_PX * ZOOM + 8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 2, cv2.LINE_AA)
     sheet = np.concatenate([head, *rows], axis=0)
     cv2.imwrite(args.out, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 88])
-    out = {"clip": clip.name, "frame": pick, "temporal": args.temporal, "regions": record, "figure": args.out}
+    out = {
+        "clip": clip.name,
+        "frame": pick,
+        "temporal": args.temporal,
+        **options,
+        "regions": record,
+        "figure": args.out,
+    }
     print(json.dumps(out, indent=1))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
