@@ -172,11 +172,10 @@ class SharpestFusion:
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
         self.detail_sum = None  # per level: Σ over the members of their details (h,w,C) f32 (the mean's details)
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
-        self.mean_image = None  # with keep_mean: the last window's plain mean (H,W,C) f32, its mean pyramid collapsed
 
-    def fuse(self, window: dict[int, SharpCoefficients], keep_mean: bool = False) -> np.ndarray:
+    def fuse(self, window: dict[int, SharpCoefficients]) -> np.ndarray:
         """Fusion of the frames ``window`` (index → coefficients); where no frame may be chosen, the frames' mean
-        coefficient (running sums). ``keep_mean``: also set :attr:`mean_image`, the window's plain mean."""
+        coefficient (running sums)."""
         if not window:
             raise D2TurbError("sharpest fusion needs at least one frame")
         ids = sorted(window)
@@ -242,7 +241,6 @@ class SharpestFusion:
             num += window[j].gate[..., None] * window[j].lowpass
             den += window[j].gate[..., None]
         pyramid.append(low / n)
-        self.mean_image = collapse_pyramid(pyramid) if keep_mean else None
         # where too few frames of the window agree (a moving object crosses it) the choice is noise: the mean's
         share = np.clip((den[..., 0] / len(ids) - _SHARE_LOW) / (_SHARE_HIGH - _SHARE_LOW), 0, 1)
         pyramid[-1] = pyramid[-1] + share[..., None] * (num / np.maximum(den, 1e-3) - pyramid[-1])

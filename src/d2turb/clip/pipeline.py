@@ -342,14 +342,15 @@ class ClipRestorer:
         elif self.fusion == "fba":
             fused = fourier_burst_accumulation([_as_float(buf[j].warped[-1]) for j in self._window(buf, index, length)])
         elif self.fusion == "sharpest":
-            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)}, self.fallback)
+            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)})
         frame = buf[index]
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
-            # moving objects are found against the window's plain mean: the sharpest fusion's own detail would
-            # inflate the robust scale of the frame's residual and hide them (dost_street_clip: half a car ghosted)
-            against = self._sharp.mean_image if self.fusion == "sharpest" else fused
-            blend = self._fallback_share(_as_float(frame.warped[-1]), against)
+            # moving objects are found against the window's plain mean, as with the mean fusion: the sharpest
+            # fusion's own detail would inflate the robust scale of the frame's residual and hide them
+            # (dost_street_clip: half a crossing car ghosted)
+            mean = self._reference(buf, index, self.passes, length) if self.fusion == "sharpest" else fused
+            blend = self._fallback_share(_as_float(frame.warped[-1]), mean)
             if blend.any():
                 fused = fused + blend[..., None] * (frame.image() - fused)
         fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1).transpose(2, 0, 1)))
