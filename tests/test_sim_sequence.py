@@ -339,11 +339,10 @@ def _make_args(clean, out, frames=8, pairs=8):
 @pytest.mark.slow
 def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     """make-dataset --frames 8: filmstrip samples pass check-dataset and load as sequences; killed with
-    SIGKILL part-way and rerun, the dataset is byte-identical to an uninterrupted run."""
+    SIGKILL part-way through writing a sample and rerun, the dataset is byte-identical to an uninterrupted run."""
     import signal
-    import subprocess
-    import sys
-    import time
+
+    from hostile_input import CHILD_ENV, run_killed_at_rename
 
     from d2turb.cli import main
     from d2turb.data import PairDataset, SequenceDataset, check_dataset
@@ -370,19 +369,14 @@ def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     with pytest.raises(D2TurbError, match="SequenceDataset"):
         PairDataset(ref)
 
+    # killed at its 19th file rename: dataset.json, the 10 files of chunk 0 (samples 0, 1) and 7 of chunk 1's
+    # 10, so the kill falls inside chunk 1, with one file written under its temporary name; on 2 threads, unlike
+    # this process under xdist (a resume on another thread count gives the same bytes)
     out = tmp_path / "killed"
-    env = {**__import__("os").environ, "OMP_NUM_THREADS": "2"}
-    cmd = [sys.executable, "-m", "d2turb", *_make_args(clean, out)]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    shard = out / ".meta" / "rank-0.jsonl"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if shard.is_file() and shard.read_bytes().count(b"\n") >= 2:
-            break
-        time.sleep(0.005)
-    proc.send_signal(signal.SIGKILL)
-    assert proc.wait() == -signal.SIGKILL, "generation finished before it could be killed"
-    assert 2 <= shard.read_bytes().count(b"\n") < 8
+    proc = run_killed_at_rename(19, _make_args(clean, out), env={**CHILD_ENV, "OMP_NUM_THREADS": "2"})
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert 2 <= (out / ".meta" / "rank-0.jsonl").read_bytes().count(b"\n") < 4
+    assert any(".tmp" in p.name for p in out.rglob("*"))  # the killed write's temporary file
     assert not check_dataset(out).ok
     assert main(_make_args(clean, out)) == 0  # the rerun resumes from what is on disk: in this process
     assert check_dataset(out).ok
