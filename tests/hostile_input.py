@@ -100,6 +100,33 @@ def temp_files(folder: Path) -> list[Path]:
     return [p for p in folder.rglob("*") if ".tmp" in p.name]
 
 
+# A child `python -m d2turb ARGS` that SIGKILLs itself just before its K-th file rename. Every atomic write of
+# d2turb.io (write_bytes, atomic_path) ends in one os.replace of a complete temporary file, so the child dies with
+# that file written under its temporary name and the files before it in place: part-way through a sample, at the
+# same point whatever the machine's load. (A kill timed from outside, once some meta lines are on disk, lands
+# wherever a busy machine has let the child get to.)
+_KILL_AT_RENAME = """
+import os, signal, sys, threading
+kill_at, lock, calls, replace = int(sys.argv[1]), threading.Lock(), [0], os.replace
+def counted_replace(src, dst, **kwargs):
+    with lock:
+        calls[0] += 1
+        if calls[0] == kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+    return replace(src, dst, **kwargs)
+os.replace = counted_replace
+from d2turb.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def run_killed_at_rename(kill_at: int, args, env=None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run ``d2turb ARGS`` in a child that SIGKILLs itself just before its ``kill_at``-th file rename; returns the
+    finished process (returncode -SIGKILL when it got that far)."""
+    cmd = [sys.executable, "-c", _KILL_AT_RENAME, str(kill_at), *map(str, args)]
+    return subprocess.run(cmd, env=env or CHILD_ENV, capture_output=True, text=True, timeout=timeout)
+
+
 def dead_pid() -> int:
     """The id of a process that has ended."""
     proc = subprocess.Popen([sys.executable, "-c", "pass"])

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hostile_input import CHILD_ENV, make_dataset_args, one_error_line, png_bomb, rgb, run_cli
+from hostile_input import CHILD_ENV, make_dataset_args, one_error_line, png_bomb, rgb, run_cli, run_killed_at_rename
 from PIL import Image
 from scipy import stats
 
@@ -188,24 +188,20 @@ def test_interrupted_state_is_repaired_byte_identically(reference, clean_dir, tm
 
 @pytest.mark.slow
 def test_sigkill_then_rerun_matches_clean_run(clean_dir, tmp_path, capsys):
-    """A generation process killed with SIGKILL part-way leaves a dataset check-dataset calls broken; the same
-    command run again (here in this process: what it resumes from is on disk) finishes it byte-identically."""
+    """A generation process killed with SIGKILL part-way through writing a sample leaves a dataset check-dataset
+    calls broken; the same command run again (here in this process: what it resumes from is on disk) finishes it
+    byte-identically."""
     pairs = 12
     ref = tmp_path / "ref"
     assert main(make_args(clean_dir, ref, pairs=pairs)) == 0
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "d2turb", *make_args(clean_dir, out, pairs=pairs)]
-    proc = subprocess.Popen(cmd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    shard = out / ".meta" / "rank-0.jsonl"
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and proc.poll() is None:
-        if shard.is_file() and shard.read_bytes().count(b"\n") >= 2:
-            break
-        time.sleep(0.01)
-    proc.send_signal(signal.SIGKILL)
-    assert proc.wait() == -signal.SIGKILL, "generation finished before it could be killed"
-    done_before = shard.read_bytes().count(b"\n")
-    assert 2 <= done_before < pairs
+    # killed at its 19th file rename (dataset.json, then 5 files a sample): inside chunk 1, a file left under its
+    # temporary name
+    proc = run_killed_at_rename(19, make_args(clean_dir, out, pairs=pairs), env=ENV)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    done_before = (out / ".meta" / "rank-0.jsonl").read_bytes().count(b"\n")
+    assert 2 <= done_before < 4
+    assert any(".tmp" in p.name for p in out.rglob("*"))
     assert main(["check-dataset", str(out)]) == 1  # unfinished dataset is reported broken
     capsys.readouterr()
     assert main(make_args(clean_dir, out, pairs=pairs)) == 0

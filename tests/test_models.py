@@ -330,25 +330,27 @@ def _attention_reference(q, k, temperature, heads):
 
 
 def test_cosine_aspi_is_resolution_invariant(astronaut):
-    """Variant aspi_cosine. The same content at 256² and 1024² (4× bicubic upsampling) must give attention matrices
+    """Variant aspi_cosine. The same content at 128² and 512² (4× bicubic upsampling) must give attention matrices
     (channels × channels) that agree (0.005) and attention outputs whose per-channel std over pixels agree (2 %).
     Features are a fixed random pointwise embedding of the image, so they scale with the content exactly. The
     attention equals a reference that normalises q and k over pixels, and is neither uniform nor saturated (a
-    saturated softmax would agree at any resolution)."""
+    saturated softmax would agree at any resolution). (At 256² and 1024² the attention matrices agreed to 0.0010
+    and the stds to 0.16 %, as here to 0.0003 and 0.14 %; 1024² took 0.6 GB.)"""
     torch.manual_seed(0)
     heads = 4
     aspi = CosineASPI(16, 24, heads=heads).eval()
+    small = astronaut[..., 64:192, 64:192]  # the face, 128²
     with torch.no_grad():
         aspi.temperature.copy_(torch.tensor([2.0, 3.0, 2.5, 1.5]).reshape(heads, 1, 1))  # sharp, but not saturated
         embed_s, embed_g = torch.nn.Conv2d(3, 16, 1), torch.nn.Conv2d(3, 24, 1)
-        big = F.interpolate(astronaut, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
-        feats = [(torch.tanh(embed_s(img)), torch.tanh(embed_g(img))) for img in (astronaut, big)]
+        big = F.interpolate(small, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
+        feats = [(torch.tanh(embed_s(img)), torch.tanh(embed_g(img))) for img in (small, big)]
         (out_s, attn_s), (out_b, attn_b) = (aspi.attend(s, g, return_attn=True) for s, g in feats)
         shallow, guide = feats[0]
         q = aspi.to_q(aspi.norm_q(shallow))
         k = aspi.to_kv(aspi.norm_kv(guide)).chunk(2, dim=1)[0]
-    assert big.shape[-1] == 1024
-    reference = _attention_reference(q, k, aspi.temperature, heads)  # float32 sums over 65k pixels: ~1e-4 round-off
+    assert big.shape[-1] == 512
+    reference = _attention_reference(q, k, aspi.temperature, heads)  # float32 sums over 16k pixels: ~1e-5 round-off
     torch.testing.assert_close(attn_s.double(), reference, atol=2e-4, rtol=0)
     assert attn_s.max() > 1.5 / 4  # not uniform (4 channels per head), so the comparison is meaningful
     assert attn_s.max() < 0.9 and attn_b.max() < 0.9  # not saturated: every row still mixes several channels
@@ -378,15 +380,17 @@ def test_authors_aspi_is_eq10_with_sdpa_channel_attention():
 def test_authors_aspi_sharpens_with_resolution(astronaut):
     """The authors' scaling 1/√(H·W) is not resolution-free: for the same content at 4× the side (16× the pixels)
     the inner products grow 16× and the scale shrinks 4×, so logit differences grow 4× (oracle: that arithmetic;
-    log-softmax differences are logit differences)."""
+    log-softmax differences are logit differences). The content is 128² and 512²; features of amplitude 0.42 give
+    the logits that 0.3 gave at 256² and 1024² (logits scale as amplitude²·√(H·W): 0.42²·128 ≈ 0.3²·256)."""
     torch.manual_seed(0)
     aspi = ASPI(16, 24)
+    small = astronaut[..., 64:192, 64:192]  # the face, 128²
     with torch.no_grad():
         embed_s, embed_g = torch.nn.Conv2d(3, 16, 1), torch.nn.Conv2d(3, 24, 1)
-        big = F.interpolate(astronaut, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
+        big = F.interpolate(small, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
         attn_s, attn_b = (
-            aspi.attend(0.3 * torch.tanh(embed_s(img)), 0.3 * torch.tanh(embed_g(img)), return_attn=True)[1]
-            for img in (astronaut, big)
+            aspi.attend(0.42 * torch.tanh(embed_s(img)), 0.42 * torch.tanh(embed_g(img)), return_attn=True)[1]
+            for img in (small, big)
         )
     assert attn_b.max() < 0.99  # no probability underflows to 0, so log-softmax differences are exact
     gap_s, gap_b = (a.log().amax(-1) - a.log().amin(-1) for a in (attn_s, attn_b))

@@ -25,15 +25,34 @@ TABLE_PERP = [0.974, 0.912, 0.780, 0.630, 0.467, 0.371]
 TABLE_PAR = [0.926, 0.772, 0.558, 0.428, 0.312, 0.247]
 
 
-def _pixel_series(params, batch, frames, fps, wind, wind_dir, boil=0.0, seed=0):
-    """(batch, frames, 2) unit tilt at one pixel of `batch` independent sequences, and their state."""
+def _pixel_series(params, batch, frames, fps, wind, wind_dir, boil=0.0, seed=0, probe=None, chunk=100):
+    """(batch, frames, 2) unit tilt at one pixel of `batch` independent sequences (None for no frames), and
+    ``probe(state)`` of every sequence's state after its frames, concatenated over the sequences (None without
+    a probe). The sequences come `chunk` at a time from one generator: a path state's plane waves take ~1 MB
+    a sequence while they are drawn, so 500 at once would take 0.6 GB."""
     gen = torch.Generator().manual_seed(seed)
-    state = FrozenFlow(Simulator(params), batch, 1, 1, fps, wind, wind_dir, boil, gen, high_waves=0)
-    out = []
-    for _ in range(frames):
-        out.append(state.tilt(batch, 1, 1)[:, :, 0, 0].double())
-        state.advance(gen)
-    return (torch.stack(out, 1).numpy() if out else None), state
+    sim = Simulator(params)
+    series, probed = [], []
+    for start in range(0, batch, chunk):
+        n = min(chunk, batch - start)
+        state = FrozenFlow(sim, n, 1, 1, fps, wind, wind_dir, boil, gen, high_waves=0)
+        out = []
+        for _ in range(frames):
+            out.append(state.tilt(n, 1, 1)[:, :, 0, 0].double())
+            state.advance(gen)
+        if out:
+            series.append(torch.stack(out, 1).numpy())
+        if probe is not None:
+            probed.append(probe(state))
+        del state
+    return (np.concatenate(series) if series else None), (np.concatenate(probed) if probed else None)
+
+
+def _lag_covariance(lags):
+    """A probe of :func:`_pixel_series`: each sequence's tilt covariance at the same pixel ``lags`` frames
+    apart, given its plane waves (``tilt_covariance``), (B, N, 2, 2)."""
+    lags = torch.as_tensor(lags, dtype=torch.float64)
+    return lambda state: state.tilt_covariance(np.zeros((len(lags), 2)), lags).numpy()
 
 
 def _temporal_correlation(series, wind_dir, lags, n_batches=10):
@@ -54,13 +73,13 @@ def _temporal_correlation(series, wind_dir, lags, n_batches=10):
     return out
 
 
-def _wave_correlation(state, wind_dir, lags):
-    """Temporal correlation given the sequences' plane waves (``tilt_covariance``), parallel and
-    perpendicular to the wind: mean over sequences and its standard error."""
+def _wave_correlation(cov, wind_dir):
+    """Temporal correlation given the sequences' plane waves (their covariances (B, N, 2, 2) from
+    :func:`_lag_covariance`), parallel and perpendicular to the wind: mean over sequences and its standard
+    error."""
     phi = math.radians(wind_dir)
-    rot = torch.tensor([[math.cos(phi), math.sin(phi)], [-math.sin(phi), math.cos(phi)]], dtype=torch.float64)
-    cov = state.tilt_covariance(np.zeros((len(lags), 2)), torch.as_tensor(lags, dtype=torch.float64))
-    cov = (rot @ cov @ rot.T).numpy()  # (B, N, 2, 2) in (parallel, perpendicular) axes
+    rot = np.array([[math.cos(phi), math.sin(phi)], [-math.sin(phi), math.cos(phi)]])
+    cov = rot @ cov @ rot.T  # (B, N, 2, 2) in (parallel, perpendicular) axes
     n = len(cov)
     return {
         name: (cov[:, :, i, i].mean(0), cov[:, :, i, i].std(0, ddof=1) / math.sqrt(n))
@@ -78,8 +97,8 @@ def test_temporal_correlation_single_layer_matches_table():
     fps, s_per_frame = 30.0, 0.25
     wind = s_per_frame * params.aperture_m * (1 - 0.5) * fps
     lags = np.array([round(s / s_per_frame) for s in TABLE_S])
-    _, state = _pixel_series(params, 300, 0, fps, wind, 30.0)
-    waves = _wave_correlation(state, 30.0, lags)
+    _, cov = _pixel_series(params, 300, 0, fps, wind, 30.0, probe=_lag_covariance(lags))
+    waves = _wave_correlation(cov, 30.0)
     series, _ = _pixel_series(params, 600, 11, fps, wind, 30.0, seed=1)
     frames = _temporal_correlation(series, 30.0, lags[:3])
     for name, table in (("par", TABLE_PAR), ("perp", TABLE_PERP)):
@@ -106,8 +125,8 @@ def test_temporal_correlation_path_matches_theory(wind, published_tilt):
         return lags * v / fps / (params.aperture_m * (1 - t))
 
     perp, par = published_tilt.path(s_of_t)
-    _, state = _pixel_series(params, 200, 0, fps, wind, -60.0, seed=2)
-    waves = _wave_correlation(state, -60.0, lags)
+    _, cov = _pixel_series(params, 200, 0, fps, wind, -60.0, seed=2, probe=_lag_covariance(lags))
+    waves = _wave_correlation(cov, -60.0)
     series, _ = _pixel_series(params, 500, 9, fps, wind, -60.0, seed=3)
     frames = _temporal_correlation(series, -60.0, lags[:4])
     for name, theory in (("par", par), ("perp", perp)):
@@ -122,22 +141,27 @@ def test_every_frame_has_single_frame_statistics():
     """(b) D/r0 = 2, boiling 0.3, a fast wind: a2 … a11 at every pixel of 8×8 frames of 200 sequences ×
     12 frames. The path is 5000 km long (D/r0 given, so only the pixel spacing changes): neighbouring
     pixels sample nearly independent higher orders and weakly correlated tilt. Pooled over frames,
-    var(a2 … a11), cov(a2, a8), cov(a4, a11) within 5 % of Noll (measured ≤ 0.8 %; standard errors from
-    10 batch means of 20 sequences: 0.4–1.1 % for the variances, ≤ 1.2 % for the covariances); every
-    single frame's var(a2), var(a3), var(a4) within 4 SE of Noll (SE 1.5–2.5 %, measured ≤ 3.6 %) and
+    var(a2 … a11), cov(a2, a8), cov(a4, a11) within 5 % of Noll (measured ≤ 1.9 %; standard errors from
+    10 batch means of 20 sequences: 0.4–1.5 % for the variances, ≤ 1.4 % for the covariances); every
+    single frame's var(a2), var(a3), var(a4) within 4 SE of Noll (SE 1.3–2.5 %, measured ≤ 4.2 %) and
     frame 0 ≈ frame 11 (no drift from the wind or boiling)."""
     dr0, b, frames, n = 2.0, 200, 12, 8
     sim = Simulator(TurbulenceParams(dr0=dr0, path_length_m=5e6))
     gen = torch.Generator().manual_seed(7)
-    state = FrozenFlow(sim, b, n, n, fps=30.0, wind=10.0, wind_dir=15.0, boil=0.3, generator=gen)
-    d = torch.full((b,), dr0, dtype=torch.float64)
-    coeffs = []
-    for _ in range(frames):
-        tilt = sim.tilt_fields(b, n, n, d, unit=state.tilt(b, n, n))
-        high = sim.high_fields(tilt, d, (1.0, 1.0), unit=state.high(n, n, (1.0, 1.0)))
-        coeffs.append(torch.cat([tilt, high], 1).double().flatten(2).transpose(1, 2).numpy())  # (B, 64, J-1)
-        state.advance(gen)
-    a = np.stack(coeffs, 1)  # (B, frames, pixels, J-1)
+    chunk = 50  # sequences drawn at a time (one generator): all 200 at once take ~1 GB
+    d = torch.full((chunk,), dr0, dtype=torch.float64)
+    a = []
+    for _ in range(b // chunk):
+        state = FrozenFlow(sim, chunk, n, n, fps=30.0, wind=10.0, wind_dir=15.0, boil=0.3, generator=gen)
+        coeffs = []
+        for _ in range(frames):
+            tilt = sim.tilt_fields(chunk, n, n, d, unit=state.tilt(chunk, n, n))
+            high = sim.high_fields(tilt, d, (1.0, 1.0), unit=state.high(n, n, (1.0, 1.0)))
+            coeffs.append(torch.cat([tilt, high], 1).double().flatten(2).transpose(1, 2).numpy())  # (B, 64, J-1)
+            state.advance(gen)
+        a.append(np.stack(coeffs, 1))
+        del state, tilt, high
+    a = np.concatenate(a)  # (B, frames, pixels, J-1)
     noll = np.asarray(noll_covariance(36)) * dr0 ** (5 / 3)
     batches = np.array_split(a, 10)
     for j, jp in [(j, j) for j in range(2, 12)] + [(2, 8), (4, 11)]:
@@ -159,18 +183,20 @@ def test_mean_of_frames_psfs_is_the_long_exposure_otf():
     single frames (MTF standard error ≈ 0.007 from 10 batch means)."""
     d, lam, dr0 = 0.1, 525e-9, 2.0
     sim = Simulator(TurbulenceParams(aperture_m=d, wavelength_m=lam, dr0=dr0))
-    b, frames = 200, 15
+    b, frames, chunk = 200, 15, 50  # sequences drawn `chunk` at a time (one generator): all at once hold 0.3 GB
     gen = torch.Generator().manual_seed(11)
-    state = FrozenFlow(sim, b, 2, 2, fps=30.0, wind=10.0, generator=gen)
-    dv = torch.full((b,), dr0, dtype=torch.float64)
-    coeffs = []
-    for _ in range(frames):
-        tilt = sim.tilt_fields(b, 2, 2, dv, unit=state.tilt(b, 2, 2))
-        high = sim.high_fields(tilt, dv, (1.0, 1.0), unit=state.high(2, 2, (1.0, 1.0)))
-        coeffs.append(torch.cat([tilt[:, :, 0, 0], high[:, :, 0, 0]], 1).float())
-        state.advance(gen)
     optics = PupilOptics([lam], lam, d, lam / (2 * d), range(2, 37))
-    psf = optics.psfs(torch.cat(coeffs), 31)[0].double().mean(0)
+    dv = torch.full((chunk,), dr0, dtype=torch.float64)
+    psf = torch.zeros(63, 63, dtype=torch.float64)
+    for _ in range(b // chunk):
+        state = FrozenFlow(sim, chunk, 2, 2, fps=30.0, wind=10.0, generator=gen)
+        for _ in range(frames):
+            tilt = sim.tilt_fields(chunk, 2, 2, dv, unit=state.tilt(chunk, 2, 2))
+            high = sim.high_fields(tilt, dv, (1.0, 1.0), unit=state.high(2, 2, (1.0, 1.0)))
+            psf += optics.psfs(torch.cat([tilt[:, :, 0, 0], high[:, :, 0, 0]], 1).float(), 31)[0].double().sum(0)
+            state.advance(gen)
+        del state
+    psf /= b * frames
     padded = torch.zeros(64, 64, dtype=torch.float64)
     padded[:63, :63] = psf
     otf = torch.fft.fft2(padded).abs().numpy()
@@ -187,11 +213,11 @@ def test_boiling_one_gives_uncorrelated_frames():
     × 6 frames: |c| < 4 SE, SE ≈ 0.022 allowing for the waves shared within a sequence) with unit variance;
     the same wind without boiling keeps them correlated (c ≈ 0.8)."""
     params = TurbulenceParams()
-    boiled, state = _pixel_series(params, 400, 6, 30.0, 1.0, 0.0, boil=1.0, seed=5)
+    boiled, lag_one = _pixel_series(params, 400, 6, 30.0, 1.0, 0.0, boil=1.0, seed=5, probe=_lag_covariance([1.0]))
     c = (boiled[:, 1:] * boiled[:, :-1]).mean(axis=(0, 1))
     assert np.abs(c).max() < 4 * 0.022
     assert (boiled**2).mean() == pytest.approx(1.0, abs=0.1)
-    assert np.abs(state.tilt_covariance(np.zeros((1, 2)), [1.0]).numpy()).max() < 1e-12
+    assert np.abs(lag_one).max() < 1e-12
     frozen, _ = _pixel_series(params, 400, 6, 30.0, 1.0, 0.0, boil=0.0, seed=5)
     assert (frozen[:, 1:] * frozen[:, :-1]).mean() > 0.6
 
@@ -339,11 +365,10 @@ def _make_args(clean, out, frames=8, pairs=8):
 @pytest.mark.slow
 def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     """make-dataset --frames 8: filmstrip samples pass check-dataset and load as sequences; killed with
-    SIGKILL part-way and rerun, the dataset is byte-identical to an uninterrupted run."""
+    SIGKILL part-way through writing a sample and rerun, the dataset is byte-identical to an uninterrupted run."""
     import signal
-    import subprocess
-    import sys
-    import time
+
+    from hostile_input import CHILD_ENV, run_killed_at_rename
 
     from d2turb.cli import main
     from d2turb.data import PairDataset, SequenceDataset, check_dataset
@@ -370,19 +395,14 @@ def test_make_dataset_frames_restarts_byte_identically(still, tmp_path):
     with pytest.raises(D2TurbError, match="SequenceDataset"):
         PairDataset(ref)
 
+    # killed at its 19th file rename: dataset.json, the 10 files of chunk 0 (samples 0, 1) and 7 of chunk 1's
+    # 10, so the kill falls inside chunk 1, with one file written under its temporary name; on 2 threads, unlike
+    # this process under xdist (a resume on another thread count gives the same bytes)
     out = tmp_path / "killed"
-    env = {**__import__("os").environ, "OMP_NUM_THREADS": "2"}
-    cmd = [sys.executable, "-m", "d2turb", *_make_args(clean, out)]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    shard = out / ".meta" / "rank-0.jsonl"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if shard.is_file() and shard.read_bytes().count(b"\n") >= 2:
-            break
-        time.sleep(0.005)
-    proc.send_signal(signal.SIGKILL)
-    assert proc.wait() == -signal.SIGKILL, "generation finished before it could be killed"
-    assert 2 <= shard.read_bytes().count(b"\n") < 8
+    proc = run_killed_at_rename(19, _make_args(clean, out), env={**CHILD_ENV, "OMP_NUM_THREADS": "2"})
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert 2 <= (out / ".meta" / "rank-0.jsonl").read_bytes().count(b"\n") < 4
+    assert any(".tmp" in p.name for p in out.rglob("*"))  # the killed write's temporary file
     assert not check_dataset(out).ok
     assert main(_make_args(clean, out)) == 0  # the rerun resumes from what is on disk: in this process
     assert check_dataset(out).ok

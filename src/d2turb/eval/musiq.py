@@ -24,6 +24,7 @@ attention; padded tokens are simply not created here, which gives the same [CLS]
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from dataclasses import dataclass, replace
@@ -267,12 +268,15 @@ class MUSIQ(nn.Module):
         self.config = config = replace(config, num_classes=config.num_classes or 1)
         self.chunk_patches = chunk_patches
         w, p = config.stem_width, config.patch_size
-        self.conv_root = _StdConv(3, w, 7, stride=2, bias=False)
-        self.gn_root = nn.GroupNorm(32, w, eps=1e-6)
-        self.block1 = _Bottleneck(w, 4 * w)
-        self.embedding = nn.Linear(4 * w * (p // 4) ** 2, config.hidden_size)
-        self.transformer_encoder = _Encoder(config)
-        linear = nn.Linear(config.hidden_size, config.num_classes)
+        # with a checkpoint, the layers are built on the meta device (no memory, no random init) and take the
+        # file's weights: one copy of the weights (~100 MB) in memory at a time instead of two
+        with torch.device("meta") if state is not None else contextlib.nullcontext():
+            self.conv_root = _StdConv(3, w, 7, stride=2, bias=False)
+            self.gn_root = nn.GroupNorm(32, w, eps=1e-6)
+            self.block1 = _Bottleneck(w, 4 * w)
+            self.embedding = nn.Linear(4 * w * (p // 4) ** 2, config.hidden_size)
+            self.transformer_encoder = _Encoder(config)
+            linear = nn.Linear(config.hidden_size, config.num_classes)
         self.head = linear if config.num_classes == 1 else nn.Sequential(linear)  # keys head.* / head.0.*
         if state is not None:
             _load_strict(self, state, path)
@@ -322,7 +326,13 @@ def _load_strict(model: nn.Module, state: dict[str, torch.Tensor], path: Path) -
             f"in the file but {tuple(wanted[k].shape)} in the model (hidden {c.hidden_size}, "
             f"{c.num_layers} layers, mlp {c.mlp_dim}, stem {c.stem_width})"
         )
-    model.load_state_dict(state)
+    if any(t.is_meta for t in wanted.values()):  # built on the meta device (MUSIQ.__init__)
+        # each weight in a new tensor of the model's dtype, as load_state_dict would fill the model's own; the
+        # file's tensor is dropped as soon as it is copied
+        filled = {k: torch.empty(t.shape, dtype=t.dtype).copy_(state.pop(k)) for k, t in wanted.items()}
+        model.load_state_dict(filled, assign=True)
+    else:
+        model.load_state_dict(state)
 
 
 def find_weights(weights: str | os.PathLike | None = None) -> Path:
