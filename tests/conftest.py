@@ -27,7 +27,8 @@ def pytest_xdist_auto_num_workers(config):
 
 # Tests marked `@pytest.mark.slow` take over ~2 s of CPU (measured: per-test getrusage deltas of the whole suite,
 # children included). They still run everywhere (nothing deselects them unless you pass `-m "not slow"`); under xdist
-# they are handed out first, so that the workers finish together instead of one starting a 10 s test at the end.
+# they come first in the list the workers split and steal from (`--dist worksteal`, pyproject.toml), so that no worker
+# starts a 10 s test at the end.
 def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: slow first
 
