@@ -44,6 +44,22 @@ def test_pyramid_collapses_back_exactly():
         np.testing.assert_allclose(collapse_pyramid(laplacian_pyramid(img, levels)), img, atol=1e-5)
 
 
+def test_an_8_bit_frames_fixed_point_pyramid_collapses_back_within_a_fraction_of_a_grey_level():
+    """The sharpest fusion holds its pyramids in int16 of 1/FIXED_ONE (1/64 of a grey level): an 8-bit frame's comes
+    back within 1/32 of a grey level (OpenCV rounds each level once), a float frame's within the fixed point's step."""
+    from d2turb.clip.fusion import FIXED_ONE, to_fixed
+
+    rng = np.random.default_rng(1)
+    u8 = rng.integers(0, 256, (53, 70, 3), dtype=np.uint8)
+    assert np.array_equal(to_fixed(u8), u8.astype(np.int32) * FIXED_ONE // 255)  # v/255 exactly
+    for levels in (1, 3, 4):
+        pyramid = [p.astype(np.float32) for p in laplacian_pyramid(to_fixed(u8), levels)]
+        back = collapse_pyramid(pyramid) / FIXED_ONE
+        assert np.abs(back - u8 / 255.0).max() * 255 < 1 / 32
+    img = rng.random((40, 30, 3)).astype(np.float32)
+    assert np.abs(to_fixed(img) / FIXED_ONE - img).max() <= 0.5 / FIXED_ONE + 1e-7
+
+
 def test_frames_blurred_by_known_kernels_fuse_closer_to_the_sharp_image_than_their_mean():
     """Six frames of one image, each blurred by a known Gaussian (σ 0.5–2.5 px, one per frame), and four frames each
     sharp in one quadrant only (σ 0.3 there, 2 px elsewhere: anisoplanatic blur): the fusion is measurably closer to

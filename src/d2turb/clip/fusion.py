@@ -89,7 +89,9 @@ def fourier_burst_accumulation(stack: list[np.ndarray], power: float = FBA_POWER
 # frames are inliers (a moving object crosses the place), and where the chosen amplitude exceeds 3 × the window's
 # mean amplitude (an edge that few frames hold: misregistered, a moving object's), the mean's coefficient is kept
 # (the peer's rule is max-of-inliers, below 2 × the median amplitude; a mean can be streamed). Streamed: each
-# frame's pyramid is computed once, when it is registered, and kept (float16) while a window holds it; the window's
+# frame's pyramid is computed once, when it is registered, and kept while a window holds it, in fixed point (int16 of
+# 1/FIXED_ONE: 1/64 of a grey level, the precision float16 had; OpenCV's pyramids and numpy's casts run 3-4x faster
+# on int16 than on float32 and float16); the window's
 # choice is updated incrementally (a frame entering is compared everywhere, a frame leaving makes only the pixels it
 # held be re-chosen among the others), so the result equals the direct argmax; the amplitudes' sum is a running sum.
 
@@ -98,11 +100,13 @@ _GATE_LOW, _GATE_HIGH = 3.0, 6.0  # robust scales of the frame's coarse residual
 _OUTSTANDING = 3.0  # a choice above this × the window's mean amplitude is replaced by the mean's coefficient
 _SHARE_LOW, _SHARE_HIGH = 0.5, 0.75  # inlier share of the window: the mean's coefficients → the choice
 _GATE_FLOOR = 0.01  # least robust scale (2.5 grey levels): frames that differ only by their blur are all inliers
+FIXED_ONE = 255 * 64  # the pyramids' fixed point: an 8-bit frame's value v is v << 6; |values| < 2 fit in int16
 
 
 def laplacian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
-    """``levels`` detail images (fine to coarse) and the low-pass residual; exact inverse :func:`collapse_pyramid`."""
-    out, cur = [], np.asarray(image, dtype=np.float32)
+    """``levels`` detail images (fine to coarse) and the low-pass residual, float32 (int16 kept: OpenCV rounds each
+    level); exact inverse :func:`collapse_pyramid`."""
+    out, cur = [], image if image.dtype == np.int16 else np.asarray(image, dtype=np.float32)
     for _ in range(levels):
         down = cv2.pyrDown(cur)
         out.append(cv2.subtract(cur, cv2.pyrUp(down, dstsize=(cur.shape[1], cur.shape[0]))).reshape(cur.shape))
@@ -139,8 +143,9 @@ def outlier_gate(coarse: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 @dataclass
 class SharpCoefficients:
-    """One registered frame's selection data: detail coefficients (fine to coarse, (h,w,C) float16), their selection
-    amplitude ((h,w) float16: colour amplitude × inlier gate), the low-pass (h,w,C) and its gate (h,w) float32."""
+    """One registered frame's selection data, in units of 1/FIXED_ONE: detail coefficients (fine to coarse, (h,w,C)
+    int16), their selection amplitude ((h,w) uint16: colour amplitude × inlier gate, rounded), the low-pass (h,w,C)
+    float32; and its inlier gate (h,w) float32."""
 
     details: list
     amplitude: list
@@ -148,18 +153,27 @@ class SharpCoefficients:
     gate: np.ndarray
 
 
+def to_fixed(image: np.ndarray) -> np.ndarray:
+    """An image in [0, 1] (8-bit as stored: uint8; or float) as int16 in units of 1/FIXED_ONE."""
+    if image.dtype == np.uint8:
+        return np.left_shift(image.astype(np.int16), 6)  # v/255 · 255·64, exactly
+    return np.rint(np.clip(np.asarray(image, np.float32), -2.0, 2.0) * FIXED_ONE).astype(np.int16)
+
+
 def sharp_coefficients(warped: np.ndarray, reference: np.ndarray, levels: int = SHARP_LEVELS) -> SharpCoefficients:
-    """The selection data of one registered frame ``warped`` (H,W,C); ``reference``: the per-pixel median of the
-    :func:`coarse_grey` of its window's frames."""
-    pyramid = laplacian_pyramid(warped, levels)
-    gate = outlier_gate(coarse_grey(warped, levels), reference)
+    """The selection data of one registered frame ``warped`` (H,W,C) in [0, 1] (uint8 as stored, or float);
+    ``reference``: the per-pixel median of the :func:`coarse_grey` of its window's frames."""
+    pyramid = laplacian_pyramid(to_fixed(warped), levels)
+    image = warped.astype(np.float32) / np.float32(255) if warped.dtype == np.uint8 else warped
+    gate = outlier_gate(coarse_grey(image, levels), reference)
     amplitude = []
     for d in pyramid[:-1]:
         g = cv2.resize(gate, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_LINEAR)
-        # √(Σ_c d_c²) × gate; OpenCV's channel sum: the same float32 sums as numpy's, 5× faster than .sum(axis=2)
-        power = cv2.transform(cv2.multiply(d, d), np.ones((1, d.shape[2]), np.float32))
-        amplitude.append(cv2.multiply(cv2.sqrt(power).reshape(g.shape), g).astype(np.float16))
-    return SharpCoefficients([d.astype(np.float16) for d in pyramid[:-1]], amplitude, pyramid[-1], gate)
+        f = d.astype(np.float32)
+        # √(Σ_c d_c²) × gate, rounded (< 2·√3·FIXED_ONE: fits uint16); OpenCV's channel sum: 5× numpy's .sum(axis=2)
+        power = cv2.transform(cv2.multiply(f, f), np.ones((1, f.shape[2]), np.float32))
+        amplitude.append(np.rint(cv2.multiply(cv2.sqrt(power).reshape(g.shape), g)).astype(np.uint16))
+    return SharpCoefficients(pyramid[:-1], amplitude, pyramid[-1].astype(np.float32), gate)
 
 
 class SharpestFusion:
@@ -168,7 +182,9 @@ class SharpestFusion:
 
     def __init__(self):
         self.members: set[int] = set()
-        self.best = None  # per level: [amplitude (h,w), coefficient (h,w,C): float16 as held; frame index (h,w) int32]
+        self.best = (
+            None  # per level: [amplitude (h,w) int32 (-1: none yet), coefficient (h,w,C) int16, frame (h,w) int32]
+        )
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
         self.detail_sum = None  # per level: Σ over the members of their details (h,w,C) f32 (the mean's details)
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
@@ -188,11 +204,7 @@ class SharpestFusion:
             self.detail_sum = [np.zeros(d.shape, np.float32) for d in window[ids[0]].details]
             self.amps = {}
             self.best = [
-                [
-                    np.full(d.shape[:2], -1.0, np.float16),
-                    np.zeros(d.shape, np.float16),
-                    np.full(d.shape[:2], -1, np.int32),
-                ]
+                [np.full(d.shape[:2], -1, np.int32), np.zeros(d.shape, np.int16), np.full(d.shape[:2], -1, np.int32)]
                 for d in window[ids[0]].details
             ]
         staying = [j for j in ids if j in self.members]
@@ -252,7 +264,7 @@ class SharpestFusion:
             step = np.subtract(coef, mean)  # mean + s·(choice − mean), in place
             step *= s.reshape(s.shape[:2] + (1,))
             mean += step
-        return collapse_pyramid(pyramid)
+        return collapse_pyramid(pyramid) / np.float32(FIXED_ONE)
 
 
 def robust_reference(stack: list[np.ndarray], levels: int = SHARP_LEVELS) -> np.ndarray:

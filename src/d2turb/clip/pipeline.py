@@ -332,7 +332,7 @@ class ClipRestorer:
                 if f.coarse is None:
                     f.coarse = coarse_grey(f.image() if k == 1 else f.warped[k - 2] / np.float32(255))
             median = np.median(np.stack([f.coarse for f in members]), axis=0)
-            frame.sharp = sharp_coefficients(_as_float(frame.warped[-1]), median)
+            frame.sharp = sharp_coefficients(frame.warped[-1], median)  # as held: uint8 or float16
 
     def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
         if self.fusion in ("mean", "robust"):  # the others do not start from the window's mean
