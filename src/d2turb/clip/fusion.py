@@ -90,8 +90,8 @@ def fourier_burst_accumulation(stack: list[np.ndarray], power: float = FBA_POWER
 # mean amplitude (an edge that few frames hold: misregistered, a moving object's), the mean's coefficient is kept
 # (the peer's rule is max-of-inliers, below 2 × the median amplitude; a mean can be streamed). Streamed: each
 # frame's pyramid is computed once, when it is registered, and kept while a window holds it, in fixed point (int16 of
-# 1/FIXED_ONE: 1/64 of a grey level, the precision float16 had; OpenCV's pyramids and numpy's casts run 3-4x faster
-# on int16 than on float32 and float16); the window's
+# 1/FIXED_ONE: 1/64 of a grey level, about float16's step on a detail of 30 grey levels; OpenCV's pyramids and numpy's
+# casts run 3-4x faster on int16 than on float32 and float16); the window's
 # choice is updated incrementally (a frame entering is compared everywhere, a frame leaving makes only the pixels it
 # held be re-chosen among the others), so the result equals the direct argmax; the amplitudes' sum is a running sum.
 
@@ -101,6 +101,7 @@ _OUTSTANDING = 3.0  # a choice above this × the window's mean amplitude is repl
 _SHARE_LOW, _SHARE_HIGH = 0.5, 0.75  # inlier share of the window: the mean's coefficients → the choice
 _GATE_FLOOR = 0.01  # least robust scale (2.5 grey levels): frames that differ only by their blur are all inliers
 FIXED_ONE = 255 * 64  # the pyramids' fixed point: an 8-bit frame's value v is v << 6; |values| < 2 fit in int16
+# (details of frames in [0, 1] stay within ±FIXED_ONE; OpenCV's int16 arithmetic saturates beyond)
 
 
 def laplacian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
@@ -182,9 +183,8 @@ class SharpestFusion:
 
     def __init__(self):
         self.members: set[int] = set()
-        self.best = (
-            None  # per level: [amplitude (h,w) int32 (-1: none yet), coefficient (h,w,C) int16, frame (h,w) int32]
-        )
+        # per level: [amplitude (h,w) int32 (-1: none yet), coefficient (h,w,C) int16, frame index (h,w) int32]
+        self.best = None
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
         self.detail_sum = None  # per level: Σ over the members of their details (h,w,C) f32 (the mean's details)
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
@@ -233,7 +233,7 @@ class SharpestFusion:
                         sel = idx[pick == k]
                         c_flat[sel] = window[j].details[level].reshape(-1, coef.shape[-1])[sel]
                 else:
-                    a_flat[idx], w_flat[idx] = -1.0, -1
+                    a_flat[idx], w_flat[idx] = -1, -1
             for j in ids:
                 if j in self.members:
                     continue
