@@ -238,10 +238,10 @@ class SharpestFusion:
                 if j in self.members:
                     continue
                 a = window[j].amplitude[level]
-                better = a > amp
-                np.copyto(amp, a, where=better)
-                np.copyto(who, j, where=better)
-                np.copyto(coef, window[j].details[level], where=better[..., None])
+                better = np.flatnonzero(a > amp)  # a few percent of the pixels: indexed copies, not masked ones
+                amp.reshape(-1)[better] = a.reshape(-1)[better]
+                who.reshape(-1)[better] = j
+                coef.reshape(-1, coef.shape[-1])[better] = window[j].details[level].reshape(-1, coef.shape[-1])[better]
         self.members = set(ids)
         n = np.float32(len(ids))
         pyramid = [np.divide(total, n) for total in self.detail_sum]  # the mean's details
@@ -259,7 +259,8 @@ class SharpestFusion:
         for level, (amp, coef, _) in enumerate(self.best):
             s = cv2.resize(share, (coef.shape[1], coef.shape[0]), interpolation=cv2.INTER_LINEAR)
             # nothing to choose, or the choice stands out of the window (an edge in few frames: misregistered)
-            s[(amp <= 0) | ~(amp <= _OUTSTANDING * self.amp_sum[level] / len(ids))] = 0
+            chosen = amp.astype(np.float32)  # exact (< 2^24): compared in float32, not promoted to float64
+            s[(chosen <= 0) | ~(chosen <= _OUTSTANDING * self.amp_sum[level] / len(ids))] = 0
             mean = pyramid[level]
             step = np.subtract(coef, mean)  # mean + s·(choice − mean), in place
             step *= s.reshape(s.shape[:2] + (1,))
