@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from d2turb.clip.registration import to_hwc
 from d2turb.errors import D2TurbError
 
 FBA_POWER = 4.0  # p; 4 on the validation clips (docs/clips.md); the paper uses 11 for camera shake
@@ -165,8 +166,7 @@ def sharp_coefficients(warped: np.ndarray, reference: np.ndarray, levels: int = 
     """The selection data of one registered frame ``warped`` (H,W,C) in [0, 1] (uint8 as stored, or float);
     ``reference``: the per-pixel median of the :func:`coarse_grey` of its window's frames."""
     pyramid = laplacian_pyramid(to_fixed(warped), levels)
-    image = warped.astype(np.float32) / np.float32(255) if warped.dtype == np.uint8 else warped
-    gate = outlier_gate(coarse_grey(image, levels), reference)
+    gate = outlier_gate(coarse_grey(to_hwc(warped), levels), reference)
     amplitude = []
     for d in pyramid[:-1]:
         g = cv2.resize(gate, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_LINEAR)
