@@ -58,6 +58,8 @@ def test_an_8_bit_frames_fixed_point_pyramid_collapses_back_within_a_fraction_of
         assert np.abs(back - u8 / 255.0).max() * 255 < 1 / 32
     img = rng.random((40, 30, 3)).astype(np.float32)
     assert np.abs(to_fixed(img) / FIXED_ONE - img).max() <= 0.5 / FIXED_ONE + 1e-7
+    img[0, 0] = [np.nan, np.inf, -np.inf]  # a defined value for every float, ±inf clipped to ±2
+    assert to_fixed(img)[0, 0].tolist() == [0, 2 * FIXED_ONE, -2 * FIXED_ONE]
 
 
 def test_frames_blurred_by_known_kernels_fuse_closer_to_the_sharp_image_than_their_mean():

@@ -156,10 +156,12 @@ class SharpCoefficients:
 
 
 def to_fixed(image: np.ndarray) -> np.ndarray:
-    """An image in [0, 1] (8-bit as stored: uint8; or float) as int16 in units of 1/FIXED_ONE."""
+    """An image in [0, 1] (8-bit as stored: uint8; or float) as int16 in units of 1/FIXED_ONE (NaN as 0: a cast
+    of NaN to an integer is undefined)."""
     if image.dtype == np.uint8:
         return np.left_shift(image.astype(np.int16), 6)  # v/255 · 255·64, exactly
-    return np.rint(np.clip(np.asarray(image, np.float32), -2.0, 2.0) * FIXED_ONE).astype(np.int16)
+    finite = np.nan_to_num(np.asarray(image, np.float32), nan=0.0)
+    return np.rint(np.clip(finite, -2.0, 2.0) * FIXED_ONE).astype(np.int16)
 
 
 def sharp_coefficients(warped: np.ndarray, reference: np.ndarray, levels: int = SHARP_LEVELS) -> SharpCoefficients:
