@@ -26,7 +26,7 @@ def test_models_lists_models_and_backbones_with_counts(capsys):
     assert main(["models"]) == 0
     out = capsys.readouterr().out
     assert "d2turb           31.82 M" in out and "restormer        26.13 M" in out
-    shipped = "nafnet-gpu-spectral2*, nafnet-cpu-small, nafnet-cpu-spectral, nafnet-gpu-spectral"
+    shipped = "nafnet-gpu-spectral3*, nafnet-cpu-small, nafnet-cpu-spectral, nafnet-gpu-spectral2"
     assert f"nafnet            1.14 M  shipped: {shipped}" in out
 
 

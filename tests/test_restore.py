@@ -150,6 +150,10 @@ def test_bad_arguments_raise_one_line_errors(tmp_path, monkeypatch):
     assert weights_search_path("mine")[0] == tmp_path / "mine.safetensors"
     (tmp_path / "v1.2.safetensors").write_bytes(b"x")
     assert resolve_weights("v1.2") == tmp_path / "v1.2.safetensors"  # dotted names are names, not paths
+    with pytest.raises(D2TurbError, match="'nafnet-gpu-spectral' no longer ship with d2turb: .*nafnet-gpu-spectral3"):
+        resolve_weights("nafnet-gpu-spectral")  # retired: the reason, not "not found"
+    (tmp_path / "nafnet-gpu-spectral.safetensors").write_bytes(b"x")
+    assert resolve_weights("nafnet-gpu-spectral") == tmp_path / "nafnet-gpu-spectral.safetensors"  # a kept copy
     with pytest.raises(D2TurbError, match="overlap"):
         Restorer("input", tile=64, overlap=40)
     with pytest.raises(D2TurbError, match="expected 3 channels"):

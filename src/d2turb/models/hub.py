@@ -21,7 +21,13 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 # The shipped weights recommended for single-frame restoration: the default of `d2turb restore`, Restorer(), the demo
 # and the page (MODEL_CARD.md). Shipped weights are the package's resources/weights/NAME.safetensors.
-RECOMMENDED_WEIGHTS = "nafnet-gpu-spectral2"
+RECOMMENDED_WEIGHTS = "nafnet-gpu-spectral3"
+# shipped weights no longer in the package, and why: a name here is refused with that reason (unless a file of that
+# name is found on the search path, e.g. a copy the user kept)
+RETIRED_WEIGHTS = {
+    "nafnet-gpu-spectral": "an intermediate stage of nafnet-gpu-spectral3 (the GPU leases' checkout, weights included, "
+    "must stay under 64 MiB); use nafnet-gpu-spectral3 or nafnet-gpu-spectral2",
+}
 
 
 def shipped_weights_dir() -> Path:
@@ -86,5 +92,7 @@ def resolve_weights(weights: str | os.PathLike) -> Path | str:
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+    if text in RETIRED_WEIGHTS:
+        raise D2TurbError(f"weights {text!r} no longer ship with d2turb: {RETIRED_WEIGHTS[text]}")
     looked = ", ".join(str(c) for c in candidates)
     raise D2TurbError(f"weights {text!r} not found; looked in: {looked} (set D2TURB_WEIGHTS_DIR or pass a path)")
