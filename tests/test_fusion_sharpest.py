@@ -234,3 +234,25 @@ def test_restore_without_a_deblur_fuses_the_sharpest_unless_told(tmp_path):
     assert errors["default"] < 0.6 * errors["mean"], errors
     assert ClipOptions(deblur="auto").fusion_used == "mean" and ClipOptions(deblur="physics").fusion_used == "mean"
     assert ClipOptions(deblur="none", fusion="fba").fusion_used == "fba"
+
+
+def test_the_fusion_thread_gives_the_serial_outputs_and_stops_with_the_stream():
+    """The sharpest fusion runs in a thread of its own while the next frames register: its outputs are those of the
+    same stream run serially (to the bit), and a stream closed early leaves no fusion thread behind."""
+    import threading
+
+    rng = np.random.default_rng(8)
+    base = _scene(48)
+    frames = [
+        np.clip(_blur(base, s) + 0.01 * rng.standard_normal(base.shape), 0, 1).astype(np.float32)
+        for s in rng.uniform(0.3, 2, 20)
+    ]
+    threaded = list(ClipRestorer(temporal=6, fusion="sharpest").restore(iter(frames)))
+    serial = list(ClipRestorer(temporal=6, fusion="sharpest")._stream(iter(frames)))  # no pool: in this thread
+    assert [o.index for o in threaded] == list(range(20)) == [o.index for o in serial]
+    for a, b in zip(threaded, serial):
+        assert torch.equal(a.fused, b.fused) and torch.equal(a.fallback, b.fallback)
+    stream = ClipRestorer(temporal=6, fusion="sharpest").restore(iter(frames))
+    next(stream)
+    stream.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("d2turb-fuse")]

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import functools
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -88,7 +89,12 @@ class _Frame:
 
     def image(self) -> np.ndarray:
         """The frame as (H,W,C) float32 in [0,1] (bit-identical to the frame given: k/255 in float32)."""
-        return _as_float(self.raw) if self.raw.dtype == np.uint8 else self.raw
+        return _image_of(self.raw)
+
+
+def _image_of(raw: np.ndarray) -> np.ndarray:
+    """A held frame (uint8 or float) as (H,W,C) float32 in [0, 1] (see :meth:`_Frame.image`)."""
+    return _as_float(raw) if raw.dtype == np.uint8 else raw
 
 
 def _as_float(image: np.ndarray) -> np.ndarray:
@@ -151,6 +157,7 @@ class ClipRestorer:
         DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
         self.preset = preset
         self.flow = None  # a fresh solver per clip
+        self._pool = None  # the sharpest fusion's thread while a clip streams
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
@@ -186,7 +193,27 @@ class ClipRestorer:
         return frame
 
     def _fused(self, frames: Iterable) -> Iterator[ClipFrame]:
-        """The stream of :meth:`restore` before the deblur (``restored`` is ``fused``)."""
+        """The stream of :meth:`restore` before the deblur (``restored`` is ``fused``). The sharpest fusion of output t
+        runs in a thread of its own while the next frames register (one output in flight, in order), as the deblur
+        does: its array work then shares the two cores with the registration."""
+        if self.fusion != "sharpest":
+            yield from self._stream(frames)
+            return
+        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-fuse") as pool:
+            pending: collections.deque = collections.deque()
+            try:
+                for job in self._stream(frames, pool):
+                    pending.append(job)
+                    if len(pending) > 1:
+                        yield pending.popleft().result()
+                while pending:
+                    yield pending.popleft().result()
+            finally:  # a stream closed early: drop what is queued (outputs and pyramids), finish what runs
+                pool.shutdown(wait=True, cancel_futures=True)
+
+    def _stream(self, frames: Iterable, pool=None) -> Iterator:
+        """Read, register and fuse: the outputs in order (with ``pool``, Futures of them; see :meth:`_output`)."""
+        self._pool = pool
         source = iter(frames)
         passes = self.passes
         buf: dict[int, _Frame] = {}
@@ -234,7 +261,7 @@ class ClipRestorer:
                     done[k] += 1
                     progressed = True
             while emitted < done[passes] and self._window_ready(emitted, passes, done, length):
-                yield self._output(buf, emitted, length)
+                yield self._output(buf, emitted, length, pool)
                 emitted += 1
                 progressed = True
             self._release(buf, done, emitted, length)
@@ -332,9 +359,15 @@ class ClipRestorer:
                 if f.coarse is None:
                     f.coarse = coarse_grey(f.image() if k == 1 else f.warped[k - 2] / np.float32(255))
             median = np.median(np.stack([f.coarse for f in members]), axis=0)
-            frame.sharp = sharp_coefficients(frame.warped[-1], median)  # as held: uint8 or float16
+            # as held: uint8 or float16; with a pool, computed there (a Future: the pool's one thread runs its jobs in
+            # order, so it is done before the fusion that reads it)
+            job = functools.partial(sharp_coefficients, frame.warped[-1], median)
+            frame.sharp = job() if self._pool is None else self._pool.submit(job)
 
-    def _output(self, buf: dict, index: int, length: int | None) -> ClipFrame:
+    def _output(self, buf: dict, index: int, length: int | None, pool=None):
+        """Output ``index``: its ClipFrame, or with ``pool`` (the sharpest fusion) a Future of it: the fusion, which
+        holds its own references to what it reads, then runs in that thread while the next frames register."""
+        mean = None  # what the frame is compared with for moving objects (None: the fusion itself)
         if self.fusion in ("mean", "robust"):  # the others do not start from the window's mean
             fused = self._reference(buf, index, self.passes, length)
         if self.fusion == "robust":
@@ -342,20 +375,34 @@ class ClipRestorer:
         elif self.fusion == "fba":
             fused = fourier_burst_accumulation([_as_float(buf[j].warped[-1]) for j in self._window(buf, index, length)])
         elif self.fusion == "sharpest":
-            fused = self._sharp.fuse({j: buf[j].sharp for j in self._window(buf, index, length)})
+            fused = functools.partial(self._fuse_sharpest, {j: buf[j].sharp for j in self._window(buf, index, length)})
+            if self.fallback:
+                # moving objects are found against the window's plain mean, as with the mean fusion: the sharpest
+                # fusion's own detail would inflate the robust scale of the frame's residual and hide them
+                # (dost_street_clip: half a crossing car ghosted)
+                mean = self._reference(buf, index, self.passes, length)
         frame = buf[index]
+        job = functools.partial(self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1])
+        return job() if pool is None else pool.submit(job)
+
+    def _fuse_sharpest(self, window: dict) -> np.ndarray:
+        """The sharpest fusion of ``window`` (index → SharpCoefficients, or a Future of them)."""
+        return self._sharp.fuse(
+            {j: c.result() if isinstance(c, concurrent.futures.Future) else c for j, c in window.items()}
+        )
+
+    def _finish(self, index: int, fused, mean, warped, raw, flow) -> ClipFrame:
+        """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback and the
+        frame's own images."""
+        fused = fused if isinstance(fused, np.ndarray) else fused()
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
-            # moving objects are found against the window's plain mean, as with the mean fusion: the sharpest
-            # fusion's own detail would inflate the robust scale of the frame's residual and hide them
-            # (dost_street_clip: half a crossing car ghosted)
-            mean = self._reference(buf, index, self.passes, length) if self.fusion == "sharpest" else fused
-            blend = self._fallback_share(_as_float(frame.warped[-1]), mean)
+            blend = self._fallback_share(_as_float(warped), fused if mean is None else mean)
             if blend.any():
-                fused = fused + blend[..., None] * (frame.image() - fused)
+                fused = fused + blend[..., None] * (_image_of(raw) - fused)
         fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1).transpose(2, 0, 1)))
-        flow = torch.from_numpy(frame.flows[-1].transpose(2, 0, 1).astype(np.float32))
-        return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend))
+        flow_t = torch.from_numpy(flow.transpose(2, 0, 1).astype(np.float32))
+        return ClipFrame(index, fused_t, fused_t, flow_t, torch.from_numpy(blend))
 
     @staticmethod
     def _robust(stack: list[np.ndarray], mean: np.ndarray) -> np.ndarray:
