@@ -301,5 +301,8 @@ def test_measure_command_writes_json_and_plot(tmp_path, capsys):
     res = json.loads((out / "measure.json").read_text())
     assert res["cn2"] is None and res["dr0"] > 0 and res["dr0_ci"][0] <= res["dr0"] <= res["dr0_ci"][1]
     assert len(res["windows"]) == 2 and (out / "measure.png").stat().st_size > 0
+    # the seeing angle λ/(r0·ifov) in px: λ/(D·ifov) (2 px with this ifov and the default optics) times D/r0
+    assert "seeing λ/(r0·ifov) = " in line[0] and res["seeing_px"] == pytest.approx(2.0 * res["dr0"], rel=1e-6)
+    assert res["seeing_px_ci"][0] <= res["seeing_px"] <= res["seeing_px_ci"][1] and "seeing_px" in res["windows"][0]
     with pytest.raises(D2TurbError, match="window must be"):
         M.measure_clip(frames, window=4)

@@ -145,3 +145,25 @@ def test_beyond_the_calibrated_tilt_the_lower_bound_widens_and_covers_the_truth(
         assert np.log(est / lo) > np.log(hi / est) > 0  # the lower side only
         covered.append(lo <= dr0 <= hi)
     assert sum(covered) >= 2, covered
+
+
+@pytest.mark.slow
+def test_the_seeing_angle_in_pixels_is_measured_without_the_optics(clips):
+    # ρ = λ/(r0·ifov) = λ/(D·ifov)·D/r0 (the simulator's truth): tilt and blur both measure it, so without the optics
+    # its interval covers the truth (all but one of the 8, as for D/r0) and its point is closer than D/r0's; with
+    # ifov given it is λ/(D·ifov) times the D/r0 estimate
+    covered, err_seeing, err_dr0 = [], [], []
+    for (dr0, q, *_), (frames, _) in zip(CASES, clips):
+        try:
+            out = M.measure_clip(frames, None, bootstrap=20, extrapolate=True)
+        except D2TurbError:
+            continue
+        lo, hi = out["seeing_px_ci"]
+        covered.append(lo <= q * dr0 <= hi)
+        err_seeing.append(abs(np.log(out["seeing_px"] / (q * dr0))))
+        err_dr0.append(abs(np.log(out["dr0"] / dr0)))
+    assert sum(covered) >= len(covered) - 1, covered
+    assert np.median(err_seeing) < np.median(err_dr0), (err_seeing, err_dr0)
+    frames, p = clips[1]
+    out = M.measure_clip(frames, {"ifov_rad": p.ifov_rad}, bootstrap=0, extrapolate=True)
+    assert out["seeing_px"] == pytest.approx(LAM / (APERTURE * p.ifov_rad) * out["dr0"], rel=1e-9)

@@ -31,6 +31,7 @@ def main():
     imgs = sorted(glob.glob("/work/shared/data/clean/bsd100/*_HR.png"))
     n = int(sys.argv[1])
     first = int(sys.argv[2]) if len(sys.argv) > 2 else 0
+    labels = sys.argv[3].split(",") if len(sys.argv) > 3 else ["none", "all", "all_shake"]  # which measurements
     for i in range(first, first + n):
         rng = np.random.default_rng([36, i])  # per clip: any range of clips reproduces its own draws
         q = float(np.exp(rng.uniform(np.log(1), np.log(4))))
@@ -58,10 +59,13 @@ def main():
         shaken = [f[dy : dy + SIZE, dx : dx + SIZE] for f, (dy, dx) in zip(frames, offsets)]
         row = {"i": i, "dr0": dr0, "q": q, "L": L, "wind": wind, "boil": boil, "noise": noise, "jpeg": quality}
         for label, clip_frames, opt in (("none", still, None), ("all", still, p), ("all_shake", shaken, p)):
+            if label not in labels:
+                continue
             try:
                 r = M.measure_clip(clip_frames, opt, bootstrap=50, extrapolate=True)
                 lo, hi = r["dr0_ci"]
                 row[label] = {"dr0": r["dr0"], "ci": r["dr0_ci"], "refused": bool(not lo > 0 or hi / lo > M.MAX_SPAN)}
+                row[label].update(seeing=r["seeing_px"], seeing_ci=r["seeing_px_ci"])  # truth: q·D/r0
             except D2TurbError as e:
                 row[label] = {"error": str(e)}
         print(json.dumps(row), flush=True)

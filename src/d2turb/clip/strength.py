@@ -211,6 +211,7 @@ def measure_clip(
     preset: str = "medium",
     extrapolate: bool = False,
     blind: bool = True,
+    seeing_answers: bool = False,
 ) -> dict:
     """Measure D/r0 (and r0, Cn², θ0 with a path length) from the frames of a static scene.
 
@@ -229,10 +230,14 @@ def measure_clip(
         bootstrap: resamples for the 90 % interval. max_size: the centre crop analysed (px per side).
         extrapolate: give a number even when the 90 % interval spans more than ``MAX_SPAN`` (a rough strength).
         blind: narrow λ/(D·ifov) by the blur of the fused frame when ifov_rad is not given.
+        seeing_answers: without ifov_rad, a D/r0 interval wider than ``MAX_SPAN`` is not refused when the seeing
+            angle's (``seeing_px``) is within it: that is the answer, and ``dr0_determined`` is False (``measure``).
 
     Returns:
-        A dict: ``dr0``, its 90 % interval ``dr0_ci``, ``r0_m``, ``cn2`` and ``theta0_urad`` (None without a path
-        length), ``parameters`` (given, marginalised), ``widened_by``, ``windows``, ``inputs``, the diagnostics.
+        A dict: ``dr0``, its 90 % interval ``dr0_ci``, ``dr0_determined`` (its interval within ``MAX_SPAN``),
+        ``seeing_px`` = λ/(r0·ifov) (the seeing angle in px) and its ``seeing_px_ci``, ``r0_m``, ``cn2`` and
+        ``theta0_urad`` (None without a path length), ``parameters`` (given, marginalised), ``widened_by``,
+        ``windows``, ``inputs``, the diagnostics.
     Shape:
         - frames: N ≥ 8 (``MIN_FRAMES``) frames of :math:`(3, H, W)`, :math:`(H, W)` or :math:`(H, W, C)`.
     Raises:
@@ -260,11 +265,20 @@ def measure_clip(
     result = estimate_from_sums(*lag_sums(flows, mask, seps), optics, None, bootstrap, seed, {}, blur, extra)
     result.update(diag)
     lo, hi = result["dr0_ci"]
-    if not extrapolate and (not lo > 0 or hi / lo > MAX_SPAN):
+    s_lo, s_hi = result["seeing_px_ci"]
+    wide = not lo > 0 or hi / lo > MAX_SPAN
+    result["dr0_determined"] = not wide
+    seeing_only = seeing_answers and not optics.ifov_known and s_lo > 0 and s_hi / s_lo <= MAX_SPAN
+    if not extrapolate and wide and not seeing_only:
         span = hi / lo if lo > 0 else math.inf
+        seeing = (
+            f"; the seeing angle λ/(r0·ifov) is {result['seeing_px']:.2f} px [{s_lo:.2f}, {s_hi:.2f}]"
+            if not optics.ifov_known
+            else ""
+        )
         raise D2TurbError(
             f"cannot measure this clip: the 90 % interval of D/r0 [{lo:.2f}, {hi:.2f}] spans {span:.1f}x (limit "
-            f"{MAX_SPAN:g}x), widened most by {result['widened_by']}"
+            f"{MAX_SPAN:g}x), widened most by {result['widened_by']}{seeing}"
         )
     if window:
         series = []
@@ -273,7 +287,8 @@ def measure_clip(
             est = estimate_from_sums(
                 *lag_sums(flows[s : s + int(window)], mask, seps), optics, None, bootstrap, seed, models, blur, extra
             )
-            series.append({"start_frame": s, "frames": int(window), **{k: est[k] for k in ("dr0", "dr0_ci")}})
+            keys = ("dr0", "dr0_ci", "seeing_px", "seeing_px_ci")
+            series.append({"start_frame": s, "frames": int(window), **{k: est[k] for k in keys}})
         result["windows"] = series
     result["inputs"] = {
         "frames": len(gray),
@@ -401,16 +416,24 @@ def estimate_from_sums(
     sel[prior_rows] = allowed[prior_rows]
     if not sel.any():
         sel[prior_rows] = True
-    env = (float(lo[sel].min()), float(hi[sel].max()))
+    gsel = None
     if f_given is not None:
         gsel = np.zeros((n_f, n_q), bool)
         gsel[point_rows, np.arange(n_q)] = True
         if (gsel & allowed).any():
             gsel &= allowed
-        ci = (max(float(lo[gsel].min()), env[0]), min(float(hi[gsel].max()), env[1]))
-    else:
-        ci = env
-    ci = (min(ci[0], estimate), max(ci[1], estimate))
+
+    def union(low: np.ndarray, high: np.ndarray, point: float) -> tuple[float, float]:
+        env = (float(low[sel].min()), float(high[sel].max()))
+        if gsel is not None:
+            env = (max(float(low[gsel].min()), env[0]), min(float(high[gsel].max()), env[1]))
+        return min(env[0], point), max(env[1], point)
+
+    ci = union(lo, hi, estimate)
+    # the seeing angle in px, ρ = λ/(r0·ifov) = λ/(D·ifov)·D/r0: tilt (σ² ∝ q^(1/3) ρ^(5/3)) and blur (∝ ρ) both
+    # measure it, so it varies as q^(-1/5) only over the λ/(D·ifov) prior where D/r0 varies as q^(-6/5)
+    seeing = float(grid_q[qi_best]) * estimate
+    seeing_ci = union(grid_q[None, :] * lo, grid_q[None, :] * hi, seeing)
     # what widens the interval most: each parameter's share of ln(hi/lo)
     width = {
         "the tile bootstrap": float(tiles_sd[fi_point]),
@@ -436,6 +459,8 @@ def estimate_from_sums(
     out = {
         "dr0": estimate,
         "dr0_ci": [float(ci[0]), float(ci[1])],
+        "seeing_px": seeing,
+        "seeing_px_ci": [float(seeing_ci[0]), float(seeing_ci[1])],
         "dr0_log_sd": {
             "tiles": float(tiles_sd[fi_point]),
             "clip": float(clip_sd[fi_point, qi_best]),

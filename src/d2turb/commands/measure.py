@@ -24,9 +24,9 @@ def register(sub):
     p = sub.add_parser(
         "measure",
         help="measure the turbulence strength (D/r0, r0, Cn², θ0) from a clip of a static scene",
-        description="Writes DIR/measure.json (D/r0 with a 90 % interval, r0, and with path_length_m the "
-        "constant-path Cn² and the isoplanatic angle θ0) and prints one line. CLIP is a video file or a folder of "
-        "frames. The optics (--aperture, --wavelength, --ifov, --path-length; --fps) default to "
+        description="Writes DIR/measure.json (D/r0 with a 90 % interval, the seeing angle λ/(r0·ifov) in px, r0, and "
+        "with path_length_m the constant-path Cn² and the isoplanatic angle θ0) and prints one line. CLIP is a video "
+        "file or a folder of frames. The optics (--aperture, --wavelength, --ifov, --path-length; --fps) default to "
         f"D = {DEFAULT_APERTURE_M:g} m, λ = {DEFAULT_WAVELENGTH_M * 1e9:g} nm, ifov not known; D/r0 depends on them "
         "only through λ/(D·ifov). Clips that cannot be "
         "measured (too few frames, no texture, failed registration) are refused with the reason.",
@@ -136,7 +136,9 @@ def run(args):
         raise D2TurbError(f"--max-frames must be 1 or more, got {args.max_frames}")
     out = check_output_dir(args.out)
     frames = read_clip(src, args.max_frames)
-    result = measure_clip(frames, optics, window=args.window, bootstrap=args.bootstrap, extrapolate=args.any_width)
+    result = measure_clip(
+        frames, optics, window=args.window, bootstrap=args.bootstrap, extrapolate=args.any_width, seeing_answers=True
+    )
     result["clip"] = str(src)
     result["inputs"]["params_given"] = sorted(given)
     if optics.path_length_m is None:
@@ -146,11 +148,19 @@ def run(args):
     if args.plot:
         plot(result, out / "measure.png")
     lo, hi = result["dr0_ci"]
-    line = f"{src.name}: D/r0 = {result['dr0']:.2f} [{lo:.2f}, {hi:.2f}] (90 %), r0 = {100 * result['r0_m']:.2f} cm"
-    if result["cn2"] is not None:
-        line += f", Cn² = {result['cn2']:.2e} m^-2/3, θ0 = {result['theta0_urad']:.1f} µrad"
+    s_lo, s_hi = result["seeing_px_ci"]
+    seeing = f"seeing λ/(r0·ifov) = {result['seeing_px']:.2f} px [{s_lo:.2f}, {s_hi:.2f}]"
+    if not result["dr0_determined"] and not args.any_width:  # without the optics the seeing angle is the answer
+        line = (
+            f"{src.name}: {seeing} (90 %); D/r0 needs the optics: [{lo:.2f}, {hi:.2f}] without them (give --ifov RAD)"
+        )
     else:
-        line += " (no path_length_m: no Cn², θ0)"
+        line = f"{src.name}: D/r0 = {result['dr0']:.2f} [{lo:.2f}, {hi:.2f}] (90 %), {seeing}"
+        line += f", r0 = {100 * result['r0_m']:.2f} cm"
+        if result["cn2"] is not None:
+            line += f", Cn² = {result['cn2']:.2e} m^-2/3, θ0 = {result['theta0_urad']:.1f} µrad"
+        else:
+            line += " (no path_length_m: no Cn², θ0)"
     marg = [k for k in result["parameters"]["marginalised"] if k != "wind_and_boiling"]
     line += f"; given: {', '.join(result['parameters']['given']) or 'none'}"
     line += f", marginalised: {', '.join(marg) or 'none'} (+ wind, boiling fitted)"
