@@ -267,7 +267,8 @@ class SharpestFusion:
             step = np.subtract(coef, mean)  # mean + s·(choice − mean), in place
             step *= s.reshape(s.shape[:2] + (1,))
             mean += step
-        return collapse_pyramid(pyramid) / np.float32(FIXED_ONE)
+        fused = collapse_pyramid(pyramid)
+        return np.divide(fused, np.float32(FIXED_ONE), out=fused)
 
 
 def robust_reference(stack: list[np.ndarray], levels: int = SHARP_LEVELS) -> np.ndarray:

@@ -398,9 +398,11 @@ class ClipRestorer:
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
             blend = self._fallback_share(_as_float(warped), fused if mean is None else mean)
-            if blend.any():
-                fused = fused + blend[..., None] * (_image_of(raw) - fused)
-        fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1).transpose(2, 0, 1)))
+            if blend.any():  # fused + blend·(image − fused), the temporaries reused (fused is this output's own)
+                step = np.subtract(_image_of(raw), fused)
+                step *= blend[..., None]
+                fused += step
+        fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1, out=fused).transpose(2, 0, 1)))
         flow_t = torch.from_numpy(flow.transpose(2, 0, 1).astype(np.float32))
         return ClipFrame(index, fused_t, fused_t, flow_t, torch.from_numpy(blend))
 
