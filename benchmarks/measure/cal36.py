@@ -11,7 +11,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, __import__("os").path.dirname(__file__))
-from sim36 import clip
+from sim36 import clip, draw_case
 from val36b import SIZE, jpeg
 
 from d2turb.clip import strength as M
@@ -21,12 +21,8 @@ imgs = sorted(glob.glob("/work/shared/data/clean/bsds500/*.jpg"))
 n = int(sys.argv[1])
 for i in range(n):
     rng = np.random.default_rng([3600, i])
-    q = float(np.exp(rng.uniform(np.log(1), np.log(4))))
-    L = float(np.exp(rng.uniform(np.log(500), np.log(10000))))
-    dr0 = float(rng.uniform(1, 6))
-    wind = float(rng.uniform(0.5, 4))
-    boil = float(rng.uniform(0, 0.3))
-    noise = float(rng.uniform(0, 3))
+    case = draw_case(rng)
+    q, L, dr0, wind, boil, noise = (case[k] for k in ("q", "L", "dr0", "wind", "boil", "noise"))
     quality = int(rng.integers(75, 96))
     frames, p = clip(
         imgs[(13 * i) % len(imgs)], dr0, q, L, wind=wind, frames=32, size=SIZE, seed=500 + i, boil=boil, noise=noise

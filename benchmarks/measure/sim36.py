@@ -11,6 +11,20 @@ from d2turb.io import read_image
 from d2turb.sim import Simulator, TurbulenceParams
 
 
+def draw_case(rng) -> dict:
+    """One clip's turbulence and optics drawn in issue 36's acceptance ranges, in this order from ``rng``: λ/(D·ifov)
+    ``q`` 1-4 px and path ``L`` 0.5-10 km log-uniform, ``dr0`` 1-6, ``wind`` 0.5-4 m/s, ``boil`` 0-0.3, camera
+    ``noise`` σ 0-3 grey levels (val36.py, val36b.py, cal36.py)."""
+    return {
+        "q": float(np.exp(rng.uniform(np.log(1), np.log(4)))),
+        "L": float(np.exp(rng.uniform(np.log(500), np.log(10000)))),
+        "dr0": float(rng.uniform(1, 6)),
+        "wind": float(rng.uniform(0.5, 4)),
+        "boil": float(rng.uniform(0, 0.3)),
+        "noise": float(rng.uniform(0, 3)),
+    }
+
+
 def clip(img_path, dr0, q=2.0, L=1000.0, wind=2.0, frames=32, size=192, seed=0, boil=0.1, noise=0.0):
     img = read_image(img_path)
     _, h, w = img.shape

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, __import__("os").path.dirname(__file__))
-from sim36 import clip
+from sim36 import clip, draw_case
 
 from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
@@ -16,12 +16,8 @@ imgs = sorted(glob.glob("/work/shared/data/clean/bsd100/*_HR.png"))
 rng = np.random.default_rng(36)
 n = int(sys.argv[1])
 for i in range(n):
-    q = float(np.exp(rng.uniform(np.log(1), np.log(4))))
-    L = float(np.exp(rng.uniform(np.log(500), np.log(10000))))
-    dr0 = float(rng.uniform(1, 6))
-    wind = float(rng.uniform(0.5, 4))
-    boil = float(rng.uniform(0, 0.3))
-    noise = float(rng.uniform(0, 3))
+    case = draw_case(rng)
+    q, L, dr0, wind, boil, noise = (case[k] for k in ("q", "L", "dr0", "wind", "boil", "noise"))
     frames, p = clip(
         imgs[(7 * i) % len(imgs)], dr0, q, L, wind=wind, frames=32, size=160, seed=100 + i, boil=boil, noise=noise
     )

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, __import__("os").path.dirname(__file__))
-from sim36 import clip
+from sim36 import clip, draw_case
 
 from d2turb.clip import strength as M
 from d2turb.errors import D2TurbError
@@ -34,12 +34,8 @@ def main():
     labels = sys.argv[3].split(",") if len(sys.argv) > 3 else ["none", "all", "all_shake"]  # which measurements
     for i in range(first, first + n):
         rng = np.random.default_rng([36, i])  # per clip: any range of clips reproduces its own draws
-        q = float(np.exp(rng.uniform(np.log(1), np.log(4))))
-        L = float(np.exp(rng.uniform(np.log(500), np.log(10000))))
-        dr0 = float(rng.uniform(1, 6))
-        wind = float(rng.uniform(0.5, 4))
-        boil = float(rng.uniform(0, 0.3))
-        noise = float(rng.uniform(0, 3))
+        case = draw_case(rng)
+        q, L, dr0, wind, boil, noise = (case[k] for k in ("q", "L", "dr0", "wind", "boil", "noise"))
         quality = int(rng.integers(75, 96))
         frames, p = clip(
             imgs[(7 * i) % len(imgs)],
