@@ -461,3 +461,19 @@ def test_8bit_frames_as_stored_restore_exactly_as_their_float_reading(tmp_path):
     # a 16-bit frame is not 8-bit: read as read_image gives it
     write_image(tmp_path / "deep.png", (rng.random((8, 8)) * 65535).astype(np.uint16))
     assert isinstance(read_frame(tmp_path / "deep.png"), torch.Tensor)
+
+
+def test_unit_float_is_the_correctly_rounded_k_over_255():
+    """8-bit frames as float32 k/255 through a table (OpenCV's LUT): every level equals IEEE's correctly rounded
+    division, in every layout the pipeline holds (grey, one channel, colour, with alpha, not contiguous)."""
+    from d2turb.clip.registration import unit_float
+
+    levels = np.arange(256, dtype=np.uint8)
+    expected = np.float32(levels.astype(np.float32) / np.float32(255))
+    rng = np.random.default_rng(0)
+    for shape in [(16, 16), (16, 16, 1), (16, 16, 3), (16, 16, 4), (4, 8, 8)]:
+        image = rng.integers(0, 256, shape).astype(np.uint8)
+        for im in (image, image[:, ::-1]):
+            got = unit_float(im)
+            assert got.dtype == np.float32 and got.shape == im.shape
+            np.testing.assert_array_equal(got, expected[im])

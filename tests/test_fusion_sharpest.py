@@ -154,14 +154,15 @@ def test_the_streamed_choice_equals_the_direct_one():
     streamed = SharpestFusion()
     for lo in [0, 0, 1, 2, 3, 4, 5, 6, 6]:
         window = {j: coeffs[j] for j in range(lo, lo + 8)}
-        np.testing.assert_allclose(streamed.fuse(window), SharpestFusion().fuse(window), atol=1e-5)
+        mean = np.mean(frames[lo : lo + 8], axis=0, dtype=np.float32)
+        np.testing.assert_allclose(streamed.fuse(window, mean), SharpestFusion().fuse(window, mean), atol=1e-5)
 
 
 def test_sharpest_errors_are_one_line():
     with pytest.raises(D2TurbError, match="at least one frame"):
         sharpest_fusion([])
     with pytest.raises(D2TurbError, match="at least one frame"):
-        SharpestFusion().fuse({})
+        SharpestFusion().fuse({}, np.zeros((4, 4, 3), np.float32))
 
 
 def test_the_physics_deblur_after_the_sharpest_fusion_models_a_weaker_blur():

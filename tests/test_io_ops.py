@@ -244,3 +244,30 @@ def test_check_shape_accepts_matching_shapes_and_names_the_mismatch():
             check_shape(x, shape, "x")
     with pytest.raises(D2TurbError, match=r"^x must be a floating tensor, got torch.int64$"):
         check_shape(torch.zeros(1, 2, 4, 5, dtype=torch.long), "B 2 H W", "x", floating=True)
+
+
+def test_a_shared_uint8_converts_once_for_every_thread(tmp_path, monkeypatch):
+    """A clip's PNG writer and mp4 encoder share one conversion: the array equals to_uint8's (rounded to nearest,
+    clipped), is computed once whatever the number of threads asking, and the PNG written from it is lossless."""
+    import threading
+
+    import d2turb.io.png as png
+
+    rng = np.random.default_rng(3)
+    image = torch.from_numpy(rng.uniform(-0.1, 1.1, (3, 20, 30)).astype(np.float32))
+    calls = []
+    real = png.to_uint8
+    monkeypatch.setattr(png, "to_uint8", lambda x: calls.append(1) or real(x))
+    shared = png.SharedUint8(image)
+    assert shared.shape == (20, 30, 3)
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(shared())) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    expected = np.clip(np.rint(image.numpy() * 255), 0, 255).astype(np.uint8).transpose(1, 2, 0)
+    assert len(calls) == 1 and all(a is got[0] for a in got)
+    np.testing.assert_array_equal(got[0], expected)
+    png.write_image(tmp_path / "a.png", shared)
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "a.png")), expected)

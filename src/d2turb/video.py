@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
-from d2turb.io import atomic_path, to_uint8
+from d2turb.io import SharedUint8, atomic_path, to_uint8
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif"}
 VIDEO_HINT = "install the video extra: pip install 'd2turb[video]' (from a checkout: pip install -e '.[video]')"
@@ -131,7 +131,8 @@ class Mp4Writer:
     the last one is encoded; the encoder releases the GIL).
 
     The file is written under a temporary name and renamed onto ``path`` by :meth:`close`; :meth:`abort` (or an
-    exception inside ``with``) leaves no file. Frames: (3,H,W) float tensors in [0,1] or (H,W,3) uint8 arrays.
+    exception inside ``with``) leaves no file. Frames: (3,H,W) float tensors in [0,1], (H,W,3) uint8 arrays, or a
+    :class:`~d2turb.io.SharedUint8` of a tensor (converted once for this and another consumer).
     """
 
     def __init__(self, path: str | os.PathLike, fps: float):
@@ -169,6 +170,8 @@ class Mp4Writer:
 
     @staticmethod
     def _padded(frame) -> np.ndarray:
+        if isinstance(frame, SharedUint8):
+            frame = frame()
         arr = to_uint8(frame) if isinstance(frame, torch.Tensor) else np.asarray(frame, dtype=np.uint8)
         h, w = arr.shape[:2]
         return np.ascontiguousarray(np.pad(arr, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
@@ -176,7 +179,10 @@ class Mp4Writer:
     def write(self, frame) -> None:
         """Queue one frame (converted to 8 bits in the encoding thread; the caller must not change it after)."""
         if self.frames == 0:
-            h, w = frame.shape[-2:] if isinstance(frame, torch.Tensor) else np.shape(frame)[:2]
+            if isinstance(frame, torch.Tensor):
+                h, w = frame.shape[-2:]
+            else:
+                h, w = frame.shape[:2] if isinstance(frame, SharedUint8) else np.shape(frame)[:2]
             self._stream.height, self._stream.width = h + h % 2, w + w % 2
         self._wait(1)
         self._pending.append(self._pool.submit(self._encode, frame, self.frames))

@@ -117,6 +117,12 @@ def laplacian_pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
     return out
 
 
+def _rows(image: np.ndarray) -> np.ndarray:
+    """A C-contiguous (h,w,C) array as h·w elements of C values each (one opaque item: numpy's indexed copies move
+    whole pixels about twice as fast as rows of a 2-D view)."""
+    return image.reshape(-1).view(np.dtype((np.void, image.itemsize * image.shape[-1])))
+
+
 def collapse_pyramid(pyramid: list[np.ndarray]) -> np.ndarray:
     cur = pyramid[-1]
     for detail in reversed(pyramid[:-1]):
@@ -188,12 +194,13 @@ class SharpestFusion:
         # per level: [amplitude (h,w) int32 (-1: none yet), coefficient (h,w,C) int16, frame index (h,w) int32]
         self.best = None
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
-        self.detail_sum = None  # per level: Σ over the members of their details (h,w,C) f32 (the mean's details)
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
+        self._scratch = None  # per level: arrays reused from output to output (see fuse)
 
-    def fuse(self, window: dict[int, SharpCoefficients]) -> np.ndarray:
-        """Fusion of the frames ``window`` (index → coefficients); where no frame may be chosen, the frames' mean
-        coefficient (running sums)."""
+    def fuse(self, window: dict[int, SharpCoefficients], mean: np.ndarray) -> np.ndarray:
+        """Fusion of the frames ``window`` (index → coefficients); where no frame may be chosen, the coefficient of
+        ``mean``, the window's mean frame (H,W,C) in [0, 1] (a pyramid is linear: its coefficients are the frames'
+        mean coefficients, to rounding)."""
         if not window:
             raise D2TurbError("sharpest fusion needs at least one frame")
         ids = sorted(window)
@@ -203,7 +210,6 @@ class SharpestFusion:
             self.best, self.members, leaving = None, set(), set()
         if self.best is None:
             self.amp_sum = [np.zeros(d.shape[:2], np.float32) for d in window[ids[0]].details]
-            self.detail_sum = [np.zeros(d.shape, np.float32) for d in window[ids[0]].details]
             self.amps = {}
             self.best = [
                 [np.full(d.shape[:2], -1, np.int32), np.zeros(d.shape, np.int16), np.full(d.shape[:2], -1, np.int32)]
@@ -211,62 +217,73 @@ class SharpestFusion:
             ]
         staying = [j for j in ids if j in self.members]
         for j in leaving:
-            amps, details = self.amps.pop(j)
-            for total, a, dsum, d in zip(self.amp_sum, amps, self.detail_sum, details):
+            for total, a in zip(self.amp_sum, self.amps.pop(j)):
                 total -= a
-                dsum -= d
         for j in ids:
             if j not in self.members:
-                self.amps[j] = (window[j].amplitude, window[j].details)
-                for total, a, dsum, d in zip(self.amp_sum, window[j].amplitude, self.detail_sum, window[j].details):
+                self.amps[j] = window[j].amplitude
+                for total, a in zip(self.amp_sum, window[j].amplitude):
                     total += a
-                    dsum += d
         for level, (amp, coef, who) in enumerate(self.best):
+            a_flat, w_flat, c_rows = amp.reshape(-1), who.reshape(-1), _rows(coef)
             if leaving:  # re-choose, among the frames that stay, the pixels a leaving frame held
                 held = who == next(iter(leaving)) if len(leaving) == 1 else np.isin(who, list(leaving))
                 idx = np.flatnonzero(held)
-                a_flat, w_flat, c_flat = amp.reshape(-1), who.reshape(-1), coef.reshape(-1, coef.shape[-1])
                 if staying:  # the first largest in index order, as a strict > over the sorted frames would keep
-                    cand = np.stack([window[j].amplitude[level].reshape(-1)[idx] for j in staying])
+                    cand = np.stack([np.take(window[j].amplitude[level].reshape(-1), idx) for j in staying])
                     pick = cand.argmax(axis=0)
                     a_flat[idx] = cand[pick, np.arange(idx.size)]
                     w_flat[idx] = np.asarray(staying)[pick]
                     for k, j in enumerate(staying):
                         sel = idx[pick == k]
-                        c_flat[sel] = window[j].details[level].reshape(-1, coef.shape[-1])[sel]
+                        c_rows[sel] = np.take(_rows(window[j].details[level]), sel)
                 else:
                     a_flat[idx], w_flat[idx] = -1, -1
             for j in ids:
                 if j in self.members:
                     continue
-                a = window[j].amplitude[level]
-                better = np.flatnonzero(a > amp)  # a few percent of the pixels: indexed copies, not masked ones
-                amp.reshape(-1)[better] = a.reshape(-1)[better]
-                who.reshape(-1)[better] = j
-                coef.reshape(-1, coef.shape[-1])[better] = window[j].details[level].reshape(-1, coef.shape[-1])[better]
+                a, d = window[j].amplitude[level], window[j].details[level]
+                mask = a > amp
+                if np.count_nonzero(mask) > mask.size // 8:  # a window filling up: masked copies
+                    np.copyto(amp, a, where=mask)
+                    np.copyto(who, j, where=mask)
+                    np.copyto(coef, d, where=mask[..., None])
+                    continue
+                better = np.flatnonzero(mask)  # a few percent of the pixels: indexed copies, not masked ones
+                a_flat[better] = np.take(a.reshape(-1), better)
+                w_flat[better] = j
+                c_rows[better] = np.take(_rows(d), better)
         self.members = set(ids)
-        n = np.float32(len(ids))
-        pyramid = [np.divide(total, n) for total in self.detail_sum]  # the mean's details
-        low = np.zeros_like(window[ids[0]].lowpass)
-        num = np.zeros_like(low)
+        if self._scratch is None or self._scratch[0][0].shape != self.best[0][0].shape:
+            # per level, reused from output to output (fresh frame-sized arrays cost more in page faults than the
+            # arithmetic): the outstanding threshold (h,w) f32 and two (h,w) masks
+            self._scratch = [
+                (np.empty(a.shape, np.float32), np.empty(a.shape, bool), np.empty(a.shape, bool))
+                for a, _, _ in self.best
+            ]
+        # the mean's pyramid, in fixed point as the frames' (OpenCV's pyramids: 3-4x faster on int16 than float32)
+        flat = np.ascontiguousarray(mean, np.float32).reshape(mean.shape[0], -1)  # one channel: a scalar scales all
+        pyramid = laplacian_pyramid(cv2.multiply(flat, float(FIXED_ONE), dtype=cv2.CV_16S).reshape(mean.shape), levels)
+        pyramid[-1] = pyramid[-1].astype(np.float32)
+        num = np.zeros_like(pyramid[-1])
         den = np.zeros(num.shape[:2] + (1,), np.float32)
-        for j in ids:  # the low-passes' mean and the inliers' mean (1/4^L of the pixels: computed afresh)
-            low += window[j].lowpass
+        for j in ids:  # the inliers' mean of the low-passes (1/4^L of the pixels: computed afresh)
             num += window[j].gate[..., None] * window[j].lowpass
             den += window[j].gate[..., None]
-        pyramid.append(low / n)
         # where too few frames of the window agree (a moving object crosses it) the choice is noise: the mean's
         share = np.clip((den[..., 0] / len(ids) - _SHARE_LOW) / (_SHARE_HIGH - _SHARE_LOW), 0, 1)
         pyramid[-1] = pyramid[-1] + share[..., None] * (num / np.maximum(den, 1e-3) - pyramid[-1])
-        for level, (amp, coef, _) in enumerate(self.best):
+        for level, ((amp, coef, _), (limit, none, out)) in enumerate(zip(self.best, self._scratch)):
             s = cv2.resize(share, (coef.shape[1], coef.shape[0]), interpolation=cv2.INTER_LINEAR)
-            # nothing to choose, or the choice stands out of the window (an edge in few frames: misregistered)
-            chosen = amp.astype(np.float32)  # exact (< 2^24): compared in float32, not promoted to float64
-            s[(chosen <= 0) | ~(chosen <= _OUTSTANDING * self.amp_sum[level] / len(ids))] = 0
-            mean = pyramid[level]
-            step = np.subtract(coef, mean)  # mean + s·(choice − mean), in place
+            # nothing to choose, or the choice stands out of the window (an edge in few frames: misregistered);
+            # amplitudes are exact in float32 (< 2^24): compared there, not promoted to float64
+            np.divide(np.multiply(self.amp_sum[level], np.float32(_OUTSTANDING), out=limit), len(ids), out=limit)
+            np.greater(amp.astype(np.float32), limit, out=out)
+            np.less_equal(amp, 0, out=none)
+            s[np.logical_or(none, out, out=out)] = 0
+            step = np.subtract(coef, pyramid[level], dtype=np.float32)  # mean + s·(choice − mean)
             step *= s.reshape(s.shape[:2] + (1,))
-            mean += step
+            pyramid[level] = np.add(step, pyramid[level], out=step)
         fused = collapse_pyramid(pyramid)
         return np.divide(fused, np.float32(FIXED_ONE), out=fused)
 
@@ -283,4 +300,4 @@ def sharpest_fusion(stack: list[np.ndarray], levels: int = SHARP_LEVELS) -> np.n
     frames = [np.asarray(s, dtype=np.float32) for s in stack]
     ref = robust_reference(frames, levels)
     coeffs = {i: sharp_coefficients(f, ref, levels) for i, f in enumerate(frames)}
-    return SharpestFusion().fuse(coeffs)
+    return SharpestFusion().fuse(coeffs, np.mean(frames, axis=0, dtype=np.float32))

@@ -39,6 +39,7 @@ from d2turb.clip.registration import (
     shift_flow,
     to_gray_u8,
     to_hwc,
+    unit_float,
 )
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, DEFAULT_TEMPORAL
 from d2turb.errors import D2TurbError
@@ -58,13 +59,23 @@ _CHANNEL_MEAN = {c: np.full((1, c), 1 / c, np.float32) for c in (2, 3, 4)}  # cv
 class ClipFrame:
     """One restored frame: ``restored`` (deblurred fusion), ``fused`` (before deblurring) (3,H,W) float32 tensors
     in [0,1]; ``bwd_flow_px`` (2,H,W) float32 maps the input frame onto the restored geometry,
-    ``frame(x + bwd_flow_px(x)) ≈ fused(x)``; ``fallback`` (H,W) in [0,1]: share of the single frame (1 = moving)."""
+    ``frame(x + bwd_flow_px(x)) ≈ fused(x)``; ``fallback`` (H,W) in [0,1]: share of the single frame (1 = moving).
+
+    ``bwd_flow_hwc_px`` is that flow as the registration holds it, (H,W,2) float16; ``bwd_flow_px`` is made from it
+    when first read (most callers never read it, and it costs 8 ms a 1080p frame)."""
 
     index: int
     restored: torch.Tensor
     fused: torch.Tensor
-    bwd_flow_px: torch.Tensor
+    bwd_flow_hwc_px: np.ndarray
     fallback: torch.Tensor
+    _bwd_flow_px: torch.Tensor | None = field(default=None, repr=False)
+
+    @property
+    def bwd_flow_px(self) -> torch.Tensor:
+        if self._bwd_flow_px is None:
+            self._bwd_flow_px = torch.from_numpy(self.bwd_flow_hwc_px.transpose(2, 0, 1).astype(np.float32))
+        return self._bwd_flow_px
 
 
 def window_start(index: int, temporal: int, length: int | None) -> int:
@@ -99,7 +110,7 @@ def _image_of(raw: np.ndarray) -> np.ndarray:
 
 def _as_float(image: np.ndarray) -> np.ndarray:
     """A held image in [0, 1] as float32 (8-bit ones scaled by 1/255)."""
-    return image.astype(np.float32) / np.float32(255) if image.dtype == np.uint8 else image.astype(np.float32)
+    return unit_float(image) if image.dtype == np.uint8 else image.astype(np.float32)
 
 
 def _compact(raw: np.ndarray) -> np.ndarray:
@@ -157,7 +168,7 @@ class ClipRestorer:
         DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
         self.preset = preset
         self.flow = None  # a fresh solver per clip
-        self._pool = None  # the sharpest fusion's thread while a clip streams
+        self._pool = None  # the sharpest fusion's pyramids' thread while a clip streams
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
@@ -199,10 +210,13 @@ class ClipRestorer:
         if self.fusion != "sharpest":
             yield from self._stream(frames)
             return
-        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-fuse") as pool:
+        with (
+            concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-fuse") as pool,
+            concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2turb-pyramid") as pyramids,
+        ):
             pending: collections.deque = collections.deque()
             try:
-                for job in self._stream(frames, pool):
+                for job in self._stream(frames, pool, pyramids):
                     pending.append(job)
                     if len(pending) > 1:
                         yield pending.popleft().result()
@@ -210,10 +224,12 @@ class ClipRestorer:
                     yield pending.popleft().result()
             finally:  # a stream closed early: drop what is queued (outputs and pyramids), finish what runs
                 pool.shutdown(wait=True, cancel_futures=True)
+                pyramids.shutdown(wait=True, cancel_futures=True)
 
-    def _stream(self, frames: Iterable, pool=None) -> Iterator:
-        """Read, register and fuse: the outputs in order (with ``pool``, Futures of them; see :meth:`_output`)."""
-        self._pool = pool
+    def _stream(self, frames: Iterable, pool=None, pyramids=None) -> Iterator:
+        """Read, register and fuse: the outputs in order (with ``pool``, Futures of them; see :meth:`_output`; with
+        ``pyramids``, the sharpest fusion's per-frame pyramids are computed there)."""
+        self._pool = pyramids
         source = iter(frames)
         passes = self.passes
         buf: dict[int, _Frame] = {}
@@ -345,7 +361,7 @@ class ClipRestorer:
         flow = self.flow(ref_gray, frame.gray, init)
         # held as float16 (1080p: 8.3 MB instead of 16.6 a frame, up to two windows of them; 0.004 px resolution below
         # 8 px): it starts the next round's search and becomes the output's bwd_flow_px (float32 again)
-        frame.flows = [flow.astype(np.float16)]
+        frame.flows = [cv2.multiply(flow, 1.0, dtype=cv2.CV_16F)]  # as numpy's astype, in a third of its time
         if k < self.passes:
             frame.warped.append(remap(frame.gray[..., None], flow))  # uint8 in, uint8 out (cv2.remap rounds)
             return
@@ -357,10 +373,9 @@ class ClipRestorer:
             members = [buf[j] for j in self._window(buf, index, length)]
             for f in members:
                 if f.coarse is None:
-                    f.coarse = coarse_grey(f.image() if k == 1 else f.warped[k - 2] / np.float32(255))
+                    f.coarse = coarse_grey(f.image() if k == 1 else unit_float(f.warped[k - 2]))
             median = np.median(np.stack([f.coarse for f in members]), axis=0)
-            # as held: uint8 or float16; with a pool, computed there (a Future: the pool's one thread runs its jobs in
-            # order, so it is done before the fusion that reads it)
+            # as held: uint8 or float16; with a pool, computed in its thread (a Future, which the fusion waits for)
             job = functools.partial(sharp_coefficients, frame.warped[-1], median)
             frame.sharp = job() if self._pool is None else self._pool.submit(job)
 
@@ -375,20 +390,21 @@ class ClipRestorer:
         elif self.fusion == "fba":
             fused = fourier_burst_accumulation([_as_float(buf[j].warped[-1]) for j in self._window(buf, index, length)])
         elif self.fusion == "sharpest":
-            fused = functools.partial(self._fuse_sharpest, {j: buf[j].sharp for j in self._window(buf, index, length)})
-            if self.fallback:
-                # moving objects are found against the window's plain mean, as with the mean fusion: the sharpest
-                # fusion's own detail would inflate the robust scale of the frame's residual and hide them
-                # (dost_street_clip: half a crossing car ghosted)
-                mean = self._reference(buf, index, self.passes, length)
+            # the window's plain mean: the sharpest fusion's coefficients where no frame may be chosen, and what
+            # moving objects are found against, as with the mean fusion (the sharpest fusion's own detail would
+            # inflate the robust scale of the frame's residual and hide them: dost_street_clip, half a car ghosted)
+            mean = self._reference(buf, index, self.passes, length)
+            fused = functools.partial(
+                self._fuse_sharpest, {j: buf[j].sharp for j in self._window(buf, index, length)}, mean
+            )
         frame = buf[index]
         job = functools.partial(self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1])
         return job() if pool is None else pool.submit(job)
 
-    def _fuse_sharpest(self, window: dict) -> np.ndarray:
-        """The sharpest fusion of ``window`` (index → SharpCoefficients, or a Future of them)."""
+    def _fuse_sharpest(self, window: dict, mean: np.ndarray) -> np.ndarray:
+        """The sharpest fusion of ``window`` (index → SharpCoefficients, or a Future of them) with its mean frame."""
         return self._sharp.fuse(
-            {j: c.result() if isinstance(c, concurrent.futures.Future) else c for j, c in window.items()}
+            {j: c.result() if isinstance(c, concurrent.futures.Future) else c for j, c in window.items()}, mean
         )
 
     def _finish(self, index: int, fused, mean, warped, raw, flow) -> ClipFrame:
@@ -398,13 +414,14 @@ class ClipRestorer:
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
             blend = self._fallback_share(_as_float(warped), fused if mean is None else mean)
-            if blend.any():  # fused + blend·(image − fused), the temporaries reused (fused is this output's own)
-                step = np.subtract(_image_of(raw), fused)
-                step *= blend[..., None]
-                fused += step
+            rows = np.flatnonzero(blend.any(axis=1))
+            if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
+                part = slice(rows[0], rows[-1] + 1)
+                step = np.subtract(_image_of(raw[part]), fused[part])
+                step *= blend[part, :, None]
+                fused[part] += step
         fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1, out=fused).transpose(2, 0, 1)))
-        flow_t = torch.from_numpy(flow.transpose(2, 0, 1).astype(np.float32))
-        return ClipFrame(index, fused_t, fused_t, flow_t, torch.from_numpy(blend))
+        return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend))
 
     @staticmethod
     def _robust(stack: list[np.ndarray], mean: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ DIS_PRESETS = {
 # OpenCV's DIS refuses images under 12 px (cv2.error) and crashed by SIGSEGV on 11x40 in OpenCV 5.0.0: checked first
 MIN_SIDE_PX = 12
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as OpenCV's cvtColor
+_UNIT_OF_U8 = np.arange(256, dtype=np.float32) / np.float32(255)  # k/255 in float32
 
 
 def check_registrable(height: int, width: int) -> None:
@@ -45,7 +46,7 @@ def to_hwc(frame) -> np.ndarray:
             raise D2TurbError(f"expected a (C,H,W) frame, got shape {tuple(frame.shape)}")
         frame = frame.permute(1, 2, 0).numpy()
     arr = np.asarray(frame)
-    arr = arr.astype(np.float32) / np.float32(255) if arr.dtype == np.uint8 else np.asarray(arr, dtype=np.float32)
+    arr = unit_float(arr) if arr.dtype == np.uint8 else np.asarray(arr, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
     if arr.ndim != 3:
@@ -53,10 +54,23 @@ def to_hwc(frame) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+def unit_float(image: np.ndarray) -> np.ndarray:
+    """A uint8 image as float32 k/255, the same values as ``image.astype(np.float32) / np.float32(255)`` (OpenCV's
+    table lookup, without numpy's float temporary: about half the time on a 1080p frame)."""
+    if image.ndim == 2 or (image.ndim == 3 and image.shape[2] <= 4):
+        return cv2.LUT(image, _UNIT_OF_U8).reshape(image.shape)
+    return image.astype(np.float32) / np.float32(255)
+
+
 def to_gray_u8(frame_hwc: np.ndarray) -> np.ndarray:
     """(H,W,C) float in [0,1] → (H,W) uint8 luma (what DIS and phase correlation take)."""
-    gray = frame_hwc[..., 0] if frame_hwc.shape[2] == 1 else frame_hwc[..., :3] @ _LUMA
-    return np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if frame_hwc.shape[2] == 1:
+        gray = frame_hwc[..., 0] * 255.0
+    else:
+        gray = frame_hwc[..., :3] @ _LUMA
+        gray *= 255.0  # in place (the product is this function's own), in its dtype, as gray * 255.0 would be
+    gray += 0.5
+    return np.clip(gray, 0, 255, out=gray).astype(np.uint8)
 
 
 @functools.lru_cache(maxsize=4)

@@ -18,7 +18,7 @@ from d2turb.io.atomic import (
     write_text,
 )
 from d2turb.io.jobs import FileJob, JobOptions, named_error
-from d2turb.io.png import encode_png, float_array, to_uint8, write_image
+from d2turb.io.png import SharedUint8, encode_png, float_array, to_uint8, write_image
 from d2turb.io.read import (
     FLOAT_TOLERANCE,
     IMAGE_SUFFIXES,
@@ -63,6 +63,7 @@ __all__ = [
     "set_max_pixels",
     "temp_name",
     "to_uint8",
+    "SharedUint8",
     "write_bytes",
     "write_image",
     "write_json",

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import struct
+import threading
 import zlib
 from io import BytesIO
 from pathlib import Path
@@ -73,6 +74,23 @@ def to_uint8(image: torch.Tensor) -> np.ndarray:
     return arr.astype(np.uint8)
 
 
+class SharedUint8:
+    """:func:`to_uint8` of one image, computed once for consumers in several threads (a clip's PNG writer and its
+    mp4 encoder): whichever calls first converts, the others wait for that and share the array (none may change it).
+    No caller ever waits for a job that might not run. ``shape``: the array's, known before the conversion."""
+
+    def __init__(self, image: torch.Tensor):
+        c, h, w = image.shape[-3:] if image.ndim == 3 else (1, *image.shape)
+        self.shape = (h, w, 3) if c == 3 else (h, w)
+        self._image, self._array, self._lock = image, None, threading.Lock()
+
+    def __call__(self) -> np.ndarray:
+        with self._lock:
+            if self._array is None:
+                self._array, self._image = to_uint8(self._image), None
+            return self._array
+
+
 def _png_chunk(kind: bytes, data) -> bytes:
     return struct.pack(">I", len(data)) + kind + bytes(data) + struct.pack(">I", zlib.crc32(data, zlib.crc32(kind)))
 
@@ -117,10 +135,13 @@ def encode_png(array: np.ndarray, level: int = DEFAULT_PNG_LEVEL) -> bytes:
     return imagecodecs.png_encode(np.ascontiguousarray(array), level=level)
 
 
-def write_image(path: str | os.PathLike, image: torch.Tensor | np.ndarray, png_level: int = DEFAULT_PNG_LEVEL) -> None:
-    """Write a (C, H, W) float tensor in [0, 1] (or an HxW[x3] uint8 array, or for PNG an HxW uint16 one) as an
+def write_image(path: str | os.PathLike, image, png_level: int = DEFAULT_PNG_LEVEL) -> None:
+    """Write a (C, H, W) float tensor in [0, 1] (or a :class:`SharedUint8` of one, an HxW[x3] uint8 array, or for
+    PNG an HxW uint16 one) as an
     image, atomically, in the format of the path's suffix (PNG when unknown). ``png_level``: zlib level 0-9 for
     PNG (default 1: fast; 9: smallest files)."""
+    if isinstance(image, SharedUint8):
+        image = image()
     if isinstance(image, torch.Tensor):
         if image.ndim == 4:
             if image.shape[0] != 1:

@@ -30,6 +30,7 @@ from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io import (
     BackgroundWriter,
     FileJob,
+    SharedUint8,
     check_output_dir,
     check_unique_stems,
     expand_inputs,
@@ -458,7 +459,8 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
         side_video = None if side is None else stack.enter_context(Mp4Writer(side, fps))
         for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame", total=total or None):
             stem = names[frame.index]
-            writer.submit(write_image, out_dir / output_name(stem, "restored", "png"), frame.restored, png_level)
+            restored = SharedUint8(frame.restored)  # converted once, for the PNG and the mp4
+            writer.submit(write_image, out_dir / output_name(stem, "restored", "png"), restored, png_level)
             if compare:
                 before = inputs.pop(frame.index)
                 if frame.index <= pick:
@@ -471,7 +473,7 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
                 fwd = invert_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
                 writer.submit(write_npy, out_dir / "fwd_flow_px" / f"{frame.index:06d}.npy", fwd)
             if video is not None:
-                video.write(frame.restored)
+                video.write(restored)
             count += 1
         if last is not None:
             writer.submit(_save_compare, out_dir, name, *last, png_level)
