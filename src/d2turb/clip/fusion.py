@@ -178,10 +178,12 @@ def sharp_coefficients(warped: np.ndarray, reference: np.ndarray, levels: int = 
     amplitude = []
     for d in pyramid[:-1]:
         g = cv2.resize(gate, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_LINEAR)
-        f = d.astype(np.float32)
-        # √(Σ_c d_c²) × gate, rounded (< 2·√3·FIXED_ONE: fits uint16); OpenCV's channel sum: 5× numpy's .sum(axis=2)
-        power = cv2.transform(cv2.multiply(f, f), np.ones((1, f.shape[2]), np.float32))
-        amplitude.append(np.rint(cv2.multiply(cv2.sqrt(power).reshape(g.shape), g)).astype(np.uint16))
+        # √(Σ_c d_c²) × gate, rounded (< 2·√3·FIXED_ONE: fits uint16); OpenCV's channel sum: 5× numpy's .sum(axis=2);
+        # the squares straight from int16 to float32 (one rounding, as float32's product), the rest in place
+        power = cv2.transform(cv2.multiply(d, d, dtype=cv2.CV_32F), np.ones((1, d.shape[2]), np.float32))
+        power = cv2.sqrt(power, dst=power).reshape(g.shape)
+        power = np.rint(cv2.multiply(power, g, dst=power), out=power)
+        amplitude.append(power.astype(np.uint16))
     return SharpCoefficients(pyramid[:-1], amplitude, pyramid[-1].astype(np.float32), gate)
 
 

@@ -168,7 +168,7 @@ class ClipRestorer:
         DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
         self.preset = preset
         self.flow = None  # a fresh solver per clip
-        self._pool = None  # the sharpest fusion's pyramids' thread while a clip streams
+        self._pyramids = None  # the sharpest fusion's pyramids' thread while a clip streams
 
     # -- the stream ------------------------------------------------------------------------------------------------
     def restore(self, frames: Iterable) -> Iterator[ClipFrame]:
@@ -229,7 +229,7 @@ class ClipRestorer:
     def _stream(self, frames: Iterable, pool=None, pyramids=None) -> Iterator:
         """Read, register and fuse: the outputs in order (with ``pool``, Futures of them; see :meth:`_output`; with
         ``pyramids``, the sharpest fusion's per-frame pyramids are computed there)."""
-        self._pool = pyramids
+        self._pyramids = pyramids
         source = iter(frames)
         passes = self.passes
         buf: dict[int, _Frame] = {}
@@ -362,13 +362,13 @@ class ClipRestorer:
         # held as float16 (1080p: 8.3 MB instead of 16.6 a frame, up to two windows of them; 0.004 px resolution below
         # 8 px): it starts the next round's search and becomes the output's bwd_flow_px (float32 again)
         frame.flows = [cv2.multiply(flow, 1.0, dtype=cv2.CV_16F)]  # as numpy's astype, in a third of its time
-        if k < self.passes:
-            frame.warped.append(remap(frame.gray[..., None], flow))  # uint8 in, uint8 out (cv2.remap rounds)
+        if k < self.passes:  # uint8 in, uint8 out (cv2.remap rounds); the float32 flow is no longer needed
+            frame.warped.append(remap(frame.gray[..., None], flow, consume=True))
             return
         if frame.raw.dtype == np.uint8:
-            frame.warped.append(remap(frame.raw, flow))
+            frame.warped.append(remap(frame.raw, flow, consume=True))
         else:
-            frame.warped.append(remap(frame.raw, flow).astype(STORE_DTYPE))
+            frame.warped.append(remap(frame.raw, flow, consume=True).astype(STORE_DTYPE))
         if self.fusion == "sharpest":  # outliers against the median of the window's frames
             members = [buf[j] for j in self._window(buf, index, length)]
             for f in members:
@@ -377,7 +377,7 @@ class ClipRestorer:
             median = np.median(np.stack([f.coarse for f in members]), axis=0)
             # as held: uint8 or float16; with a pool, computed in its thread (a Future, which the fusion waits for)
             job = functools.partial(sharp_coefficients, frame.warped[-1], median)
-            frame.sharp = job() if self._pool is None else self._pool.submit(job)
+            frame.sharp = job() if self._pyramids is None else self._pyramids.submit(job)
 
     def _output(self, buf: dict, index: int, length: int | None, pool=None):
         """Output ``index``: its ClipFrame, or with ``pool`` (the sharpest fusion) a Future of it: the fusion, which
@@ -398,7 +398,10 @@ class ClipRestorer:
                 self._fuse_sharpest, {j: buf[j].sharp for j in self._window(buf, index, length)}, mean
             )
         frame = buf[index]
-        job = functools.partial(self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1])
+        share = None  # the moving-object share, when computed beside the fusion (it does not read the fusion)
+        if pool is not None and self._pyramids is not None and self.fallback and mean is not None:
+            share = self._pyramids.submit(self._fallback_share, frame.warped[-1], mean)
+        job = functools.partial(self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1], share)
         return job() if pool is None else pool.submit(job)
 
     def _fuse_sharpest(self, window: dict, mean: np.ndarray) -> np.ndarray:
@@ -407,13 +410,13 @@ class ClipRestorer:
             {j: c.result() if isinstance(c, concurrent.futures.Future) else c for j, c in window.items()}, mean
         )
 
-    def _finish(self, index: int, fused, mean, warped, raw, flow) -> ClipFrame:
-        """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback and the
-        frame's own images."""
+    def _finish(self, index: int, fused, mean, warped, raw, flow, share=None) -> ClipFrame:
+        """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``:
+        a Future of it, or None to compute it here) and the frame's own images."""
         fused = fused if isinstance(fused, np.ndarray) else fused()
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
-            blend = self._fallback_share(_as_float(warped), fused if mean is None else mean)
+            blend = self._fallback_share(warped, fused if mean is None else mean) if share is None else share.result()
             rows = np.flatnonzero(blend.any(axis=1))
             if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
                 part = slice(rows[0], rows[-1] + 1)
@@ -437,12 +440,12 @@ class ClipRestorer:
         return num / den
 
     @staticmethod
-    def _fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
+    def _fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:  # warped: as held (uint8, or float)
         """Share of the single frame per pixel: 0 where the registered frame agrees with the fusion within a few
         robust scales of its residual (box-averaged), rising to 1 where it stays far above (a moving object).
         On frames of ≥ 1 MP the box average is taken at half resolution (the box and the dilation span 15 px:
         the decision is smooth at that scale) and the robust scale from every 4th residual."""
-        diff = cv2.absdiff(np.asarray(warped, np.float32), fused)  # OpenCV: a quarter of numpy's time at 1080p
+        diff = cv2.absdiff(_as_float(warped), fused)  # OpenCV: a quarter of numpy's time at 1080p
         r = diff[..., 0] if diff.ndim == 2 or diff.shape[2] == 1 else cv2.transform(diff, _CHANNEL_MEAN[diff.shape[2]])
         r = r.reshape(diff.shape[:2])
         h, w = r.shape
