@@ -123,10 +123,13 @@ def _rows(image: np.ndarray) -> np.ndarray:
     return image.reshape(-1).view(np.dtype((np.void, image.itemsize * image.shape[-1])))
 
 
-def collapse_pyramid(pyramid: list[np.ndarray]) -> np.ndarray:
+def collapse_pyramid(pyramid: list[np.ndarray], consume: bool = False) -> np.ndarray:
+    """The image of :func:`laplacian_pyramid`'s ``pyramid``; ``consume``: its details are the caller's to give up
+    (each level is summed into its own array: a frame-sized temporary fewer)."""
     cur = pyramid[-1]
     for detail in reversed(pyramid[:-1]):
-        cur = cv2.add(cv2.pyrUp(cur, dstsize=(detail.shape[1], detail.shape[0])).reshape(detail.shape), detail)
+        up = cv2.pyrUp(cur, dstsize=(detail.shape[1], detail.shape[0])).reshape(detail.shape)
+        cur = cv2.add(up, detail, dst=detail) if consume else cv2.add(up, detail)
         cur = cur.reshape(detail.shape)  # OpenCV drops a single channel's axis
     return cur
 
@@ -286,7 +289,7 @@ class SharpestFusion:
             step = np.subtract(coef, pyramid[level], dtype=np.float32)  # mean + s·(choice − mean)
             step *= s.reshape(s.shape[:2] + (1,))
             pyramid[level] = np.add(step, pyramid[level], out=step)
-        fused = collapse_pyramid(pyramid)
+        fused = collapse_pyramid(pyramid, consume=True)  # every level is this call's own float32 array
         return np.divide(fused, np.float32(FIXED_ONE), out=fused)
 
 

@@ -423,7 +423,10 @@ class ClipRestorer:
                 step = np.subtract(_image_of(raw[part]), fused[part])
                 step *= blend[part, :, None]
                 fused[part] += step
-        fused_t = torch.from_numpy(np.ascontiguousarray(np.clip(fused, 0, 1, out=fused).transpose(2, 0, 1)))
+        # (3,H,W) as a view of the (H,W,3) array (the writers want H,W,3 again); a deblur gets its own contiguous copy
+        fused_t = torch.from_numpy(np.clip(fused, 0, 1, out=fused)).permute(2, 0, 1)
+        if self.deblur is not None:
+            fused_t = fused_t.contiguous()
         return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend))
 
     @staticmethod
