@@ -445,9 +445,10 @@ class ClipRestorer:
         return num / den
 
     @staticmethod
-    def _fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:  # warped: as held (uint8, or float)
-        """Share of the single frame per pixel: 0 where the registered frame agrees with the fusion within a few
-        robust scales of its residual (box-averaged), rising to 1 where it stays far above (a moving object).
+    def _fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
+        """Share of the single frame per pixel: 0 where the registered frame ``warped`` (as held: uint8, or float)
+        agrees with the fusion within a few robust scales of its residual (box-averaged), rising to 1 where it stays
+        far above (a moving object).
         On frames of ≥ 1 MP the box average is taken at half resolution (the box and the dilation span 15 px:
         the decision is smooth at that scale) and the robust scale from every 4th residual."""
         diff = cv2.absdiff(_as_float(warped), fused)  # OpenCV: a quarter of numpy's time at 1080p

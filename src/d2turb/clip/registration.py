@@ -137,7 +137,8 @@ def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray, consume: bool = False)
     Shape:
         frame_hwc: (H, W, C); bwd_flow_px: (H, W, 2), x then y.
     """
-    grid = _pixel_grid(bwd_flow_px.shape[:2])  # absolute coordinates (H,W,2), one map for cv2.remap:
+    grid = _pixel_grid(bwd_flow_px.shape[:2])
+    # absolute coordinates (H,W,2), one map for cv2.remap
     maps = np.add(bwd_flow_px, grid, out=bwd_flow_px) if consume else bwd_flow_px + grid
     out = cv2.remap(frame_hwc, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(frame_hwc.shape)
