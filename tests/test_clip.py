@@ -477,3 +477,5 @@ def test_unit_float_is_the_correctly_rounded_k_over_255():
             got = unit_float(im)
             assert got.dtype == np.float32 and got.shape == im.shape
             np.testing.assert_array_equal(got, expected[im])
+    for shape in [(0, 5, 3), (5, 0), (0, 0, 1)]:  # empty: the caller's size check speaks, not OpenCV
+        assert unit_float(np.zeros(shape, np.uint8)).shape == shape

@@ -200,7 +200,7 @@ class SharpestFusion:
         self.best = None
         self.amp_sum = None  # per level: Σ over the members of their amplitudes (h,w) f32
         self.amps: dict[int, list] = {}  # the members' amplitudes (subtracted when they leave)
-        self._scratch = None  # per level: arrays reused from output to output (see fuse)
+        self._scratch = None  # per level: arrays reused from output to output (made with best)
 
     def fuse(self, window: dict[int, SharpCoefficients], mean: np.ndarray) -> np.ndarray:
         """Fusion of the frames ``window`` (index → coefficients); where no frame may be chosen, the coefficient of
@@ -218,6 +218,12 @@ class SharpestFusion:
             self.amps = {}
             self.best = [
                 [np.full(d.shape[:2], -1, np.int32), np.zeros(d.shape, np.int16), np.full(d.shape[:2], -1, np.int32)]
+                for d in window[ids[0]].details
+            ]
+            # per level, reused from output to output (fresh frame-sized arrays cost more in page faults than the
+            # arithmetic): the outstanding threshold (h,w) f32 and two (h,w) masks
+            self._scratch = [
+                (np.empty(d.shape[:2], np.float32), np.empty(d.shape[:2], bool), np.empty(d.shape[:2], bool))
                 for d in window[ids[0]].details
             ]
         staying = [j for j in ids if j in self.members]
@@ -259,13 +265,6 @@ class SharpestFusion:
                 w_flat[better] = j
                 c_rows[better] = np.take(_rows(d), better)
         self.members = set(ids)
-        if self._scratch is None or self._scratch[0][0].shape != self.best[0][0].shape:
-            # per level, reused from output to output (fresh frame-sized arrays cost more in page faults than the
-            # arithmetic): the outstanding threshold (h,w) f32 and two (h,w) masks
-            self._scratch = [
-                (np.empty(a.shape, np.float32), np.empty(a.shape, bool), np.empty(a.shape, bool))
-                for a, _, _ in self.best
-            ]
         # the mean's pyramid, in fixed point as the frames' (OpenCV's pyramids: 3-4x faster on int16 than float32)
         flat = np.ascontiguousarray(mean, np.float32).reshape(mean.shape[0], -1)  # one channel: a scalar scales all
         pyramid = laplacian_pyramid(cv2.multiply(flat, float(FIXED_ONE), dtype=cv2.CV_16S).reshape(mean.shape), levels)

@@ -398,8 +398,8 @@ class ClipRestorer:
                 self._fuse_sharpest, {j: buf[j].sharp for j in self._window(buf, index, length)}, mean
             )
         frame = buf[index]
-        share = None  # the moving-object share, when computed beside the fusion (it does not read the fusion)
-        if pool is not None and self._pyramids is not None and self.fallback and mean is not None:
+        share = None  # the sharpest fusion's moving-object share, made beside it (it reads the mean, not the fusion)
+        if self._pyramids is not None and self.fallback:
             share = self._pyramids.submit(self._fallback_share, frame.warped[-1], mean)
         job = functools.partial(self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1], share)
         return job() if pool is None else pool.submit(job)

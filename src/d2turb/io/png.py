@@ -81,7 +81,7 @@ class SharedUint8:
 
     def __init__(self, image: torch.Tensor):
         c, h, w = image.shape[-3:] if image.ndim == 3 else (1, *image.shape)
-        self.shape = (h, w, 3) if c == 3 else (h, w)
+        self.shape = (h, w) if c == 1 else (h, w, c)
         self._image, self._array, self._lock = image, None, threading.Lock()
 
     def __call__(self) -> np.ndarray:
