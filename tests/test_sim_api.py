@@ -95,22 +95,31 @@ def test_deterministic_for_a_generator(sim, image):
 
 
 @pytest.mark.parametrize("batch", [1, 2])
-def test_output_does_not_depend_on_the_thread_count(batch):
-    """make-dataset's byte-identical resume needs outputs that depend on the inputs and the generator only: the
-    PSF PCA (long BLAS products) and the complex spectrum products used to differ in the last bits between 1, 2
-    and 4 threads, which flipped pixels of resumed datasets (issue 37)."""
+def test_output_is_exact_for_a_thread_count_and_within_float32_rounding_across_counts(batch):
+    """make-dataset's byte-identical resume needs outputs that depend on the inputs, the generator and the thread count
+    only. Across thread counts BLAS libraries split reductions differently (on a 2-core AMD EPYC 3 and 4 threads moved
+    `turb` by 2.4e-7), so there the promise is float32 rounding: a few ulps of values in [0, 1] (issue 50)."""
     from skimage import data
 
     img = torch.from_numpy(data.astronaut()[::4, ::4].copy()).permute(2, 0, 1).float() / 255
     image = torch.stack([img[:, :64, :64], img[:, 64:, 64:]])[:batch]
     sim = Simulator()
-    runs = []
-    for threads in (1, 2, 3, 4):
-        torch.set_num_threads(threads)
-        res = sim(image, dr0=torch.tensor([4.5, 1.5])[:batch], generator=gen(3))
-        runs.append((res.turb, res.blur, res.fwd_flow_px))
-    for other in runs[1:]:
-        assert all(torch.equal(a, b) for a, b in zip(runs[0], other))
+    before = torch.get_num_threads()
+    runs = {}
+    try:
+        for threads in (1, 2, 3, 4, 1):
+            torch.set_num_threads(threads)
+            res = sim(image, dr0=torch.tensor([4.5, 1.5])[:batch], generator=gen(3))
+            out = (res.turb, res.blur, res.fwd_flow_px)
+            if threads in runs:  # the same thread count again: identical to the bit
+                assert all(torch.equal(a, b) for a, b in zip(runs[threads], out))
+            runs[threads] = out
+    finally:
+        torch.set_num_threads(before)
+    # float32 eps is 1.2e-7; a reduction over n terms errs by about sqrt(n) eps relative (n ~ 1e3 here): 1e-5
+    for other in list(runs.values())[1:]:
+        for a, b in zip(runs[1], other):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-5)
 
 
 def test_uniform_depth_with_offset_one_reproduces_flat_simulator(image):
