@@ -83,6 +83,14 @@ def register(sub):
         metavar="LO,HI",
         help="JPEG-compress each turbulent frame, quality drawn per sample in LO..HI, e.g. 75,95",
     )
+    p.add_argument(
+        "--profile",
+        choices=["standard", "field"],
+        default="standard",
+        help="field: field-realistic clips with --frames N (camera shake, moving objects, lens blur, sensor noise, "
+        "sRGB tone curve, sharpening, resize, JPEG/H.264/H.265; turbulence on linear light; ground truth per frame; "
+        "docs/datasets.md)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_png_level_arg(p)
     add_max_pixels_arg(p)
@@ -120,6 +128,7 @@ def run(args):
         geometry=args.geometry,
         png_level=args.png_level,
         camera=camera,
+        profile=args.profile,
         frames=args.frames,
         sequence=(
             dict(

@@ -35,8 +35,11 @@ class CheckReport:
         return not self.problems
 
 
-def _check_sample(root: Path, rec: dict, patch: int, decode: bool, frames: int = 1) -> list[str]:
-    """``frames`` > 1: turb/tilt are filmstrips (frames·patch tall), flow is (frames, 2, patch, patch)."""
+def _check_sample(
+    root: Path, rec: dict, patch: int, decode: bool, frames: int = 1, gt_per_frame: bool = False
+) -> list[str]:
+    """``frames`` > 1: turb/tilt are filmstrips (frames·patch tall), flow is (frames, 2, patch, patch);
+    ``gt_per_frame`` (the field profile): gt is a filmstrip too."""
     sid, problems = rec["id"], []
     for kind in FILES:
         if not file_path(root, kind, sid).is_file():
@@ -44,7 +47,7 @@ def _check_sample(root: Path, rec: dict, patch: int, decode: bool, frames: int =
     if problems or not decode:
         return problems
     for kind in ("turb", "tilt", "gt"):
-        tall = patch * (frames if kind != "gt" else 1)
+        tall = patch * (frames if kind != "gt" or gt_per_frame else 1)
         try:
             with Image.open(file_path(root, kind, sid)) as img:
                 img.load()
@@ -129,7 +132,7 @@ def check_dataset(root: str | Path, decode: bool = True) -> CheckReport:
         else:
             report.counts[name] += 1
     for rec in records:
-        problems.extend(_check_sample(root, rec, patch, decode, frames))
+        problems.extend(_check_sample(root, rec, patch, decode, frames, cfg.get("profile") == "field"))
     report.samples = len(records)
     if report.samples != pairs:
         problems.append(f"{report.samples} samples in {META_NAME}, expected {pairs}")

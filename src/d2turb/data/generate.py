@@ -86,6 +86,11 @@ class DatasetConfig:
     # camera degradation of the turbulent frames, drawn per sample: {"noise": [lo, hi] grey levels (σ of Gaussian
     # noise on the 0–255 scale), "jpeg": [lo, hi] JPEG quality}; empty: none (issue 35's blind test set)
     camera: dict = field(default_factory=dict)
+    # "field": field-realistic clips (camera shake, moving objects, a camera in linear light; d2turb.data.field)
+    profile: str = "standard"
+
+
+PROFILES = ("standard", "field")
 
 
 @dataclass
@@ -122,6 +127,13 @@ def validate(cfg: DatasetConfig) -> None:
             raise D2TurbError(f"camera {key} must be a range lo,hi within [{lo_ok:g}, {hi_ok:g}], got {span!r}")
     if set(cfg.camera) - {"noise", "jpeg"}:
         raise D2TurbError(f"unknown camera settings {sorted(set(cfg.camera) - {'noise', 'jpeg'})}")
+    if cfg.profile not in PROFILES:
+        raise D2TurbError(f"profile must be one of {', '.join(PROFILES)}, got {cfg.profile!r}", param="profile")
+    if cfg.profile == "field":
+        if cfg.frames < 2:
+            raise D2TurbError("the field profile makes clips: give --frames N (N >= 2)", param="frames")
+        if cfg.camera:
+            raise D2TurbError("the field profile draws its own camera: leave out --camera-noise and --jpeg")
 
 
 def camera_degrade(turb: torch.Tensor, camera: dict, seed: int, index: int, rows: int) -> tuple[torch.Tensor, dict]:
@@ -203,6 +215,11 @@ def params_record(params) -> dict:
 def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
     sequence = {"frames": cfg.frames, "sequence": cfg.sequence} if cfg.frames > 1 else {}
     camera = {"camera": cfg.camera} if cfg.camera else {}
+    if cfg.profile == "field":
+        from d2turb.data.field import FIELD_RANGES
+
+        camera["profile"] = "field"
+        camera["field"] = FIELD_RANGES
     return {
         **sequence,
         **camera,
@@ -338,7 +355,15 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
     for kind in FILES:
         (root / kind).mkdir(parents=True, exist_ok=True)
     sims: dict[int, Simulator] = {}
-    cache = SourceCache(sources, cfg.patch, make_depth_fn(cfg.depth, device, cfg.depth_is_disparity))
+    field_profile = cfg.profile == "field"
+    if field_profile:  # the frame's window with the border the camera's shake brings into view
+        from d2turb.data.field import prepare_scene, simulate_field_chunk, window_margin
+
+        window = cfg.patch + 2 * window_margin(cfg.patch)
+        object_cache = SourceCache(sources, window, None)
+    cache = SourceCache(
+        sources, window if field_profile else cfg.patch, make_depth_fn(cfg.depth, device, cfg.depth_is_disparity)
+    )
     bar = None
     if progress and info.rank == 0:
         from tqdm import tqdm
@@ -360,14 +385,21 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                 phase("setting up the simulator")
                 sims[g] = Simulator(bank[g], device=str(device))
             sim, params_full = sims[g], params_record(bank[g])
-            clean, depth, metas = [], [], []
+            clean, depth, metas, scenes = [], [], [], []
             for plan in plans:
                 if plan.source not in cache.cache:
                     phase("reading source images" + ("" if cfg.depth == "none" else f" + depth ({cfg.depth})"))
                 k, image, dmap = cache.get(plan.source)
-                x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
-                clean.append(image[:, y0:y1, x0:x1])
-                depth.append(None if dmap is None else dmap[:, y0:y1, x0:x1])
+                if field_profile:
+                    scene = prepare_scene(plan, cfg, image, dmap, object_cache, len(sources), k)
+                    scenes.append(scene)
+                    x0, y0, x1, y1 = scene["window"]
+                    clean.append(None)
+                    depth.append(None if scene["depth"] is None else torch.from_numpy(scene["depth"][:1]))
+                else:
+                    x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
+                    clean.append(image[:, y0:y1, x0:x1])
+                    depth.append(None if dmap is None else dmap[:, y0:y1, x0:x1])
                 metas.append(
                     {
                         "id": plan.id,
@@ -386,12 +418,26 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
                         "geometry": g,
                     }
                 )
-            clean_t = torch.stack(clean).to(device)
-            depth_t = None if depth[0] is None else torch.stack(depth).to(device)
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
             generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
             phase(f"simulating {len(plans)} pairs (PSFs and tilt for the whole batch at once)")
             writer.before_compute()
+            if field_profile:  # each clip's own frames, camera and ground truth per frame
+                field_samples = simulate_field_chunk(sim, scenes, dr0, generator, cfg.frames, cfg.sequence, device)
+                new = 0
+                for plan, meta, scene, sample, d in zip(plans, metas, scenes, field_samples, depth):
+                    if plan.id in done:
+                        continue
+                    meta = meta | {"field": scene["draw"]}
+                    sample["depth"] = d if d is not None else torch.ones(1, cfg.patch, cfg.patch)
+                    writer.submit(_write_sample, root, plan.id, sample, meta, shard, shard_lock, cfg.png_level)
+                    new += 1
+                written += new
+                if bar is not None:
+                    bar.update(new)
+                continue
+            clean_t = torch.stack(clean).to(device)
+            depth_t = None if depth[0] is None else torch.stack(depth).to(device)
             if cfg.frames > 1:  # sequences: frames stacked vertically, flow (B, N, 2, H, W)
                 turb, tilt, flow = simulate_sequence_chunk(
                     sim, clean_t, depth_t, dr0, generator, cfg.frames, cfg.sequence

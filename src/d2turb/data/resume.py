@@ -64,6 +64,7 @@ def check_same_config(root: Path, record: dict) -> bool:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         old = None
     keys = "version pairs patch split bins seed batch depth params geometry sources frames sequence camera".split()
+    keys += ["profile", "field"]  # the field profile (absent from the other datasets' configs)
     diff = keys if not isinstance(old, dict) else [k for k in keys if old.get(k) != record.get(k)]
     if not diff:
         return False

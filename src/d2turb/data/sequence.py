@@ -11,7 +11,8 @@ layout applies unchanged; the frames are stacked vertically ("filmstrip"):
                      (``flow/<id>.npy`` in datasets of the earlier layout, still read)
     depth/<id>.png   16-bit depth of the crop (H × W)
 
-``dataset.json`` records ``frames`` and ``sequence`` (fps, wind, wind_dir, boil).
+``dataset.json`` records ``frames`` and ``sequence`` (fps, wind, wind_dir, boil). Field-realistic clips
+(``--profile field``, d2turb.data.field) store ``gt`` as a filmstrip too: the truth of every frame.
 """
 
 from __future__ import annotations
@@ -60,8 +61,11 @@ def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, sett
 class SequenceDataset(Dataset):
     """Sequences written by ``d2turb make-dataset --frames N`` in ``root`` (or ``root/<split>``).
 
-    Item: dict(turb, tilt (N,3,H,W) float32 in [0,1]; gt (3,H,W); bwd_flow_px (N,2,H,W) float32 px backward flow
-    per frame (and ``flow``, its deprecated name); depth (1,H,W); dr0 float32 scalar; bin int64 scalar; id str).
+    Item: dict(turb, tilt (N,3,H,W) float32 in [0,1]; gt (3,H,W), or (N,3,H,W) the truth of each frame in a field
+    dataset (``make-dataset --profile field``), which also gives ``boxes``: (N, K, 4) int64 [x0, y0, x1, y1] of its K
+    moving objects per frame (end exclusive; −1 where the object is outside the frame); bwd_flow_px (N,2,H,W) float32
+    px backward flow per frame (and ``flow``, its deprecated name); depth (1,H,W); dr0 float32 scalar; bin int64
+    scalar; id str).
     ``frames`` = a random window of that many consecutive frames (default: all).
     """
 
@@ -79,6 +83,7 @@ class SequenceDataset(Dataset):
             raise D2TurbError(f"frames {frames} must be between 1 and the dataset's {self.frames}")
         self.window = frames or self.frames
         self.patch = int(config["patch"])
+        self.field = config.get("profile") == "field"
         self.records = sorted(read_meta(self.root), key=lambda r: r["index"])
 
     def __len__(self) -> int:
@@ -90,11 +95,17 @@ class SequenceDataset(Dataset):
         f0 = int(torch.randint(0, n - self.window + 1, ())) if self.window < n else 0
         sl = slice(f0, f0 + self.window)
         flow = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid))[sl].astype(np.float32))
+        gt = read_image(file_path(self.root, "gt", sid))
+        extra = {}
+        if self.field:
+            gt = gt.view(3, n, p, p).transpose(0, 1)[sl].contiguous()
+            extra["boxes"] = field_boxes(rec, n)[sl]
         return Sample(
             {
+                **extra,
                 "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
                 "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
-                "gt": read_image(file_path(self.root, "gt", sid)),
+                "gt": gt,
                 "bwd_flow_px": flow,
                 "depth": read_depth_png(file_path(self.root, "depth", sid)),
                 "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
@@ -102,3 +113,15 @@ class SequenceDataset(Dataset):
                 "id": sid,
             }
         )
+
+
+def field_boxes(record: dict, frames: int) -> torch.Tensor:
+    """(N, K, 4) int64 boxes [x0, y0, x1, y1] (end exclusive) of a field clip's K moving objects per frame, from its
+    meta line; −1 where an object is outside the frame."""
+    objects = record.get("field", {}).get("objects", [])
+    out = torch.full((frames, len(objects), 4), -1, dtype=torch.int64)
+    for k, obj in enumerate(objects):
+        for t, box in enumerate(obj.get("boxes", [])[:frames]):
+            if box is not None:
+                out[t, k] = torch.tensor(box)
+    return out

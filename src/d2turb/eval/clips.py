@@ -4,7 +4,12 @@ the estimated displacement against the observable flow (the simulator's flow min
 cannot see its own mean tilt) and against zero. Beside the plain PSNR/SSIM, the same with each frame's global
 sub-pixel offset against the clean image removed (``remove_global_offset``): a clip sees no tilt that stays put over
 it, so its output keeps the window's mean tilt, which plain PSNR punishes as if it were a restoration error. And
-CW-SSIM (:mod:`d2turb.eval.cwssim`), the field's shift-tolerant score, of the plain frames. docs/clips.md."""
+CW-SSIM (:mod:`d2turb.eval.cwssim`), the field's shift-tolerant score, of the plain frames. docs/clips.md.
+
+Field-realistic clips (``make-dataset --profile field``) hold the truth of every frame (camera shake, moving
+objects): each output frame is scored against its own frame's truth, and inside the moving objects' boxes as well
+(``"<row> box_psnr"``, ``box_psnr_aligned``: the PSNR of the pixels inside each box of each scored frame, averaged over
+boxes; the input row is the input frame's score in the same boxes)."""
 
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ from d2turb.sim import TurbulenceParams, depth_modulation
 from d2turb.sim.params import BINS
 
 ROWS = ("input", "temporal mean", "fused")
+MIN_BOX_PX = 64  # boxes with fewer pixels inside the scored area (the frame's edge cuts them) are not scored
 OFFSET_MARGIN_PX = 8  # border left out of the offset-removed scores (at most 1/8 of the side): shifts replicate it
 MAX_OFFSET_PX = 6.0  # larger estimated offsets are not removed (a failed correlation, not a mean tilt)
 
@@ -92,10 +98,25 @@ def physics_deblur_for(record: dict, depth: torch.Tensor, fusion: str = "mean") 
 _PARAM_KEYS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "modulation", "offset_s")
 
 
+def box_psnr(image: torch.Tensor, reference: torch.Tensor, box, offset: int = 0) -> float | None:
+    """PSNR of ``image`` against ``reference`` (C, H, W) inside ``box`` [x0, y0, x1, y1] (end exclusive) of the frame,
+    for images cropped by ``offset`` px on every side (the offset-removed ones); None when fewer than ``MIN_BOX_PX``
+    pixels of the box are inside."""
+    h, w = image.shape[-2:]
+    x0, y0, x1, y1 = (int(v) - offset for v in box)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if (x1 - x0) * (y1 - y0) < MIN_BOX_PX or x1 <= x0 or y1 <= y0:
+        return None
+    return float(psnr(image[None, :, y0:y1, x0:x1], reference[None, :, y0:y1, x0:x1]))
+
+
 def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestorer, stride: int) -> dict[str, float]:
     """Means over one clip's frames: ``epe``, ``epe_zero`` (every frame) and ``"<row> psnr"``, ``"<row> ssim"``, their
-    ``_aligned`` versions and ``"<row> cwssim"`` of each row (every ``stride``-th frame)."""
-    frames, gt = item["turb"], item["gt"]
+    ``_aligned`` versions and ``"<row> cwssim"`` of each row (every ``stride``-th frame); with a truth per frame
+    (field clips) each frame against its own, and ``"<row> box_psnr"``, ``box_psnr_aligned`` inside the objects'
+    boxes."""
+    frames, gt_all = item["turb"], item["gt"]
+    boxes = item.get("boxes")
     observable = item["bwd_flow_px"] - item["bwd_flow_px"].mean(0, keepdim=True)
     temporal_mean = frames.mean(0)
     mean = KeyedMean(sync_on_compute=False)
@@ -104,6 +125,7 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
         mean.update({"epe": float(end_point_error(o.bwd_flow_px, flow)), "epe_zero": float(end_point_error(flow))})
         if o.index % stride:
             continue
+        gt = gt_all[o.index] if gt_all.ndim == 4 else gt_all
         images = {"input": frames[o.index], "temporal mean": temporal_mean, "fused": o.fused}
         for name, fn in deblurs.items():
             if hasattr(fn, "observe"):  # as ClipRestorer does for its own deblur (the blind one reads the flow)
@@ -121,6 +143,15 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
                     f"{row} cwssim": cw_ssim(img, gt),
                 }
             )
+            if boxes is None:
+                continue
+            margin = (img.shape[-1] - moved.shape[-1]) // 2
+            for box in boxes[o.index].tolist():
+                if box[0] < 0:
+                    continue
+                plain, aligned = box_psnr(img, gt, box), box_psnr(moved, ref, box, margin)
+                if plain is not None and aligned is not None:
+                    mean.update({f"{row} box_psnr": plain, f"{row} box_psnr_aligned": aligned})
     return mean.compute()
 
 
@@ -218,6 +249,22 @@ def markdown(results: dict) -> str:
         for row in results["rows"]:
             t = results["bins"]
             cells = [f"{t[b][row + ' psnr_aligned']:.2f} | {t[b][row + ' ssim_aligned']:.3f}" for b in bins]
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    if all(row + " box_psnr_aligned" in results["bins"][b] for b in bins for row in results["rows"]):
+        t = results["bins"]
+        lines += [
+            "",
+            "Inside the moving objects' boxes (PSNR; offset removed; gain over the input frame in brackets):",
+            "",
+        ]
+        lines.append("| | " + " | ".join(f"{b} PSNR | {b} offset removed" for b in bins) + " |")
+        lines.append("|---|" + "---:|" * (2 * len(bins)))
+        for row in results["rows"]:
+            cells = []
+            for b in bins:
+                plain, aligned = t[b][row + " box_psnr"], t[b][row + " box_psnr_aligned"]
+                gain = aligned - t[b]["input box_psnr_aligned"]
+                cells.append(f"{plain:.2f} | {aligned:.2f} ({gain:+.2f})")
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
     if all(row + " cwssim" in results["bins"][b] for b in bins for row in results["rows"]):
         lines += ["", "CW-SSIM (Sampat et al. 2009; shift-tolerant, no offset removed):", ""]
