@@ -138,9 +138,25 @@ def test_a_field_dataset_reads_back_with_a_truth_per_frame_and_boxes(field_set):
     boxes = item["boxes"]
     assert boxes.shape == (4, len(record["field"]["objects"]), 4)
     assert record["field"]["camera"]["codec"] in FIELD_RANGES["codecs"]
-    # frame 0 has pose 0: its truth is the crop at the window's centre, sRGB of the exposed, clipped linear scene
+    # frame 0 has pose 0: outside the objects' boxes its truth is the crop at the window's centre, decoded, exposed,
+    # clipped at saturation and encoded again (IEC 61966-2-1 written out here)
     shake = record["field"]["shake"]
-    assert shake["dx_px"][0] == shake["dy_px"][0] == 0.0
+    assert shake["dx_px"][0] == shake["dy_px"][0] == shake["rot_deg"][0] == 0.0
+    from d2turb.io import read_image
+
+    src = read_image(record["source"]).double()
+    x0, y0, _, _ = record["crop"]
+    m = window_margin(48)
+    crop = src[:, y0 + m : y0 + m + 48, x0 + m : x0 + m + 48]
+    lin = torch.where(crop <= 0.04045, crop / 12.92, ((crop + 0.055) / 1.055) ** 2.4)
+    lin = (lin * record["field"]["camera"]["exposure"]).clamp(0, 1)
+    expected = torch.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    outside = torch.ones(48, 48, dtype=torch.bool)
+    for bx0, by0, bx1, by1 in boxes[0].tolist():
+        if bx0 >= 0:
+            outside[by0:by1, bx0:bx1] = False
+    assert outside.sum() > 100
+    assert float((item["gt"][0] - expected).abs()[:, outside].max()) <= 0.5 / 255 + 1e-4
 
 
 def test_evaluate_scores_field_clips_inside_the_boxes(field_set, tmp_path):
