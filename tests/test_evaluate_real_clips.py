@@ -1,5 +1,6 @@
-"""`d2turb evaluate --real-clips DIR` (d2turb.eval.real_clips): per clip a contact sheet, NIQE/PIQE of input | --deblur
-none | default, the residual frame-to-frame motion and the blind estimate, from one restoring pass."""
+"""`d2turb evaluate --real-clips DIR` (d2turb.eval.real_clips): per clip a contact sheet, NIQE/PIQE and what a person
+sees (d2turb.eval.artifacts) of input | mean fusion | --deblur none | default, the residual frame-to-frame motion and
+the blind estimate, from one restoring pass per restoration (the default's, --deblur none's)."""
 
 import json
 
@@ -30,9 +31,10 @@ def _write_clip(folder, n=12, noise=0.01, seed=0, jitter=False):
         write_image(folder / f"f{i:02d}.png", torch.from_numpy(frame).permute(2, 0, 1))
 
 
-def test_report_writes_sheets_and_results_from_one_registration_pass(tmp_path, monkeypatch, capsys):
-    """Each clip is registered once (passes × frames flows; the motion adds one flow per consecutive pair of the
-    input and of the output): --deblur none and the default come from the same ClipFrames."""
+def test_report_writes_sheets_and_results_from_one_registration_pass_per_restoration(tmp_path, monkeypatch, capsys):
+    """Each clip is registered once per restoration (passes × frames flows; the motion adds one flow per
+    consecutive pair of the input and of each output): the mean fusion and the default come from the same
+    ClipFrames, --deblur none from its own restorer."""
     from d2turb.clip import registration
 
     calls = {"flow": 0}
@@ -59,21 +61,28 @@ def test_report_writes_sheets_and_results_from_one_registration_pass(tmp_path, m
         write_image(root / "pair" / f"p{i}.png", torch.rand(3, 32, 32))
     out = tmp_path / "out"
     assert main(["evaluate", "--real-clips", str(root), "--temporal", "6", "--out", str(out)]) == 0
-    assert calls["flow"] == 2 * 12 + 2 * 11
-    assert len(built) == 1 and "deblur" not in built[0]  # restore's default deblur (auto: the blind one)
+    assert calls["flow"] == 2 * (2 * 12) + 3 * 11
+    assert len(built) == 2 and "deblur" not in built[0]  # restore's default deblur (auto: the blind one)
+    assert built[1] == {"deblur": "none"}  # --deblur none: its own fusion (the sharpest)
     res = json.loads((out / "results.json").read_text())
     entry = res["clips"]["clipA"]
     assert entry["frames"] == 12 and entry["temporal"] == 6 and entry["size"] == [192, 96]
-    assert set(entry["niqe"]) == set(entry["piqe"]) == {"input", "none", "default"}
+    assert set(entry["niqe"]) == set(entry["piqe"]) == set(entry["measures"]) == {"input", "mean", "none", "default"}
+    assert set(entry["checks"]) == set(entry["ghost"]) == {"mean", "none", "default"}
+    assert all(np.isfinite(v) for m in entry["measures"].values() for v in m.values())
+    # the shake's ghost check: the frames farthest from the middle frame's pose and the nearest
+    assert len(entry["shake"]["shift_px"]) == 12 and entry["shake"]["shift_px"][6] == 0
+    assert len(entry["shake"]["shaken_frames"]) == len(entry["shake"]["calm_frames"]) == 3
+    assert set(entry["crops"]) == {"textured", "tails", "blocks", "noise", "sharpness", "ghost"}
     assert all(np.isfinite(v) for v in entry["piqe"].values())
     assert entry["deblur"]["method"] == "blind" and "estimate" in entry["deblur"]
     # the restoration steadies the wobbling scene
     assert entry["motion_px"]["default"] < 0.5 * entry["motion_px"]["input"]
     sheet = cv2.imread(str(out / entry["sheet"]))
-    assert sheet is not None and sheet.shape[1] > 3 * 400
+    assert sheet is not None and sheet.shape[1] > 4 * 320 and sheet.shape[0] > 6 * 2 * entry["crops"]["ghost"]["side"]
     assert res["not_clips"] == [{"path": "pair", "reason": "2 image(s): a clip needs at least 4 frames"}]
     md = (out / "results.md").read_text()
-    assert "| clipA | 12 |" in md and "Not clips" in md
+    assert "| clipA | 12 |" in md and "Not clips" in md and "| clipA (" in md
 
 
 def test_identical_frames_have_no_residual_motion(tmp_path):

@@ -1,12 +1,16 @@
-"""Real clips report (``d2turb evaluate --real-clips DIR``): each clip of a folder restored once with the defaults of
-``d2turb restore CLIP --temporal N``, and per clip a contact sheet, the blind estimate used, the residual
-frame-to-frame motion and NIQE / PIQE of the input, the default's fused frame before its deblur (the mean fusion:
-``--deblur none --fusion mean``) and the default (docs/clips.md, "Real clips report").
+"""Real clips report (``d2turb evaluate --real-clips DIR``): each clip of a folder restored with the defaults of
+``d2turb restore CLIP --temporal N`` and with ``--deblur none``; per clip a contact sheet, the blind estimate used,
+the residual frame-to-frame motion, NIQE / PIQE, and what a person sees (:mod:`d2turb.eval.artifacts`: crushed
+shadows and clipped highlights, the codec's block grid, noise in flat regions, edge sharpness, ghosts on the frames
+where the camera shook most) of the input, the default's fused frame before its deblur (the mean fusion:
+``--deblur none --fusion mean``), ``--deblur none`` (the sharpest fusion) and the default (docs/clips.md, "Real
+clips report").
 
 A clip is a video file directly in DIR or in one of its sub-folders, or a sub-folder of at least
 ``MIN_CLIP_FRAMES`` image frames of one size (DIR itself too, when it holds such frames); anything else is listed
-as not a clip, with the reason. One registration pass per clip: its :class:`~d2turb.clip.ClipFrame` gives both the
-mean-fused frame (``fused``) and the default (``restored``).
+as not a clip, with the reason. Per clip: one pass that measures the camera's shake (each frame's global shift from
+the middle frame), the default's restoration (its :class:`~d2turb.clip.ClipFrame` gives both the mean-fused frame,
+``fused``, and the default, ``restored``) and ``--deblur none``'s.
 """
 
 from __future__ import annotations
@@ -25,9 +29,11 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from d2turb.clip.blind import BlindDeblur
-from d2turb.clip.registration import DenseFlow, to_gray_u8, to_hwc
-from d2turb.defaults import DEFAULT_FUSION, DEFAULT_REAL_CLIP_FRAMES, DEFAULT_TEMPORAL
+from d2turb.clip.registration import DenseFlow, global_shift_px, to_gray_u8, to_hwc
+from d2turb.defaults import DEFAULT_FUSION, DEFAULT_REAL_CLIP_FRAMES, DEFAULT_TEMPORAL, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
+from d2turb.eval import artifacts
+from d2turb.eval.artifacts import worst_window
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
 from d2turb.io import list_images, to_uint8, write_image, write_json, write_text
@@ -35,13 +41,31 @@ from d2turb.restore.files import check_frame_sizes, clip_frames, clip_restorer
 from d2turb.video import VIDEO_SUFFIXES, is_video, video_size
 
 MIN_CLIP_FRAMES = 4  # a folder with fewer frames is not a clip (e.g. three frames 20 apart)
-SCORE_STRIDE = 8  # NIQE / PIQE on every SCORE_STRIDE-th frame, from SCORE_STRIDE // 2
-CROP_PX = 160  # side of the zoomed crop (at most half the frame's shorter side)
-ZOOM = 3  # nearest-neighbour zoom of the crop
-PANEL_PX = 480  # width of each column of the sheet
+SCORE_STRIDE = 8  # NIQE / PIQE and the artifact measures on every SCORE_STRIDE-th frame, from SCORE_STRIDE // 2
+CROP_PX = 160  # side of the zoomed crops (at most half the frame's shorter side)
+ZOOM = 2  # nearest-neighbour zoom of the crops
+PANEL_PX = 2 * CROP_PX  # width of each column of the sheet
 MOTION_PRESET = "fast"  # DIS preset of the residual-motion measurement (the restoration's default registration)
-COLUMNS = ("input", "none", "default")
-LABELS = {"input": "input", "none": "mean fusion (no deblur)", "default": "default (blind deblur)"}
+SHAKE_FRAMES = 3  # the ghost check: this many frames farthest from the middle frame's pose, and as many nearest
+SHAKE_SIDE_PX = 512  # the shake is measured on frames scaled to this longer side
+COLUMNS = ("input", "mean", "none", "default")
+METHODS = COLUMNS[1:]
+LABELS = {
+    "input": "input",
+    "mean": "mean fusion (default, no deblur)",
+    "none": "--deblur none (sharpest fusion)",
+    "default": "default (blind deblur)",
+}
+TAIL_RISE_MAX = 0.5  # percentage points of near-black or near-white pixels a method may add (issue 49, acc. 3)
+# the sheet's crops, each the default's worst window for its measure (its colour on the whole frames)
+CROPS = {
+    "textured": ("most textured (input)", (255, 0, 0)),
+    "tails": ("most near-black/white px added", (0, 160, 255)),
+    "blocks": ("block grid most raised", (255, 160, 0)),
+    "noise": ("most noise added in flat blocks", (0, 200, 0)),
+    "sharpness": ("most sharpness lost at strong edges", (200, 0, 200)),
+    "ghost": ("most edges absent from the input (ghost check)", (255, 255, 0)),
+}
 
 
 # ---- which entries are clips ---------------------------------------------------------------------------------------
@@ -141,22 +165,7 @@ def textured_window(image: torch.Tensor, size: int) -> tuple[int, int]:
     grid: where the crops of the sheet show detail, halos and ringing."""
     g = to_gray_u8(to_hwc(image)).astype(np.float32) / 255
     gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    energy = cv2.integral((gx * gx + gy * gy).astype(np.float64))
-    h, w = g.shape
-    ys, xs = np.arange(0, h - size + 1, 8), np.arange(0, w - size + 1, 8)
-    sums = (
-        energy[ys[:, None] + size, xs[None] + size]
-        - energy[ys[:, None], xs[None] + size]
-        - energy[ys[:, None] + size, xs[None]]
-        + energy[ys[:, None], xs[None]]
-    )
-    iy, ix = np.unravel_index(int(np.argmax(sums)), sums.shape)
-    return int(ys[iy]), int(xs[ix])
-
-
-def crop_side(height: int, width: int) -> int:
-    """Side of the zoomed crop: ``CROP_PX``, at most half the frame's shorter side."""
-    return max(8, min(CROP_PX, min(height, width) // 2))
+    return worst_window(gx * gx + gy * gy, size)
 
 
 def _font(size: int):
@@ -169,37 +178,167 @@ def _font(size: int):
         return ImageFont.load_default(size=size)
 
 
-def contact_sheet(images: dict[str, torch.Tensor], window: tuple[int, int, int], title: str = "") -> np.ndarray:
-    """Columns input | mean fusion | default: the whole frame (scaled to ``PANEL_PX`` wide, the crop outlined)
-    above its crop ``window`` = (y, x, side) zoomed ×``ZOOM`` or more (nearest neighbour), labelled → (H, W, 3)
-    uint8."""
-    y, x, side = window
-    zoom = max(ZOOM, PANEL_PX // side)  # small frames: the crop fills the column
-    panel = max(PANEL_PX, side * zoom)
-    font = _font(18)
-    band, gap = 30, 8
-    columns = []
-    for key in COLUMNS:
-        frame = Image.fromarray(to_uint8(images[key].clamp(0, 1)))
-        scale = panel / frame.width
-        whole = frame.resize((panel, round(frame.height * scale)), Image.Resampling.LANCZOS)
-        draw = ImageDraw.Draw(whole)
-        box = [x * scale, y * scale, (x + side) * scale - 1, (y + side) * scale - 1]
-        draw.rectangle(box, outline=(255, 0, 0), width=2)
-        crop = frame.crop((x, y, x + side, y + side)).resize((side * zoom, side * zoom), Image.Resampling.NEAREST)
-        columns.append((LABELS[key], whole, crop))
-    whole_h = max(c[1].height for c in columns)
-    crop_h = max(c[2].height for c in columns)
-    top = band + (band if title else 0)
-    sheet = Image.new("RGB", (3 * panel + 2 * gap, top + whole_h + gap + crop_h), (255, 255, 255))
+def crop_side(height: int, width: int) -> int:
+    """Side of the zoomed crops: ``CROP_PX``, at most half the frame's shorter side, a multiple of 8 (the codec's
+    grid stays on the crop's)."""
+    return max(8, min(CROP_PX, min(height, width) // 2) // 8 * 8)
+
+
+# ---- the camera's shake --------------------------------------------------------------------------------------------
+def camera_shifts(src: Path, max_frames: int) -> list[float]:
+    """Each frame's global shift from the middle frame (|(dx, dy)| px, phase correlation of the luma scaled to
+    ``SHAKE_SIDE_PX``): the camera's shake, with the turbulence's jitter of the whole frame. One read of the clip's
+    first ``max_frames`` frames (unreadable ones skipped, as the restoration skips them)."""
+    _, frames = clip_frames(src, SimpleNamespace(record=lambda exc: None))
+    small, scale = [], 1.0
+    for frame in itertools.islice(frames, max_frames):
+        grey = to_gray_u8(to_hwc(frame))
+        scale = min(1.0, SHAKE_SIDE_PX / max(grey.shape))
+        if scale < 1.0:
+            size = (max(2, round(grey.shape[1] * scale)), max(2, round(grey.shape[0] * scale)))
+            grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+        small.append(grey)
+    if not small:
+        return []
+    middle = small[len(small) // 2]
+    return [float(np.hypot(*global_shift_px(middle, g, max_side=SHAKE_SIDE_PX))) / scale for g in small]
+
+
+def shake_frames(shifts: list[float], count: int = SHAKE_FRAMES) -> tuple[list[int], list[int]]:
+    """(the ``count`` frames farthest from the middle frame's pose, the ``count`` nearest and not among those)."""
+    order = sorted(range(len(shifts)), key=lambda i: (-shifts[i], i))
+    shaken = sorted(order[:count])
+    calm = sorted([i for i in reversed(order) if i not in shaken][:count])
+    return shaken, calm
+
+
+# ---- the measures of one frame -------------------------------------------------------------------------------------
+def frame_measures(image, reference) -> dict[str, float]:
+    """What a person sees in ``image`` (:mod:`d2turb.eval.artifacts`), the flat blocks and strong edges those of
+    ``reference`` (its input frame): near_black / near_white (share of pixels, %), block (B/A), noise (σ, grey
+    levels), sharpness (peak gradient at the input's strongest edges, grey levels per px)."""
+    black, white = artifacts.tail_fractions(image)
+    return {
+        "near_black": 100 * black,
+        "near_white": 100 * white,
+        "block": artifacts.block_energy(image),
+        "noise": 255 * artifacts.flat_noise_sigma(image, reference),
+        "sharpness": 255 * artifacts.edge_sharpness(image, reference),
+    }
+
+
+def worst_windows(frames: dict[str, np.ndarray], shaken: dict[str, np.ndarray] | None, side: int) -> dict:
+    """Per crop of ``CROPS``: (y, x) of the default's worst ``side``² window against the input on the sheet's
+    frame (``frames``: {column: (H,W,3) uint8}), the ghost's on the most shaken frame (``shaken``, None: the sheet's
+    frame)."""
+    inp, out = frames["input"], frames["default"]
+    tails = np.abs(artifacts.tail_map(out)).astype(np.float32) - np.abs(artifacts.tail_map(inp))
+    shaken = frames if shaken is None else shaken
+    badness = {
+        "tails": tails,
+        "blocks": artifacts.block_map(out) - artifacts.block_map(inp),
+        "noise": artifacts.noise_map(out, inp) - artifacts.noise_map(inp),
+        "sharpness": artifacts.sharpness_loss_map(out, inp),
+        "ghost": artifacts.ghost_map(shaken["default"], shaken["input"]),
+    }
+    windows = {"textured": textured_window(inp, side)}
+    windows.update({k: worst_window(v, side) for k, v in badness.items()})
+    return windows
+
+
+def _crop_caption(key: str, crop: np.ndarray, ref: np.ndarray, column: str) -> str:
+    """The crop's own figure for its measure (against the input's crop)."""
+    try:
+        if key == "tails":
+            black, white = artifacts.tail_fractions(crop)
+            return f"black {100 * black:.1f} %, white {100 * white:.1f} %"
+        if key == "blocks":
+            return f"B/A {artifacts.block_energy(crop):.2f}"
+        if key == "noise":
+            return f"σ {255 * artifacts.flat_noise_sigma(crop, ref):.2f}"
+        if key == "sharpness" or key == "textured":
+            return f"sharpness {255 * artifacts.edge_sharpness(crop, ref):.1f}"
+        if key == "ghost":
+            return "" if column == "input" else f"ghost share {artifacts.ghost_share(crop, ref):.2f}"
+    except ValueError:
+        return ""
+    return ""
+
+
+# ---- the sheet -----------------------------------------------------------------------------------------------------
+def _whole(frame: np.ndarray, panel: int, boxes: list[tuple[int, int, int, tuple]]) -> Image.Image:
+    """A frame scaled to ``panel`` px wide, each (y, x, side, colour) box outlined."""
+    image = Image.fromarray(frame)
+    scale = panel / image.width
+    whole = image.resize((panel, max(1, round(image.height * scale))), Image.Resampling.LANCZOS)
+    draw = ImageDraw.Draw(whole)
+    for y, x, side, colour in boxes:
+        draw.rectangle([x * scale, y * scale, (x + side) * scale - 1, (y + side) * scale - 1], outline=colour, width=2)
+    return whole
+
+
+def contact_sheet(
+    frames: dict[str, np.ndarray],
+    windows: dict[str, tuple[int, int]],
+    side: int,
+    title: str = "",
+    shaken: dict[str, np.ndarray] | None = None,
+    shaken_label: str = "",
+) -> np.ndarray:
+    """Columns input | mean fusion | --deblur none | default (``COLUMNS``): the sheet's frame (``frames``: {column:
+    (H,W,3) uint8}) scaled to ``PANEL_PX`` wide with the crops outlined, then per crop of ``CROPS`` its ``side``²
+    window ``windows[key]`` = (y, x) zoomed ×``ZOOM`` (nearest neighbour) with its figure; the ghost check's crop
+    comes from the most shaken frame (``shaken``, shown whole above it; None: the sheet's frame) → (H, W, 3) uint8.
+    """
+    panel = max(PANEL_PX, side * ZOOM)
+    font, small = _font(18), _font(14)
+    band, caption, gap = 28, 20, 8
+    shaken = frames if shaken is None else shaken
+    ghost_frame = shaken is not frames
+    rows: list[tuple[str, tuple | None, list]] = []  # (label, its box's colour, per column (caption, image))
+    boxes = [(*windows[k], side, colour) for k, (_, colour) in CROPS.items() if k != "ghost" or not ghost_frame]
+    rows.append(("", None, [("", _whole(frames[c], panel, boxes)) for c in COLUMNS]))
+    for key, (label, colour) in CROPS.items():
+        source = shaken if key == "ghost" else frames
+        y, x = windows[key]
+        if key == "ghost" and ghost_frame:
+            yellow = [(y, x, side, CROPS["ghost"][1])]
+            rows.append((shaken_label, None, [("", _whole(shaken[c], panel, yellow)) for c in COLUMNS]))
+            label = f"{label}, that frame"
+        cells = []
+        for c in COLUMNS:
+            crop = source[c][y : y + side, x : x + side]
+            text = _crop_caption(key, crop, source["input"][y : y + side, x : x + side], c)
+            zoomed = Image.fromarray(crop).resize((side * ZOOM, side * ZOOM), Image.Resampling.NEAREST)
+            cells.append((text, zoomed))
+        rows.append((f"{label} (y {y}, x {x})", colour, cells))
+    heights = [
+        (band if label else 0) + (caption if any(t for t, _ in cells) else 0) + max(i.height for _, i in cells) + gap
+        for label, _, cells in rows
+    ]
+    top = 2 * band if title else band
+    width = len(COLUMNS) * panel + (len(COLUMNS) - 1) * gap
+    sheet = Image.new("RGB", (width, top + sum(heights)), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     if title:
         draw.text((4, 4), title, fill=(0, 0, 0), font=font)
-    for k, (label, whole, crop) in enumerate(columns):
-        left = k * (panel + gap)
-        draw.text((left + 4, top - band + 4), label, fill=(0, 0, 0), font=font)
-        sheet.paste(whole, (left, top))
-        sheet.paste(crop, (left + (panel - crop.width) // 2, top + whole_h + gap))
+    for k, c in enumerate(COLUMNS):
+        draw.text((k * (panel + gap) + 4, top - band + 4), LABELS[c], fill=(0, 0, 0), font=font)
+    y0 = top
+    for (label, colour, cells), height in zip(rows, heights, strict=True):
+        row_y = y0
+        if label:
+            if colour is not None:
+                draw.rectangle([4, row_y + 6, 20, row_y + 22], fill=colour, outline=(0, 0, 0))
+            draw.text((28 if colour is not None else 4, row_y + 4), label, fill=(0, 0, 0), font=font)
+            row_y += band
+        if any(t for t, _ in cells):
+            for k, (text, _) in enumerate(cells):
+                draw.text((k * (panel + gap) + 4, row_y + 2), text, fill=(60, 60, 60), font=small)
+            row_y += caption
+        for k, (_, image) in enumerate(cells):
+            sheet.paste(image, (k * (panel + gap) + (panel - image.width) // 2, row_y))
+        y0 += height
     return np.asarray(sheet)
 
 
@@ -216,7 +355,70 @@ def _scores(image: torch.Tensor, notes: set) -> dict[str, float]:
     return values
 
 
-# ---- one clip --------------------------------------------------------------------------------------------------
+# ---- one clip ------------------------------------------------------------------------------------------------------
+class _Run:
+    """One restoration of a clip: its outputs of the ``wanted`` frames with their input frames, and the residual
+    motion of its input and output."""
+
+    def __init__(self, restorer, src: Path, max_frames: int, wanted: set[int], errors=None, input_motion=True):
+        self.restorer, self.src, self.max_frames, self.wanted = restorer, src, max_frames, wanted
+        self.errors = [] if errors is None else errors
+        self.motion_in, self.motion_out = (MotionMeter() if input_motion else None), MotionMeter()
+        self.count = 0
+
+    def outputs(self, progress: bool = False, desc: str = "", total: int | None = None):
+        """Yields (index, input frame, ClipFrame) of the wanted frames, as the restoration gives them."""
+        _, frames = clip_frames(self.src, SimpleNamespace(record=lambda exc: self.errors.append(str(exc))))
+        inputs: dict[int, torch.Tensor] = {}  # kept until restored: only the wanted frames
+
+        def read():
+            for i, frame in enumerate(itertools.islice(frames, self.max_frames)):
+                if self.motion_in is not None:
+                    self.motion_in.add(frame)
+                if i in self.wanted:
+                    inputs[i] = frame
+                yield frame
+
+        stream = self.restorer.restore(read())
+        if progress:
+            from tqdm import tqdm
+
+            stream = tqdm(stream, desc=desc, unit="frame", total=total)
+        for out in stream:
+            self.count += 1
+            self.motion_out.add(out.restored)
+            before = inputs.pop(out.index, None)
+            if before is not None:
+                yield out.index, before, out
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def _checks(measures: dict[str, dict], ghost_excess: dict[str, float]) -> dict[str, list[str]]:
+    """Per method, which of issue 49's acceptance 3 it fails: near-black / near-white share more than
+    ``TAIL_RISE_MAX`` points above the input's, block grid above the input's, a ghost on the shaken frames, not
+    sharper than the input."""
+    inp = measures["input"]
+    fails = {}
+    for m in METHODS:
+        v, f = measures[m], []
+        if v["near_black"] - inp["near_black"] > TAIL_RISE_MAX:
+            f.append("shadows")
+        if v["near_white"] - inp["near_white"] > TAIL_RISE_MAX:
+            f.append("highlights")
+        if v["block"] > inp["block"]:
+            f.append("blocks")
+        if ghost_excess[m] > artifacts.GHOST_EXCESS_MAX:
+            f.append("ghost")
+        if not v["sharpness"] > inp["sharpness"]:
+            f.append("softer")
+        fails[m] = f
+    return fails
+
+
 def evaluate_clip(
     src: Path,
     temporal: int,
@@ -224,12 +426,13 @@ def evaluate_clip(
     stride: int = SCORE_STRIDE,
     progress: bool = False,
 ) -> tuple[dict, np.ndarray]:
-    """Restore one clip (its first ``max_frames`` frames) once with restore's defaults and measure it.
+    """Restore one clip (its first ``max_frames`` frames) with restore's defaults and with ``--deblur none``, and
+    measure it.
 
     Args:
         src: a video file or a folder of frames.
         temporal: the restoration's window; must be shorter than the clip.
-        stride: NIQE / PIQE of every ``stride``-th frame (from ``stride // 2``).
+        stride: NIQE / PIQE and the artifact measures of every ``stride``-th frame (from ``stride // 2``).
 
     Returns:
         (the clip's entry of results.json, its contact sheet as (H, W, 3) uint8).
@@ -238,73 +441,95 @@ def evaluate_clip(
     if expected is not None and expected <= temporal:
         raise D2TurbError(f"{src}: {expected} frame(s); --temporal {temporal} must be shorter than the clip")
     restorer, _, _ = clip_restorer(src, temporal, fusion=DEFAULT_FUSION)
+    started = time.perf_counter()
+    shifts = camera_shifts(src, max_frames)
+    n = len(shifts)
+    if n <= temporal:
+        raise D2TurbError(f"{src}: {n} frame(s) read; --temporal {temporal} must be shorter than the clip")
+    if n <= stride // 2:
+        raise D2TurbError(f"{src}: {n} frame(s) read: too few for the report (need {stride // 2 + 1})")
+    shaken, calm = shake_frames(shifts)
+    pick = n // 2  # the sheet's frame: the middle one, the shake's reference
+    scored = [i for i in range(n) if i % stride == stride // 2]
+    wanted = set(scored) | set(shaken) | set(calm) | {pick}
+    most = max(shaken, key=lambda i: shifts[i])
     errors: list[str] = []
     score_notes: set[str] = set()
-    _, frames = clip_frames(src, SimpleNamespace(record=lambda exc: errors.append(str(exc))))  # bad frames: skipped
-    pick = (expected or max_frames) // 2  # the sheet's frame (else the last scored one, if the clip is shorter)
-    inputs: dict[int, torch.Tensor] = {}  # kept until restored: only the scored frames and the sheet's
-    motion_in, motion_out = MotionMeter(), MotionMeter()
+    per_frame: dict[str, list[dict]] = {c: [] for c in COLUMNS}
+    scores: dict[str, list[dict]] = {c: [] for c in COLUMNS}
+    ghosts: dict[str, dict[int, float]] = {m: {} for m in METHODS}
+    sheet: dict[str, np.ndarray] = {}
+    shaken_sheet: dict[str, np.ndarray] = {}
 
-    def read():
-        for i, frame in enumerate(itertools.islice(frames, max_frames)):
-            motion_in.add(frame)
-            if i % stride == stride // 2 or i == pick:
-                inputs[i] = frame
-            yield frame
+    def measure(index: int, reference: torch.Tensor, images: dict[str, torch.Tensor]) -> None:
+        for column, image in images.items():
+            image = image.clamp(0, 1)
+            if index in scored:
+                per_frame[column].append(frame_measures(image, reference))
+                scores[column].append(_scores(image, score_notes))
+            if column != "input" and (index in shaken or index in calm):
+                ghosts[column][index] = artifacts.ghost_share(image, reference)
+            if index == pick:
+                sheet[column] = to_uint8(image)
+            if index == most:
+                shaken_sheet[column] = to_uint8(image)
 
-    started = time.perf_counter()
-    sums: dict[str, dict[str, float]] = {c: {"niqe": 0.0, "piqe": 0.0} for c in COLUMNS}
-    scored, sheet_images, count = 0, None, 0
-    stream = restorer.restore(read())
-    if progress:
-        from tqdm import tqdm
-
-        stream = tqdm(stream, desc=src.name, unit="frame", total=expected)
-    for out in stream:
-        count += 1
-        motion_out.add(out.restored)
-        before = inputs.pop(out.index, None)
-        if before is None:
-            continue
-        images = {"input": before, "none": out.fused, "default": out.restored}
-        if out.index == pick or (sheet_images is None and out.index % stride == stride // 2):
-            sheet_images = images
-        if out.index % stride == stride // 2:
-            for column, image in images.items():
-                for metric, value in _scores(image, score_notes).items():
-                    sums[column][metric] += value
-            scored += 1
+    default = _Run(restorer, src, max_frames, wanted, errors)
+    for index, before, out in default.outputs(progress, f"{src.name} default", n):
+        reference = before.clamp(0, 1)
+        measure(index, reference, {"input": reference, "mean": out.fused, "default": out.restored})
+    if default.count <= temporal:
+        raise D2TurbError(f"{src}: {default.count} frame(s) read; --temporal {temporal} must be shorter than the clip")
+    none_restorer, _, _ = clip_restorer(src, temporal, deblur="none")
+    plain = _Run(none_restorer, src, max_frames, wanted, input_motion=False)
+    for index, before, out in plain.outputs(progress, f"{src.name} --deblur none", n):
+        measure(index, before.clamp(0, 1), {"none": out.restored})
     seconds = time.perf_counter() - started
-    if count <= temporal:
-        raise D2TurbError(f"{src}: {count} frame(s) read; --temporal {temporal} must be shorter than the clip")
-    if sheet_images is None:
-        raise D2TurbError(f"{src}: {count} frame(s) read: too few for the report (need {stride // 2 + 1})")
-    if not scored:  # the sheet's frame only
-        for column, image in sheet_images.items():
-            sums[column] = _scores(image, score_notes)
-        scored = 1
+
+    measures = {c: {k: _mean([f[k] for f in per_frame[c]]) for k in per_frame["input"][0]} for c in COLUMNS}
+    ghost = {}
+    for m in METHODS:
+        on_shaken = _mean([ghosts[m][i] for i in shaken if i in ghosts[m]])
+        on_calm = _mean([ghosts[m][i] for i in calm if i in ghosts[m]])
+        ghost[m] = {"shaken": on_shaken, "calm": on_calm, "excess": on_shaken - on_calm}
+    side = crop_side(*sheet["input"].shape[:2])
+    windows = worst_windows(sheet, None if most == pick else shaken_sheet, side)
     deblur = restorer.deblur
-    side = crop_side(*sheet_images["input"].shape[-2:])
-    y, x = textured_window(sheet_images["input"], side)
     entry = {
         "source": str(src),
-        "frames": count,
-        "size": list(sheet_images["input"].shape[-2:][::-1]),
+        "frames": default.count,
+        "size": list(sheet["input"].shape[:2][::-1]),
         "temporal": temporal,
-        "scored_frames": scored,
-        "niqe": {c: sums[c]["niqe"] / scored for c in COLUMNS},
-        "piqe": {c: sums[c]["piqe"] / scored for c in COLUMNS},
-        "motion_px": {"input": motion_in.median, "default": motion_out.median},
+        "scored_frames": len(scored),
+        "niqe": {c: _mean([s["niqe"] for s in scores[c]]) for c in COLUMNS},
+        "piqe": {c: _mean([s["piqe"] for s in scores[c]]) for c in COLUMNS},
+        "measures": measures,
+        "ghost": ghost,
+        "checks": _checks(measures, {m: ghost[m]["excess"] for m in METHODS}),
+        "shake": {
+            "shift_px": [round(v, 2) for v in shifts],
+            "max_px": max(shifts),
+            "shaken_frames": shaken,
+            "calm_frames": calm,
+        },
+        "motion_px": {
+            "input": default.motion_in.median,
+            "none": plain.motion_out.median,
+            "default": default.motion_out.median,
+        },
         "deblur": deblur.record if isinstance(deblur, BlindDeblur) else None,
         "deblur_description": deblur.describe() if isinstance(deblur, BlindDeblur) else "none",
-        "sheet_frame": pick if pick < count else stride // 2,
-        "crop": {"y": y, "x": x, "side": side},
+        "sheet_frame": pick,
+        "ghost_frame": most,
+        "crops": {k: {"y": y, "x": x, "side": side} for k, (y, x) in windows.items()},
         "seconds": seconds,
         "frame_errors": errors,
         "score_notes": sorted(score_notes),
     }
-    title = f"{src.name}: frame {entry['sheet_frame']}, {entry['deblur_description']}"
-    return entry, contact_sheet(sheet_images, (y, x, side), title)
+    title = f"{src.name}: frame {pick}, {entry['deblur_description']}"
+    shaken_label = f"ghost check: frame {most}, {shifts[most]:.1f} px from frame {pick}'s pose"
+    image = contact_sheet(sheet, windows, side, title, None if most == pick else shaken_sheet, shaken_label)
+    return entry, image
 
 
 # ---- the report ----------------------------------------------------------------------------------------------------
@@ -347,7 +572,16 @@ def evaluate_real_clips(
             "score_stride": stride,
             "restore": "d2turb restore CLIP --temporal N defaults (clip_restorer: passes 2, preset fast, "
             f"fusion {DEFAULT_FUSION}, deblur auto = blind)",
+            "none": f"d2turb restore CLIP --temporal N --deblur none (fusion {FUSION_WITHOUT_DEBLUR})",
             "motion": f"median over consecutive frame pairs of the mean |DIS flow| (preset {MOTION_PRESET}), px",
+            "measures": f"d2turb.eval.artifacts on the luma, mean over the scored frames: near-black ≤ "
+            f"{artifacts.NEAR_BLACK_U8}/255 and near-white ≥ {artifacts.NEAR_WHITE_U8}/255 shares (%); block grid B/A "
+            f"(Wang, Sheikh & Bovik 2002, {artifacts.BLOCK_PX}-px grid); flat-region noise σ (Immerkær 1996, the "
+            f"input's flattest {artifacts.NOISE_SHARE:.0%} of {artifacts.NOISE_BLOCK_PX}² blocks, grey levels); "
+            "sharpness: peak gradient at the input's strongest 2 % of pixels (grey levels / px)",
+            "ghost": f"share of the output's edge strength absent from its input frame (artifacts.ghost_share), mean "
+            f"over the {SHAKE_FRAMES} frames farthest from the middle frame's pose minus over the {SHAKE_FRAMES} "
+            f"nearest; a ghost above {artifacts.GHOST_EXCESS_MAX}",
         },
         "clips": {},
         "skipped": [],
@@ -390,8 +624,34 @@ def _estimate_cell(entry: dict) -> str:
     return text
 
 
+def _measure_cells(e: dict, column: str) -> list[str]:
+    """near-black, near-white, block, noise, sharpness, ghost cells of one column: the input's values, a method's
+    with its change against the input."""
+    v, inp = e["measures"][column], e["measures"]["input"]
+    if column == "input":
+        return [
+            f"{v['near_black']:.2f}",
+            f"{v['near_white']:.2f}",
+            f"{v['block']:.3f}",
+            f"{v['noise']:.2f}",
+            f"{v['sharpness']:.1f}",
+            "–",
+        ]
+    g = e["ghost"][column]
+    return [
+        f"{v['near_black']:.2f} ({v['near_black'] - inp['near_black']:+.2f})",
+        f"{v['near_white']:.2f} ({v['near_white'] - inp['near_white']:+.2f})",
+        f"{v['block']:.3f} ({v['block'] - inp['block']:+.3f})",
+        f"{v['noise']:.2f}",
+        f"{v['sharpness']:.1f} (×{v['sharpness'] / inp['sharpness']:.2f})",
+        f"{g['shaken']:.3f} − {g['calm']:.3f} = {g['excess']:+.3f}",
+    ]
+
+
 def markdown(results: dict) -> str:
-    """The report's table: per clip NIQE / PIQE of input, mean fusion and default, residual motion, estimate."""
+    """The report's tables: per clip NIQE / PIQE, residual motion and the blind estimate; per clip and column what a
+    person sees (near-black / near-white share, block grid, flat noise, sharpness, the ghost check) and which of
+    issue 49's acceptance 3 each method fails."""
     s = results["settings"]
     lines = [
         f"# Real clips report: `{results['data']}`",
@@ -399,20 +659,37 @@ def markdown(results: dict) -> str:
         f"Window {s['temporal']}, first {s['max_frames']} frames per clip; NIQE / PIQE (lower = more natural "
         f"statistics, no ground truth) mean over every {s['score_stride']}th frame; motion: {s['motion']}.",
         "",
-        "| clip | frames | NIQE input / mean fusion / default | PIQE input / mean fusion / default "
-        "| motion input → default (px) "
+        "| clip | frames | NIQE input / mean fusion / --deblur none / default "
+        "| PIQE input / mean fusion / --deblur none / default | motion input → none / default (px) "
         "| blind estimate | deblur | note |",
         "|---|---:|---|---|---|---|---|---|",
     ]
     for name, e in results["clips"].items():
         niqe_cell = " / ".join(f"{e['niqe'][c]:.2f}" for c in COLUMNS)
         piqe_cell = " / ".join(f"{e['piqe'][c]:.1f}" for c in COLUMNS)
-        motion = f"{e['motion_px']['input']:.3f} → {e['motion_px']['default']:.3f}"
+        m = e["motion_px"]
+        motion = f"{m['input']:.3f} → {m['none']:.3f} / {m['default']:.3f}"
         note = (e.get("deblur") or {}).get("note", "")
         lines.append(
             f"| {name} | {e['frames']} | {niqe_cell} | {piqe_cell} | {motion} | {_estimate_cell(e)} "
             f"| {e['deblur_description']} | {note} |"
         )
+    lines += [
+        "",
+        f"What a person sees: {s['measures']}. Ghost check: {s['ghost']}. In brackets: the change against the "
+        "input (sharpness: the ratio). Fails: issue 49's acceptance 3 (near-black / near-white share more than "
+        f"{TAIL_RISE_MAX} points above the input's, block grid above the input's, a ghost, not sharper).",
+        "",
+        "| clip (shake: largest shift from the middle frame) | column | near-black % | near-white % | block grid B/A "
+        "| flat noise σ | sharpness | ghost share shaken − calm | fails |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, e in results["clips"].items():
+        for column in COLUMNS:
+            clip = f"{name} ({e['shake']['max_px']:.1f} px)" if column == "input" else ""
+            fails = "" if column == "input" else (", ".join(e["checks"][column]) or "none")
+            cells = " | ".join(_measure_cells(e, column))
+            lines.append(f"| {clip} | {LABELS[column]} | {cells} | {fails} |")
     if results["skipped"]:
         lines += ["", "## Skipped", ""] + [f"- `{s['clip']}`: {s['error']}" for s in results["skipped"]]
     if results["not_clips"]:
