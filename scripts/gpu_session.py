@@ -1,7 +1,16 @@
 """The whole GPU lease as one prepared command (docs/training.md, "The 15-minute lease").
 
     timeout -k 15 560 python3 scripts/gpu_session.py --out "$OUT"          # on the lent GPU (scripts/gpu_session.sh)
+    python3 scripts/gpu_session.py --unpack DIR                             # here: what came back → runs/carry/
+    python3 scripts/gpu_session.py --carry-size packs runs/carry            # here: what the next call would carry
     python3 scripts/gpu_session.py --rehearsal --out /tmp/rehearsal         # the same steps on a CPU, tiny sizes
+
+Training spans leases: a candidate whose ``runs/carry/NAME/model.safetensors`` (``--carry``) is on the host starts
+from those weights (``train.init_from``; otherwise from its config's ``init_from``: ``d2turb_small``'s backbone from
+the shipped NAFNet) with the next seed, and ``lease_state.json`` beside them, extended by each call, records every
+call so far. ``--unpack`` puts a call's tar back into ``runs/carry/`` here; carry ``runs/carry`` (≈ 10 MiB for
+``d2turb_small``) into the next call. Each call is a whole cosine cycle (a warm restart): ``last.pt`` with Adam's
+moments (41 MB for ``d2turb_small``) neither comes back as one file nor fits the carry beside the pack.
 
 Steps, each logged with its wall time: (1) check the device and the project's imports; (2) use the carried training
 pack, or build one (the rehearsal builds a tiny one from scikit-image's photographs through the same ``make_pack``);
@@ -9,9 +18,11 @@ pack, or build one (the rehearsal builds a tiny one from scikit-image's photogra
 the device (``benchmarks/bench_train.py``; a candidate whose bf16/channels_last bench fails is benched again in
 float32); (4) train the candidates side by side, each for ``iterations = images/s × seconds × SAFETY / batch`` so its
 cosine schedule ends inside the budget, with ``train.max_minutes`` and, after it, SIGTERM and SIGKILL as hard stops;
-(5) bring back, per candidate, one tar of ``best.safetensors`` (+ ``model.safetensors`` where it fits 15 MiB),
-``log.jsonl``, ``status.json``, ``config.yaml`` and the training log, and ``gpu_session.json`` with the checks, the
-rates, the planned and reached iterations and the last validation per bin. At most 8 files of ≤ 15 MiB come back.
+(5) bring back, per candidate, one tar of the final weights ``model.safetensors`` (what the next call continues from),
+``lease_state.json``, ``log.jsonl``, ``status.json``, ``config.yaml`` and the training log (+ ``best.safetensors``
+where it differs and fits 15 MiB, else in ``NAME_best.tar`` while the 8 files allow), and ``gpu_session.json`` with
+the checks, the rates, the start, the planned and reached iterations and the last validation per bin. At most 8 files
+of ≤ 15 MiB come back.
 
 Every deadline is counted from this script's start (``--budget-s``), so the command ends on its own inside the
 lease's call limit; a candidate that fails does not stop the others, and whatever exists at the end is collected.
@@ -20,6 +31,7 @@ lease's call limit; a candidate that fails does not stop the others, and whateve
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -34,6 +46,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SAFETY = 0.8  # share of the measured rate planned for: the rates move when the candidates start and stop
 TAR_LIMIT = 15 * 2**20  # what comes back: files ≤ 16 MiB
+MAX_FILES = 8  # what comes back: at most 8 files
+CARRY_LIMIT = 64 * 2**20  # what a call carries: the checkout and the named ignored paths together
+CARRY = "runs/carry"  # per candidate: model.safetensors + lease_state.json, the state one call leaves the next
+SEED_STRIDE = 1009  # train.seed of call k (0-based) = the config's seed + k * SEED_STRIDE: new crops and turbulence
 # images/s assumed where a bench did not finish in time (train.max_minutes still stops the run): about 2 % of an H100's
 # bf16 rate at the forward + backward cost of each model (3 × its forward FLOPs per 256² image: 7.8, 17.0, 20.7 G)
 ASSUMED_RATE = {"nafnet_ft": 2000.0, "nafnet_w24": 900.0, "d2turb_small": 750.0}
@@ -44,6 +60,7 @@ CANDIDATES = {
     "nafnet_w24": ("configs/gpu_nafnet_w24.yaml", "nafnet", '{"width": 24}'),
     "d2turb_small": ("configs/d2turb_small_gpu.yaml", "d2turb_small", "{}"),
 }
+DEFAULT_CANDIDATES = "d2turb_small"
 # the rehearsal: the same steps on a CPU at sizes that take seconds
 REHEARSAL_SET = [
     "train.device=cpu",
@@ -228,33 +245,195 @@ def last_validation(run: Path) -> dict:
     return {"last": keep(last), "best": keep(best)}
 
 
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(2**20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _tensors_sha256(path: Path) -> str | None:
+    """The checksum save_pretrained keeps of a file's tensors (its JSON header's key order varies between writes)."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), "pt") as f:
+        return (f.metadata() or {}).get("d2turb_sha256")
+
+
+def start_state(name: str, carry: Path, overrides: list[str]) -> tuple[list[str], dict]:
+    """Where candidate ``name`` starts: the carried ``carry/NAME/model.safetensors`` with its ``lease_state.json``
+    (the calls so far), else its config's ``init_from``. Returns (the --set items, the start record)."""
+    cfg = _config(name)
+    weights, state_file = carry / name / "model.safetensors", carry / name / "lease_state.json"
+    calls = json.loads(state_file.read_text())["calls"] if state_file.is_file() else []
+    sets, start = [], {"calls_before": len(calls)}
+    if weights.is_file():
+        sets.append(f"train.init_from={weights}")
+        start |= {"from": str(weights), "sha256": sha256(weights), "carried": True}
+    else:
+        start |= {"from": cfg["train"].get("init_from"), "carried": False}  # None: from scratch
+        calls = []
+    if not any(o.startswith("train.seed=") for o in overrides):  # a new seed per call: new crops and turbulence
+        sets.append(f"train.seed={int(cfg['train'].get('seed', 0)) + SEED_STRIDE * len(calls)}")
+    start["previous_calls"] = calls
+    return sets, start
+
+
+def write_lease_state(s: Session, name: str, run: Path) -> None:
+    """``run/lease_state.json``: the carried calls, this one appended, and the checksum of the weights it goes with."""
+    cand = s.report["candidates"].get(name, {})
+    weights = run / "model.safetensors"
+    if not weights.is_file():
+        return
+    start = cand.get("start", {})
+    calls = list(start.get("previous_calls", []))
+    status = json.loads((run / "status.json").read_text()) if (run / "status.json").is_file() else {}
+    import yaml
+
+    resolved = yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").is_file() else {}
+    cfg = resolved.get("train", {})
+    last = (cand.get("validation") or {}).get("last") or {}
+    iterations = int(status.get("iteration") or 0)
+    calls.append(
+        {
+            "call": len(calls) + 1,
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "device": s.report["steps"].get("check", {}).get("gpu", "cpu" if s.rehearsal else None),
+            "rehearsal": s.rehearsal,
+            "from": start.get("from"),
+            "from_sha256": start.get("sha256"),
+            "seed": cfg.get("seed"),
+            "lr": cfg.get("lr"),
+            "batch": cfg.get("batch"),
+            "patch": resolved.get("data", {}).get("patch"),
+            "iterations": iterations,
+            "images": iterations * int(cfg.get("batch") or 0),
+            "validation": {k: v for k, v in last.items() if k.startswith("val_")},
+        }
+    )
+    state = {
+        "model": name,
+        "config": CANDIDATES[name][0],
+        "weights_sha256": sha256(weights),
+        "iterations_total": sum(c["iterations"] for c in calls),
+        "images_total": sum(c["images"] for c in calls),
+        "calls": calls,
+    }
+    tmp = run / ".lease_state.json.tmp"
+    tmp.write_text(json.dumps(state, indent=1))
+    os.replace(tmp, run / "lease_state.json")
+
+
+def _tar(target: Path, name: str, members: list[Path]) -> None:
+    tmp = target.with_name(f".{target.name}.tmp")
+    with tarfile.open(tmp, "w") as tar:
+        for m in members:
+            tar.add(m, arcname=f"{name}/{m.name}")
+    os.replace(tmp, target)
+
+
 def collect(s: Session, name: str, run: Path) -> None:
-    members = [run / f for f in ("best.safetensors", "log.jsonl", "status.json", "config.yaml", "train.log")]
-    members = [m for m in members if m.is_file()]
-    extra = run / "model.safetensors"
-    if extra.is_file() and sum(m.stat().st_size for m in members) + extra.stat().st_size < TAR_LIMIT:
-        members.append(extra)
+    """``NAME.tar``: the final weights (what the next call continues from), lease_state.json and the logs; the best
+    weights with them where they differ and fit, else in ``NAME_best.tar`` while the 8 files that come back allow."""
+    write_lease_state(s, name, run)
+    files = ("model.safetensors", "lease_state.json", "log.jsonl", "status.json", "config.yaml", "train.log")
+    members = [run / f for f in files if (run / f).is_file()]
+    best, final = run / "best.safetensors", run / "model.safetensors"
+    same = final.is_file() and best.is_file() and _tensors_sha256(best) == _tensors_sha256(final) is not None
+    if best.is_file() and not same:
+        if sum(m.stat().st_size for m in members) + best.stat().st_size < TAR_LIMIT:
+            members.append(best)
+        elif len([p for p in s.out.iterdir() if p.is_file()]) + 2 <= MAX_FILES:
+            _tar(s.out / f"{name}_best.tar", name, [best])
+            s.log(f"collect: {name}_best.tar ({best.stat().st_size / 2**20:.1f} MiB)")
+        else:
+            s.log(f"collect: {name}'s best.safetensors left out (no file of the {MAX_FILES} left)")
     if not members:
         return
     target = s.out / f"{name}.tar"
-    with tarfile.open(target, "w") as tar:
-        for m in members:
-            tar.add(m, arcname=f"{name}/{m.name}")
+    _tar(target, name, members)
     if target.stat().st_size > TAR_LIMIT:  # never here for the shipped candidates (≤ 2.6 M parameters)
         s.log(f"collect: {target.name} is over 15 MiB and will not come back")
     s.log(f"collect: {target.name} ({target.stat().st_size / 2**20:.1f} MiB: {', '.join(m.name for m in members)})")
 
 
+def unpack(came_back: Path, carry: Path, force: bool) -> int:
+    """Here, after a call: each ``NAME.tar`` in ``came_back`` → ``carry/NAME/{model.safetensors, lease_state.json}``,
+    checked (the weights' checksum is the state's) and refused where it does not continue the state already there
+    (its calls must start with the carried ones; ``force`` replaces it anyway)."""
+    tars = sorted(p for p in came_back.glob("*.tar") if not p.name.endswith("_best.tar"))
+    if not tars:
+        print(f"error: no NAME.tar in {came_back}", file=sys.stderr)
+        return 2
+    for path in tars:
+        name = path.stem
+        with tarfile.open(path) as tar:
+            try:
+                weights = tar.extractfile(f"{name}/model.safetensors").read()
+                state = json.loads(tar.extractfile(f"{name}/lease_state.json").read())
+            except (KeyError, AttributeError):
+                print(f"error: {path} has no {name}/model.safetensors and lease_state.json", file=sys.stderr)
+                return 2
+        if hashlib.sha256(weights).hexdigest() != state["weights_sha256"]:
+            print(f"error: {path}: the weights are not the ones lease_state.json names", file=sys.stderr)
+            return 2
+        target = carry / name
+        old = target / "lease_state.json"
+        if old.is_file() and not force:
+            before = json.loads(old.read_text())["calls"]
+            if state["calls"][: len(before)] != before or len(state["calls"]) <= len(before):
+                print(
+                    f"error: {path} does not continue {old} ({len(state['calls'])} calls against {len(before)} "
+                    "carried); --force replaces it",
+                    file=sys.stderr,
+                )
+                return 2
+        target.mkdir(parents=True, exist_ok=True)
+        for file, data in (("model.safetensors", weights), ("lease_state.json", json.dumps(state, indent=1).encode())):
+            tmp = target / f".{file}.tmp"
+            tmp.write_bytes(data)
+            os.replace(tmp, target / file)
+        last = state["calls"][-1]
+        print(
+            f"{name}: call {last['call']} unpacked into {target} ({state['iterations_total']} iterations, "
+            f"{state['images_total']} images in all); carry {carry} into the next call"
+        )
+    return 0
+
+
+def carry_size(paths: list[str]) -> int:
+    """The bytes a call carries: the checkout's tracked and untracked-but-not-ignored files, plus ``paths``."""
+    out = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=ROOT,
+        capture_output=True,
+        check=True,
+    ).stdout
+    files = {ROOT / f.decode() for f in out.split(b"\0") if f}
+    for p in paths:
+        p = ROOT / p
+        files |= {f for f in p.rglob("*")} if p.is_dir() else {p}
+    return sum(f.stat().st_size for f in files if f.is_file() and not f.is_symlink())
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", required=True, help="the folder that comes back ($OUT on the device)")
+    ap.add_argument("--out", help="the folder that comes back ($OUT on the device)")
     ap.add_argument("--pack", default=None, help="training pack (default packs/clean, carried; built when missing)")
     ap.add_argument("--clean", default=None, help="clean images to build the pack from when it is missing")
     ap.add_argument("--runs", default="runs/lease", help="run folders (not brought back whole)")
     ap.add_argument(
         "--candidates",
-        default="nafnet_ft",
-        help=f"comma-separated names of {', '.join(CANDIDATES)}; side by side they share the device (docs/training.md)",
+        default=DEFAULT_CANDIDATES,
+        help=f"comma-separated names of {', '.join(CANDIDATES)} (default {DEFAULT_CANDIDATES}); side by side they "
+        "share the device (docs/training.md)",
+    )
+    ap.add_argument("--carry", default=CARRY, help=f"the carried state of previous calls (default {CARRY})")
+    ap.add_argument("--unpack", metavar="DIR", help="here, after a call: DIR's NAME.tar → --carry, then exit")
+    ap.add_argument("--force", action="store_true", help="--unpack: replace a carried state it does not continue")
+    ap.add_argument(
+        "--carry-size", nargs="*", metavar="PATH", help="print the MiB a call carrying PATHs would take, then exit"
     )
     ap.add_argument("--budget-s", type=float, default=530.0, help="this script's wall time, start to end")
     ap.add_argument("--rehearsal", action="store_true", help="the same steps on a CPU at tiny sizes")
@@ -276,6 +455,17 @@ def main(argv=None) -> int:
         "lease): its bench is skipped (about 20-35 s of device time); train.max_minutes still stops it in time",
     )
     args = ap.parse_args(argv)
+    carry = (ROOT / args.carry).resolve()
+    if args.unpack:
+        return unpack(Path(args.unpack), carry, args.force)
+    if args.carry_size is not None:
+        total = carry_size(args.carry_size)
+        fits = total <= CARRY_LIMIT
+        print(f"{total / 2**20:.1f} MiB of {CARRY_LIMIT / 2**20:.0f}: {'fits' if fits else 'over the limit'}")
+        return 0 if fits else 1
+    if not args.out:
+        print("error: --out is required (the folder that comes back)", file=sys.stderr)
+        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     s = Session(out, args.budget_s, args.rehearsal)
@@ -321,6 +511,7 @@ def main(argv=None) -> int:
                     continue  # broken, not slow
                 rates[n] |= {"images_per_s": ASSUMED_RATE[n], "assumed": True}  # the bench ran out of time
             cfg = _config(n)
+            start_sets, start = start_state(n, carry, args.overrides)
             minutes = (end_train_s - s.elapsed() - (5 if s.rehearsal else 30)) / 60  # start-up: imports, pack decode
             batch = 2 if s.rehearsal else cfg["train"]["batch"]
             planned = max(1, int(rates[n]["images_per_s"] * 60 * minutes * SAFETY / batch))
@@ -328,7 +519,7 @@ def main(argv=None) -> int:
                 planned = min(planned, 4)
             sets = [f"train.iterations={planned}", f"train.max_minutes={max(minutes, 0.05):.3f}"]
             sets += [f"data.pack={pack}", f"val.pack={pack}"]
-            sets += args.overrides
+            sets += start_sets + args.overrides
             if s.rehearsal:
                 sets += REHEARSAL_SET
             elif rates[n].get("fallback_float32"):
@@ -336,8 +527,14 @@ def main(argv=None) -> int:
             jobs[n] = [sys.executable, "-m", "d2turb", "train", "--config", str(ROOT / CANDIDATES[n][0])]
             jobs[n] += ["--out", str(runs / n)] + [a for kv in sets for a in ("--set", kv)]
             logs[n] = runs / n / "train.log"
-            s.report["candidates"][n] = {"planned_iterations": planned, "minutes": round(minutes, 2), "set": sets}
-            s.log(f"train {n}: {planned} iterations in ≤ {minutes:.2f} min")
+            s.report["candidates"][n] = {
+                "planned_iterations": planned,
+                "minutes": round(minutes, 2),
+                "set": sets,
+                "start": start,
+            }
+            origin = f"carried call {start['calls_before']}" if start["carried"] else start["from"] or "scratch"
+            s.log(f"train {n}: {planned} iterations in ≤ {minutes:.2f} min, from {origin}")
         s.step("train_start")
         codes = run_all(s, jobs, logs, deadline_s=end_train_s)
         for n, code in codes.items():

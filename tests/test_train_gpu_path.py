@@ -1,6 +1,7 @@
 """The GPU path of d2turb.train, run on CPU with tiny models: training from an in-memory pack with pack validation
 (PSNR/SSIM and flow end-point error vs zero flow), EMA against a hand-computed average, --init-from (file and name,
-strict, mismatched config refused, resume wins), torch.compile, SIGTERM, detached training and --status."""
+strict, mismatched config refused, resume wins; a plain NAFNet file initialises D²Turb's backbone), torch.compile,
+SIGTERM, detached training and --status."""
 
 import json
 import os
@@ -126,6 +127,34 @@ def test_init_from_file_and_name(pairs, tmp_path, monkeypatch):
         Trainer(tiny_cfg(pairs, init_from=str(other)), tmp_path / "mismatch")
     with pytest.raises(D2TurbError, match="not found"):
         Trainer(tiny_cfg(pairs, init_from="no-such-weights"), tmp_path / "missing")
+
+
+def test_init_from_a_plain_backbone_loads_the_backbone_and_starts_as_it(pairs, tmp_path):
+    """A D²Turb run started from a standalone NAFNet file (the shipped models' kind) takes its backbone strictly and
+    keeps its own rectifier; with the zero flow head the model restores exactly as the NAFNet file does (the oracle:
+    the file loaded on its own), and a backbone of another config is refused."""
+    from d2turb.models import create_model, load_pretrained, save_pretrained
+
+    backbone_cfg = TINY_MODEL["backbone_cfg"]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(99)
+        nafnet = create_model("nafnet", **backbone_cfg)
+        for p in nafnet.parameters():  # trained-looking weights: NAFNet's gains start at zero (identity)
+            p.data.add_(0.05 * torch.randn_like(p))
+    path = save_pretrained(nafnet, tmp_path / "nafnet.safetensors")
+    trainer = Trainer(tiny_cfg(pairs, init_from=str(path), ema=0.9), tmp_path / "run")
+    expected = nafnet.backbone.state_dict()
+    assert all(torch.equal(v, expected[k]) for k, v in trainer.model.backbone.state_dict().items())
+    assert all(torch.equal(v, expected[k]) for k, v in trainer.ema.model.backbone.state_dict().items())
+    x = torch.rand(2, 3, 32, 64, generator=torch.Generator().manual_seed(3))  # sides of D²Turb's multiple: no pad
+    with torch.no_grad():
+        out, ref = trainer.model.eval()(x), load_pretrained(path)(x)["restored"]
+    assert torch.equal(out["bwd_flow_px"], torch.zeros_like(out["bwd_flow_px"]))
+    torch.testing.assert_close(out["restored"], ref, atol=1e-6, rtol=0)
+    assert (ref - x).abs().mean() > 1e-3  # the weights do something: the comparison is not identity against identity
+    narrower = save_pretrained(create_model("nafnet", **{**backbone_cfg, "width": 4}), tmp_path / "n4.safetensors")
+    with pytest.raises(D2TurbError, match="or its backbone"):
+        Trainer(tiny_cfg(pairs, init_from=str(narrower)), tmp_path / "mismatch")
 
 
 @pytest.mark.slow

@@ -151,7 +151,12 @@ def load_checkpoint(path: Path, model_cfg: dict, model: torch.nn.Module, optimiz
 
 def load_weights(model: torch.nn.Module, weights: str | os.PathLike) -> Path:
     """Load weights only (no optimiser or schedule) into ``model``, strictly, from a d2turb ``.safetensors`` file or
-    weights name (resolved like ``d2turb restore --weights``) whose model config equals ``model.config``.
+    weights name (resolved like ``d2turb restore --weights``).
+
+    The file's model config must equal ``model.config`` (every weight is loaded), or the file must hold a plain
+    backbone (a standalone restorer such as the shipped NAFNet models) whose config equals ``model.backbone``'s: then
+    only the backbone is loaded, strictly, and the rest keeps its initialisation. D²Turb's rectifier starts with a
+    zero flow head, so such a model starts as the backbone it was given: restored = Î_tilt = the backbone's output.
 
     Returns:
         The weights file.
@@ -160,13 +165,20 @@ def load_weights(model: torch.nn.Module, weights: str | os.PathLike) -> Path:
     if path == IDENTITY_NAME:
         raise D2TurbError(f"init_from {weights}: not a weights file", param="init_from")
     source = load_pretrained(path)  # verifies the checksum, strict
-    if _jsonable(source.config) != _jsonable(model.config):
-        raise D2TurbError(
-            f"init_from {path}: the weights are for model {_jsonable(source.config)}, not {_jsonable(model.config)}",
-            param="init_from",
-        )
-    model.load_state_dict(source.state_dict(), strict=True)
-    return path
+    if _jsonable(source.config) == _jsonable(model.config):
+        model.load_state_dict(source.state_dict(), strict=True)
+        return path
+    backbone = getattr(model, "backbone", None)
+    backbone_cfg = getattr(backbone, "config", None)
+    if backbone_cfg is not None and hasattr(model, "rectifier") and _jsonable(source.config) == _jsonable(backbone_cfg):
+        backbone.load_state_dict(source.backbone.state_dict(), strict=True)
+        return path
+    want = (
+        _jsonable(model.config) if backbone_cfg is None else f"{_jsonable(model.config)} or its backbone {backbone_cfg}"
+    )
+    raise D2TurbError(
+        f"init_from {path}: the weights are for model {_jsonable(source.config)}, not {want}", param="init_from"
+    )
 
 
 def _jsonable(obj):
