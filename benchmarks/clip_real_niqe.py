@@ -108,7 +108,7 @@ def _measure(path: Path, refused: str) -> dict:
     the registered displacement of the first 64 frames when the measurement refuses the clip."""
     head = _frames(path, MEASURE_FRAMES)
     try:
-        return {"dr0": float(measure_clip(head, {}, bootstrap=50, extrapolate=True)["dr0"]), "refused": None}
+        return {"dr0": float(measure_clip(head, {}, bootstrap=50)["dr0"]), "refused": None}
     except D2TurbError as exc:
         dr0 = registration_dr0(head) if refused == "registration" else None
         return {"dr0": dr0, "refused": str(exc), "source": f"{refused}"}

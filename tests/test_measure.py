@@ -244,6 +244,10 @@ def _write_frames(folder, frames):
         ("wavelength", "not smaller than the aperture"),
         ("key", "unknown key"),
         ("missing", "no such file"),
+        ("pitch", "--pixel-pitch needs --focal-length"),
+        ("focal", "--focal-length needs --pixel-pitch"),
+        ("ifov_twice", "ifov_rad given twice"),
+        ("f_number", "--f-number must be positive"),
     ],
 )
 def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
@@ -266,6 +270,10 @@ def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
             "wavelength": ["--wavelength", "0.2"],
             "key": ["--param", "focal=3"],
             "missing": [],
+            "pitch": ["--pixel-pitch", "5e-6"],
+            "focal": ["--focal-length", "0.3"],
+            "ifov_twice": ["--ifov", "1e-5", "--pixel-pitch", "5e-6", "--focal-length", "1.0"],
+            "f_number": ["--focal-length", "0.3", "--f-number", "0"],
         }[case]
         if case == "missing":
             clip = tmp_path / "nothing"
@@ -274,7 +282,22 @@ def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
     assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and message in err[0], err
 
 
-def test_measure_command_writes_json_and_plot(tmp_path, capsys):
+def test_camera_data_sheet_values_give_the_ifov_and_the_aperture():
+    # ifov = pixel pitch / focal length, D = focal length / f-number (docs/measure.md, "What you know"): 3.45 µm and
+    # 400 mm give 8.625 µrad; 400 mm at f/8 gives 50 mm; λ/(D·ifov) = λ·N/pitch = 525e-9·8/3.45e-6 = 1.2174 px
+    from d2turb.cli import build_parser
+    from d2turb.commands import measure
+    from d2turb.sim import Optics
+
+    args = ["measure", "c", "--out", "o", "--pixel-pitch", "3.45e-6", "--focal-length", "0.4", "--f-number", "8"]
+    given = measure.optics_of(build_parser().parse_args(args))
+    assert given == {"ifov_rad": pytest.approx(8.625e-6, rel=1e-12), "aperture_m": pytest.approx(0.05, rel=1e-12)}
+    assert Optics(**given).lambda_over_d_px == pytest.approx(1.2173913, rel=1e-6)
+    same = build_parser().parse_args([*args, "--ifov", "8.625e-6", "--aperture", "0.05"])  # agreeing: accepted
+    assert measure.optics_of(same) == given
+
+
+def test_measure_command_answers_with_its_interval_and_a_note(tmp_path, capsys, monkeypatch):
     base = _texture(112, 5)
     rng = np.random.default_rng(2)
     x = np.arange(112, dtype=np.float64)[None, :].repeat(112, 0)
@@ -285,24 +308,54 @@ def test_measure_command_writes_json_and_plot(tmp_path, capsys):
         frames.append(_warp(base, a * np.sin(2 * np.pi * x / 40), b * np.cos(2 * np.pi * y / 40))[8:-8, 8:-8])
     clip = _write_frames(tmp_path / "c", frames)
     out = tmp_path / "out"
-    args = ["--window", "8", "--plot", "--bootstrap", "20", "--ifov", "2.625e-6"]
-    # without the path the interval spans more than 3x: refused in one line naming what widens it
-    assert main(["measure", str(clip), "--out", str(out), *args]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error:") and "spans" in err[0], err
-    assert "widened most by unknown path length (give --path-length M)" in err[0], err
-    rc = main(["measure", str(clip), "--out", str(out), *args, "--any-width"])
-    assert rc == 0, capsys.readouterr().err
-    line = capsys.readouterr().out.strip().splitlines()
-    assert len(line) == 1 and "D/r0 =" in line[0] and "no path_length_m" in line[0]
-    assert "given: ifov_rad, marginalised: footprint_px" in line[0]
     import json
 
+    # nothing given: ρ is the answer, first in the line; D/r0 and r0 need the camera; its interval spans more than
+    # 3x: answered all the same (exit 0), with one note line naming what narrows it most
+    assert main(["measure", str(clip), "--out", str(tmp_path / "blind"), "--bootstrap", "20"]) == 0
+    captured = capsys.readouterr()
+    line, notes = captured.out.strip().splitlines(), captured.err.strip().splitlines()
+    assert len(line) == 1 and line[0].startswith("c: seeing angle ρ = λ/(r0·ifov) = "), line
+    assert "D/r0 and r0 need the camera's ifov" in line[0] and "given: none" in line[0]
+    blind = json.loads((tmp_path / "blind" / "measure.json").read_text())
+    assert blind["r0_m"] is None and blind["cn2"] is None and list(blind)[0] == "answer"  # ρ first (sorted keys)
+    assert blind["answer"] == {
+        "quantity": "seeing_px",
+        "value": blind["seeing_px"],
+        "ci": blind["seeing_px_ci"],
+        "unit": "px",
+    }
+    span = blind["seeing_px_ci"][1] / blind["seeing_px_ci"][0]
+    assert blind["narrowing"]["seeing_px"]["span"] == pytest.approx(span)
+    assert len(notes) == (span > M.MAX_SPAN), notes  # a note only beyond 3x
+    # a note: one line, the span and what narrows it most, to about the span it would have (the 3x limit lowered so
+    # that this clip's interval is beyond it)
+    monkeypatch.setattr(M, "MAX_SPAN", 1.01)
+    assert main(["measure", str(clip), "--out", str(tmp_path / "blind2"), "--bootstrap", "20"]) == 0
+    notes = capsys.readouterr().err.strip().splitlines()
+    n = blind["narrowing"]["seeing_px"]
+    flag = {"path_length_m": "--path-length M (the distance to the scene)", "ifov_rad": "--ifov RAD"}[n["by"]]
+    assert len(notes) == 1 and notes[0].startswith(
+        f"note: the 90 % interval of the seeing angle ρ = λ/(r0·ifov) spans {span:.1f}x; giving {flag}"
+    ), notes
+    assert f"narrows it most (to about {n['span_with']:.1f}x)" in notes[0] and n["span_with"] < span, notes
+    monkeypatch.undo()
+    # the camera given: D/r0 first, ρ beside it, r0; windows and the plot
+    args = ["--window", "8", "--plot", "--bootstrap", "20", "--ifov", "2.625e-6"]
+    assert main(["measure", str(clip), "--out", str(out), *args]) == 0
+    captured = capsys.readouterr()
+    line, notes = captured.out.strip().splitlines(), captured.err.strip().splitlines()
+    assert len(line) == 1 and "D/r0 =" in line[0] and "no --path-length" in line[0]
+    assert "given: ifov_rad, marginalised: footprint_px" in line[0]
     res = json.loads((out / "measure.json").read_text())
     assert res["cn2"] is None and res["dr0"] > 0 and res["dr0_ci"][0] <= res["dr0"] <= res["dr0_ci"][1]
+    assert res["r0_m"] == pytest.approx(0.1 / res["dr0"])
+    assert len(notes) == (res["dr0_ci"][1] / res["dr0_ci"][0] > M.MAX_SPAN), notes  # a note only beyond 3x
     assert len(res["windows"]) == 2 and (out / "measure.png").stat().st_size > 0
     # the seeing angle λ/(r0·ifov) in px: λ/(D·ifov) (2 px with this ifov and the default optics) times D/r0
-    assert "seeing λ/(r0·ifov) = " in line[0] and res["seeing_px"] == pytest.approx(2.0 * res["dr0"], rel=1e-6)
+    assert "seeing angle ρ = λ/(r0·ifov) = " in line[0]
+    assert res["seeing_px"] == pytest.approx(2.0 * res["dr0"], rel=1e-6)
     assert res["seeing_px_ci"][0] <= res["seeing_px"] <= res["seeing_px_ci"][1] and "seeing_px" in res["windows"][0]
+    assert res["answer"] == {"quantity": "dr0", "value": res["dr0"], "ci": res["dr0_ci"], "unit": ""}
     with pytest.raises(D2TurbError, match="window must be"):
         M.measure_clip(frames, window=4)

@@ -30,7 +30,7 @@ for i in range(n):
     frames = [jpeg(f, quality) for f in frames]
     row = {"i": i, "dr0": dr0, "q": q, "L": L, "footprint_px": p.aperture_m**2 * q / (p.wavelength_m * L)}
     try:
-        r = M.measure_clip(frames, p, bootstrap=50, extrapolate=True)
+        r = M.measure_clip(frames, p, bootstrap=50)
         row.update(
             est=r["dr0"],
             ci=r["dr0_ci"],

@@ -73,22 +73,22 @@ print(")")
 
 
 def measure(c, gains_fn, n_boot=200, seed=0):
-    """D̂, the bootstrap sd of ln D̂ with the gains of gains_fn(dr0) (the estimator of measure._estimate), and the
+    """D̂, the bootstrap sd of ln D̂ with the gains of gains_fn(dr0) (the estimator of estimate_from_sums), and the
     sub-estimates of the same clip from parts of its series with the same gains: x / y displacement component,
     separation along x / along y, each separation alone."""
     t_len = c["num"].shape[-1]
     unit = (c["aperture_m"], c["wavelength_m"], c["ifov_rad"])
-    models = M._models(c["series"], t_len, [c["ifov_rad"] * c["path_length_m"] / c["aperture_m"]])
+    models = M.structure_models(c["series"], t_len, [c["ifov_rad"] * c["path_length_m"] / c["aperture_m"]])
     dr0 = 2.5
     for _ in range(3):
         gains = gains_fn(dr0)[None]
-        sig2, _ = M._fit(c["num"].sum(0), c["pairs"].sum(0), t_len, models, gains)
+        sig2, _ = M.fit_nuisance(c["num"].sum(0), c["pairs"].sum(0), t_len, models, gains)
         dr0 = float(dr0_from_tilt_variance(sig2, *unit))
     sub = {}
     for key, idx in (("comp", 2), ("orient", 1), ("sep", 0)):
         for v in sorted({s[idx] for s in c["series"]}):
             sel = [j for j, s in enumerate(c["series"]) if s[idx] == v]
-            s2, _ = M._fit(
+            s2, _ = M.fit_nuisance(
                 c["num"][:, sel].sum(0), c["pairs"][:, sel].sum(0), t_len, models[..., sel, :], gains[:, sel]
             )
             sub[f"{key}{v}"] = float(dr0_from_tilt_variance(s2, *unit))
@@ -97,7 +97,7 @@ def measure(c, gains_fn, n_boot=200, seed=0):
     boot = []
     for _ in range(n_boot):
         pick = rng.integers(0, n, n)
-        boot.append(M._fit(c["num"][pick].sum(0), c["pairs"][pick].sum(0), t_len, models, gains)[0])
+        boot.append(M.fit_nuisance(c["num"][pick].sum(0), c["pairs"][pick].sum(0), t_len, models, gains)[0])
     if not boot:
         return dr0, 0.0, sub
     return dr0, float(np.std(np.log(dr0_from_tilt_variance(np.array(boot), *unit)))), sub

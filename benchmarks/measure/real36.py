@@ -19,7 +19,7 @@ for c in clips:
         continue
     for label, opt in (("none", None), ("guess", {"path_length_m": 1000.0, "ifov_rad": 525e-9 / 0.2})):
         try:
-            r = M.measure_clip(frames, opt, window=30 if len(frames) >= 60 else None, bootstrap=100, extrapolate=True)
+            r = M.measure_clip(frames, opt, window=30 if len(frames) >= 60 else None, bootstrap=100)
             lo, hi = r["dr0_ci"]
             print(
                 json.dumps(

@@ -52,7 +52,7 @@ if __name__ == "__main__":
         t1 = time.time()
         for opt in (None, {"path_length_m": L}, {"ifov_rad": p.ifov_rad}, p):
             try:
-                r = M.measure_clip(frames, opt, bootstrap=50, extrapolate=True)
+                r = M.measure_clip(frames, opt, bootstrap=50)
                 print(
                     dr0,
                     q,

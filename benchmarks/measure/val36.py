@@ -24,7 +24,7 @@ for i in range(n):
     row = {"i": i, "dr0": dr0, "q": q, "L": L, "wind": wind, "boil": boil, "noise": noise}
     for label, opt in (("none", None), ("all", p)):
         try:
-            r = M.measure_clip(frames, opt, bootstrap=50, extrapolate=True)
+            r = M.measure_clip(frames, opt, bootstrap=50)
             row[label] = {"dr0": r["dr0"], "ci": r["dr0_ci"]}
         except D2TurbError as e:
             row[label] = {"refused": str(e)}

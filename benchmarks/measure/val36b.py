@@ -58,7 +58,7 @@ def main():
             if label not in labels:
                 continue
             try:
-                r = M.measure_clip(clip_frames, opt, bootstrap=50, extrapolate=True)
+                r = M.measure_clip(clip_frames, opt, bootstrap=50)
                 lo, hi = r["dr0_ci"]
                 row[label] = {"dr0": r["dr0"], "ci": r["dr0_ci"], "refused": bool(not lo > 0 or hi / lo > M.MAX_SPAN)}
                 row[label].update(seeing=r["seeing_px"], seeing_ci=r["seeing_px_ci"])  # truth: q·D/r0

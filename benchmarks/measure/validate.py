@@ -58,7 +58,7 @@ def measure(frames, optics, cache):
             np.savez(cache, num=num, pairs=pairs, series=np.array(series), diag=json.dumps(diag))
         if STATS_ONLY:
             return {}
-        r = M.estimate_from_sums(num, pairs, series, optics, M.footprint_grid(optics), bootstrap=200)
+        r = M.estimate_from_sums(num, pairs, series, optics, bootstrap=200).to_dict()
     except D2TurbError as exc:  # a refusal is a result too
         return {"error": str(exc)}
     return {k: r[k] for k in ("dr0", "dr0_ci", "dr0_log_sd")} | {

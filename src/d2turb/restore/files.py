@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
-from d2turb.clip.strength import measure_clip
+from d2turb.clip.strength import estimate_words, measure_clip, undetermined_dr0
 from d2turb.defaults import DEFAULT_FUSION, FUSION_WITHOUT_DEBLUR
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
@@ -313,10 +313,14 @@ def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
 
 
 def _measured_dr0(head: list, params: dict) -> dict:
-    """``d2turb measure``'s result on the clip's first frames ``head`` (the same estimate, interval and refusals: what
-    ``restore`` calls measured, ``measure`` measures); D2TurbError if it cannot be."""
+    """``d2turb measure``'s result on the clip's first frames ``head`` (the same estimates and intervals: what
+    ``restore`` calls measured, ``measure`` measures); D2TurbError where measure refuses, or where D/r0 is not
+    determined (the physics deblur needs it), said in measure's terms: the seeing angle without the camera."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
-    return measure_clip(head, optics, bootstrap=50)
+    measured = measure_clip(head, optics, bootstrap=50)
+    if not measured["dr0_determined"]:
+        raise D2TurbError(undetermined_dr0(measured))
+    return measured
 
 
 def clip_deblur(
@@ -327,7 +331,7 @@ def clip_deblur(
 
     Args:
         choice: ``none``; ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 that
-            ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused when it refuses);
+            ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused where it is not determined);
             ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blind.BlindDeblur`,
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
@@ -350,8 +354,10 @@ def clip_deblur(
                 measured = _measured_dr0(head, params)
             except D2TurbError as exc:
                 raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
-            dr0, (lo, hi) = measured["dr0"], measured["dr0_ci"]
-            source = f"measured on the clip's first {len(head)} frames (d2turb measure, 90 % [{lo:.3g}, {hi:.3g}])"
+            dr0 = measured["dr0"]
+            source = (
+                f"measured on the clip's first {len(head)} frames (d2turb measure, 90 %: {estimate_words(measured)})"
+            )
             if "ifov_rad" not in params:  # the λ/(D·ifov) at which measure's estimate holds
                 o = Optics(**{k: params[k] for k in ("aperture_m", "wavelength_m") if k in params})
                 params["ifov_rad"] = o.wavelength_m / (o.aperture_m * measured["lambda_over_d_px"])
@@ -363,7 +369,7 @@ def clip_deblur(
             "method": "physics",
             "dr0": p.dr0,
             "dr0_source": source,
-            **({"dr0_ci": measured["dr0_ci"]} if measured else {}),
+            **({k: measured[k] for k in ("dr0_ci", "seeing_px", "seeing_px_ci")} if measured else {}),
             "otf_dr0": deblur.dr0,
             "lambda_over_d_px": p.lambda_over_d_px,
             "optics": optics,
