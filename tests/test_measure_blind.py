@@ -85,19 +85,22 @@ def test_interval_without_optics_covers_the_simulated_truth(blind):
 
 
 @pytest.mark.slow
-def test_with_the_camera_and_the_distance_the_interval_covers_the_simulated_truth(clips):
+def test_with_the_camera_and_the_distance_the_interval_covers_the_simulated_truth(clips, blind):
     # the same 8 clips with ifov and path given (the simulator's): D/r0's interval covers the truth in all but one
     # (sample size 8, standard error near 0.9: 0.11; the 0.93 ± 0.03 of 100 clips is in docs/measure.md); D/r0 is
     # determined (within 3x) where the tilt is inside the calibrated box (rms ≤ 2.98 px)
-    covered = []
-    for (dr0, q, *_), (frames, p) in zip(CASES, clips):
+    covered, refused = [], []
+    for (dr0, q, *_), (frames, p), blind_out in zip(CASES, clips, blind):
+        if isinstance(blind_out, str):  # a refusal (texture) does not depend on the optics
+            refused.append(blind_out)
+            continue
         out = M.measure_clip(frames, p, bootstrap=20)
         lo, hi = out["dr0_ci"]
         covered.append(lo <= dr0 <= hi)
         assert out["answer"]["quantity"] == "dr0" and out["r0_m"] == pytest.approx(APERTURE / out["dr0"])
         if np.sqrt(0.1816) * q * dr0 ** (5 / 6) <= M.CALIBRATED_TILT_RMS_PX:
             assert out["dr0_determined"], (dr0, q, out["dr0_ci"])
-    assert sum(covered) >= len(covered) - 1, covered
+    assert len(refused) <= 1 and sum(covered) >= len(covered) - 1, (refused, covered)
 
 
 @pytest.mark.slow
