@@ -20,6 +20,7 @@ averaged first), so crops of one image are not counted as independent.
     OMP_NUM_THREADS=1 nice -n 10 python benchmarks/rectifier_tilt_learnability.py --name mixed --minutes 12
     ... --name oracle --oracle --minutes 12   # the rectifier also sees the clean image: the flow is a registration
     ... --name dis --dis                       # no training: DIS given the clean image
+    ... --name sizes --sizes                   # no training: the crop-mean share of the flow at 64² ... 256²
     ... --table benchmarks/results/rectifier_tilt_{dis,mixed,oracle}.json     # the table of docs/training.md
 
 Writes benchmarks/results/rectifier_tilt_<name>.json (config, training curve, per-crop rows, per-category, -folder
@@ -306,6 +307,41 @@ def summarise(rows: list[dict], key) -> dict:
     return out
 
 
+def mean_share_by_size(args, sizes=(64, 96, 128, 256), batches: int = 8) -> dict:
+    """No training: on held-out crops of each size, the zero-flow EPE, the size of the crop's mean displacement and
+    the EPE of the flow minus that mean (``batches`` × ``args.batch`` crops per size, seed 5)."""
+    held = Images(HELD_OUT, args.max_side, args.patch, args.cache)
+    sims = [Simulator(p, "cpu") for p in geometry_bank("field", {})]
+    out = {}
+    for size in sizes:
+        synth = OnTheFlySynthesis(sims, bins=("weak", "medium", "strong"), seed=5, use_depth=True)
+        ok = [i for i, im in enumerate(held.images) if min(im.shape[-2:]) >= size]
+        rng = np.random.default_rng(size)
+        zero, mean_px, const = [], [], []
+        for _ in range(batches):
+            gts, deps = [], []
+            for i in rng.choice(ok, args.batch):
+                im, d = held.images[i], held.depths[i]
+                h, w = im.shape[-2:]
+                y, x = rng.integers(h - size + 1), rng.integers(w - size + 1)
+                gts.append(im[:, y : y + size, x : x + size].float() / 255)
+                deps.append(d[:, y : y + size, x : x + size].float())
+            flow = synth({"gt": torch.stack(gts), "depth": torch.stack(deps)})["bwd_flow_px"]
+            mean = flow.mean(dim=(2, 3), keepdim=True)
+            zero += epe_map(0 * flow, flow).tolist()
+            mean_px += mean.flatten(1).norm(dim=1).tolist()
+            const += epe_map(mean.expand_as(flow), flow).tolist()
+        out[size] = {
+            "crops": len(zero),
+            "epe_zero": float(np.mean(zero)),
+            "mean_px": float(np.mean(mean_px)),
+            "epe_const": float(np.mean(const)),
+            "mean_share": float(np.mean(mean_px) / np.mean(zero)),
+        }
+        print(size, json.dumps(out[size]), flush=True)
+    return out
+
+
 def write_json(path: Path, obj) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
@@ -344,6 +380,7 @@ def main() -> None:
     ap.add_argument("--charts", type=float, default=1 / 3, help="share of synthetic charts in each training batch")
     ap.add_argument("--oracle", action="store_true", help="the rectifier also sees the clean image (6 channels)")
     ap.add_argument("--dis", action="store_true", help="no training: DIS optical flow given the clean image")
+    ap.add_argument("--sizes", action="store_true", help="no training: the crop-mean share of the flow by crop size")
     ap.add_argument("--source", choices=["tilt", "turb"], default="tilt", help="the frame the rectifier sees")
     ap.add_argument("--patch", type=int, default=96)
     ap.add_argument("--batch", type=int, default=16)
@@ -370,6 +407,10 @@ def main() -> None:
     out = Path(args.out or ROOT / "benchmarks" / "results" / f"rectifier_tilt_{args.name}.json")
 
     folders = TRAIN["structured"] + TRAIN["natural"] if args.train == "all" else TRAIN[args.train]
+    if args.sizes:
+        result = {"config": config, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+        write_json(out, result | {"by_size": mean_share_by_size(args)})
+        return
     if args.dis:
         eval_set = build_eval(args, synth_seed=12345)
         rows = evaluate(None, eval_set, args)
