@@ -222,6 +222,7 @@ class Mp4Writer:
 
 
 VIDEO_CODECS = {"h264": "libx264", "h265": "libx265"}
+MIN_CODEC_SIDE = 64  # encode_decode pads smaller frames to this (x265's largest coding unit)
 
 
 def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float = 30.0) -> np.ndarray:
@@ -229,7 +230,8 @@ def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float =
 
     Single-threaded (``threads=1``) so that the result depends on the input and settings alone; average-bitrate
     rate control at ``bitrate_bps``, yuv420p (odd sizes padded by one edge row/column, cropped after), x264/x265
-    speed preset ``X264_PRESET``, one keyframe at the start (GOP = the clip).
+    speed preset ``X264_PRESET``, one keyframe at the start (GOP = the clip). Frames under ``MIN_CODEC_SIDE`` px a
+    side are padded (edge) to it: libx265 corrupted the heap on 36² frames after larger ones in one process.
 
     Args:
         frames: (N, H, W, 3) uint8 RGB frames.
@@ -251,11 +253,12 @@ def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float =
         raise D2TurbError(f"codec must be one of {', '.join(VIDEO_CODECS)}, got {codec!r}")
     frames = np.asarray(frames, dtype=np.uint8)
     n, h, w = frames.shape[:3]
+    ph, pw = max(h + h % 2, MIN_CODEC_SIDE), max(w + w % 2, MIN_CODEC_SIDE)  # the size the encoder sees
     buf = io.BytesIO()
     with av.open(buf, "w", format="mp4") as container:
         stream = container.add_stream(VIDEO_CODECS[codec], rate=Fraction(fps).limit_denominator(65535))
         stream.pix_fmt = "yuv420p"
-        stream.height, stream.width = h + h % 2, w + w % 2
+        stream.height, stream.width = ph, pw
         stream.bit_rate = int(bitrate_bps)
         stream.gop_size = max(n, 1)
         stream.thread_count = 1
@@ -264,7 +267,7 @@ def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float =
         else:
             stream.options = {"preset": X264_PRESET, "x265-params": "pools=1:frame-threads=1:log-level=error"}
         for i, frame in enumerate(frames):
-            padded = np.ascontiguousarray(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+            padded = np.ascontiguousarray(np.pad(frame, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge"))
             yuv = av.VideoFrame.from_ndarray(padded, "rgb24").reformat(format="yuv420p", threads=1)
             yuv.pts = i
             for packet in stream.encode(yuv):
