@@ -228,7 +228,9 @@ MIN_CODEC_SIDE = 64  # encode_decode pads smaller frames to this (x265's largest
 def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float = 30.0) -> np.ndarray:
     """A clip through a video codec and back, in memory (PyAV): what a camera or a video file leaves of it.
 
-    Single-threaded (``threads=1``) so that the result depends on the input and settings alone; average-bitrate
+    Single-threaded, and x264 without its assembly (which read memory it had not written: 198² clips came out
+    different from one encoding to the next; C only costs about 0.3 s per 32 frames of 256²), so that the result
+    depends on the input and settings alone (tests/test_camera.py); average-bitrate
     rate control at ``bitrate_bps``, yuv420p (odd sizes padded by one edge row/column, cropped after), x264/x265
     speed preset ``X264_PRESET``, one keyframe at the start (GOP = the clip). Frames under ``MIN_CODEC_SIDE`` px a
     side are padded (edge) to it: libx265 corrupted the heap on 36² frames after larger ones in one process.
@@ -261,9 +263,10 @@ def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float =
         stream.height, stream.width = ph, pw
         stream.bit_rate = int(bitrate_bps)
         stream.gop_size = max(n, 1)
-        stream.thread_count = 1
-        if codec == "h264":
-            stream.options = {"preset": X264_PRESET, "threads": "1"}
+        stream.codec_context.thread_count = 1
+        stream.codec_context.thread_type = "NONE"
+        if codec == "h264":  # x264's assembly gave 2-5 different streams in 8 encodings of one 198² clip: C only
+            stream.options = {"preset": X264_PRESET, "x264-params": "threads=1:lookahead-threads=1:no-asm=1"}
         else:
             stream.options = {"preset": X264_PRESET, "x265-params": "pools=1:frame-threads=1:log-level=error"}
         for i, frame in enumerate(frames):
@@ -277,6 +280,7 @@ def encode_decode(frames: np.ndarray, codec: str, bitrate_bps: int, fps: float =
     buf.seek(0)
     out = []
     with av.open(buf, "r") as container:
+        container.streams.video[0].thread_type = "NONE"
         for frame in container.decode(video=0):
             out.append(frame.to_ndarray(format="rgb24")[:h, :w])
     if len(out) != n:
