@@ -248,6 +248,7 @@ def _write_frames(folder, frames):
         ("focal", "--focal-length needs --pixel-pitch"),
         ("ifov_twice", "ifov_rad given twice"),
         ("f_number", "--f-number must be positive"),
+        ("grey", "has texture (need 2 %): a flat scene"),
     ],
 )
 def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
@@ -259,6 +260,9 @@ def test_bad_input_is_one_error_line(tmp_path, capsys, case, message):
         clip = _write_frames(tmp_path / "c", [np.full((64, 64), 0.5)] * 10)
     elif case == "sizes":
         clip = _write_frames(tmp_path / "c", tex[:3] + [np.zeros((60, 64))] + tex[4:])
+    elif case == "grey":  # a constant grey with camera noise: the cause is the texture, not the registration
+        rng = np.random.default_rng(7)
+        clip = _write_frames(tmp_path / "c", [np.clip(0.6 + rng.normal(0, 1 / 255, (96, 96)), 0, 1) for _ in range(10)])
     elif case == "flat":  # a smooth ramp with a little noise: no texture to register
         ramp = np.linspace(0.3, 0.35, 64)[None, :].repeat(64, 0)
         noisy = [ramp + 0.002 * np.random.default_rng(i).random((64, 64)) for i in range(10)]

@@ -1,7 +1,8 @@
 # issue 53 acceptance 1-3 from val53.py's rows (docs/measure.md, "Validation (issue 53)"): per measurement (nothing
 # given: the seeing angle ρ; --ifov and --path-length given: D/r0, and ρ beside it) the clips counted (flat crops, a
 # refusal with under 2 % textured area, left out), refused, the median |relative error| of the point estimate, the
-# coverage of the 90 % interval with its binomial standard error sqrt(c(1 - c)/n), and the intervals' spans.
+# coverage of the 90 % interval with its binomial standard error sqrt(c(1 - c)/n) and its exact (Clopper-Pearson)
+# one-sided 95 % lower bound (the standard error is 0 when every clip is covered), and the intervals' spans.
 # python3 table53.py val53.jsonl [more.jsonl ...] (rows of one clip in several files are merged by label)
 import json
 import math
@@ -9,6 +10,7 @@ import re
 import sys
 
 import numpy as np
+from scipy import stats as sps
 
 rows: dict = {}
 for path in sys.argv[1:]:
@@ -19,7 +21,10 @@ for path in sys.argv[1:]:
 
 def flat(m: dict) -> bool:
     """A refusal for a crop with under 2 % textured area (acceptance 3: refused with the cause, not counted)."""
-    t = re.search(r"textured (\d+(?:\.\d+)?) %", m.get("error", ""))
+    e = m.get("error", "")
+    t = re.search(r"only (\d+(?:\.\d+)?) % of the analysed area has texture ", e) or re.search(
+        r"textured (\d+(?:\.\d+)?) %", e
+    )
     return bool(t) and float(t.group(1)) < 2.0
 
 
@@ -41,6 +46,7 @@ def stats(label: str, key: str, truth: str) -> dict:
         "median_abs_rel_error": float(np.median(err)) if n else None,
         "coverage": c,
         "coverage_se": math.sqrt(c * (1 - c) / n) if n else None,
+        "coverage_lower_95": float(sps.beta.ppf(0.05, int(cov.sum()), n - int(cov.sum()) + 1)) if n else None,
         "median_span": float(np.median(span)) if n else None,
         "span_range": [float(span.min()), float(span.max())] if n else None,
         "over_3x": int((span > 3).sum()),

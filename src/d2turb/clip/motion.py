@@ -127,6 +127,11 @@ def register_measurable(gray: np.ndarray, preset: str = "medium") -> tuple[np.nd
     """:func:`register_clip` with the refusals of :func:`measure_clip` (frames that are not one static scene, too
     little usable area) as one-line ``D2TurbError``."""
     flows, mask, diag = register_clip(gray, preset)
+    if diag["textured_fraction"] < MIN_VALID_FRACTION:  # first: without texture the residual means nothing
+        raise D2TurbError(
+            f"cannot measure this clip: only {100 * diag['textured_fraction']:.1f} % of the analysed area has texture "
+            f"(need {100 * MIN_VALID_FRACTION:.0f} %): a flat scene (sky, a plain wall) shows no motion to measure"
+        )
     if diag["median_residual_grey"] > RESIDUAL_REFUSE:
         raise D2TurbError(
             f"cannot measure this clip: the frames do not register onto one static scene (median residual "
