@@ -355,7 +355,8 @@ def table(paths: list[Path]) -> str:
     crops (images), EPE of zero flow and of its crop-mean part, then each run's EPE as a ratio to zero flow ± s.e."""
     runs = [json.loads(p.read_text()) for p in paths]
     head = "| held-out crops | n crops (images) | EPE zero flow (px) | its crop mean: ‖mean V‖ (px) |"
-    head += "".join(f" {r['config']['name']}: EPE / zero |" for r in runs)
+    labels = {"dis": "DIS, clean crop given", "mixed": "rectifier, one frame", "oracle": "rectifier, clean crop given"}
+    head += "".join(f" {labels.get(r['config']['name'], r['config']['name'])}: EPE (/ zero) |" for r in runs)
     lines = [head, "|---|---:|---:|---:|" + "---:|" * len(runs)]
     for cat in ("structured", "mixed", "natural", "charts"):
         base = runs[0]["by_category"].get(cat)
@@ -366,7 +367,7 @@ def table(paths: list[Path]) -> str:
         row += f"{base['mean_px']:.3f} ({floor:.2f}) |"
         for r in runs:
             c = r["by_category"][cat]
-            row += f" {c['epe']:.3f} ({c['ratio']:.4f} ± {c['ratio_se']:.4f}) |"
+            row += f" {c['epe']:.3f} ({c['ratio']:.4f} ± {c['ratio_se']:.2g}) |"
         lines.append(row)
     return "\n".join(lines)
 
