@@ -61,8 +61,7 @@ def _fused_clip(scene: str, dr0: float, lod: float, seed: int, size: int = 128, 
     run = sim.sequence(_scene(scene, size), frames=frames, wind=2.0, boil=0.1, dr0=dr0,
                        generator=torch.Generator().manual_seed(seed))  # fmt: skip
     clip = [(r.turb[0] if r.turb.dim() == 4 else r.turb).clamp(0, 1) for r in run]
-    out = next(iter(ClipRestorer(temporal=frames).restore(clip)))
-    return out.fused, out.bwd_flow_px
+    return [(out.fused, out.bwd_flow_px) for out in ClipRestorer(temporal=frames).restore(clip)]
 
 
 # (scene, D/r0, λ/(D·ifov)): two optics at two strengths of the validation clips' range
@@ -80,13 +79,19 @@ def clips():
 @pytest.mark.slow
 def test_learned_estimate_recovers_the_simulators_optics_and_orders_them(clips):
     """λ/(D·ifov) of simulated clips (scenes never trained on) within the 95 % spread measured on the validation
-    clips; the wider optics give the larger estimate on the same scene and strength."""
-    estimates = {case: estimate_blur_params(*clip) for case, clip in clips.items()}
-    for (scene, dr0, lod), est in estimates.items():
-        assert abs(math.log(est.lambda_over_d_px / lod)) < LOD_LOG_TOLERANCE, (scene, dr0, lod, est)
-        assert all(s > 0 for s in est.log_sd)
+    clips; the wider optics give the larger estimate on the same scene and strength. Each estimate is the geometric
+    mean over the clip's 12 outputs: one frame's tilt is one draw (frame 0 of the astronaut clips moves less at
+    λ/(D·ifov) 3 than at 1.5: 1.38 against 1.79 px rms in the simulator's truth), and an exact registration reads it so
+    (issue 49's canvas registration: 1.26 px, where the window-mean one read 1.95)."""
+    lods = {}
+    for case, outputs in clips.items():
+        per_frame = [estimate_blur_params(fused, flow) for fused, flow in outputs]
+        assert all(all(s > 0 for s in est.log_sd) for est in per_frame)
+        lods[case] = math.exp(np.mean([math.log(est.lambda_over_d_px) for est in per_frame]))
+    for (scene, dr0, lod), est in lods.items():
+        assert abs(math.log(est / lod)) < LOD_LOG_TOLERANCE, (scene, dr0, lod, est)
     for scene, dr0 in {(s, d) for s, d, _ in CASES}:
-        assert estimates[(scene, dr0, 3.0)].lambda_over_d_px > estimates[(scene, dr0, 1.5)].lambda_over_d_px
+        assert lods[(scene, dr0, 3.0)] > lods[(scene, dr0, 1.5)]
 
 
 def test_learned_blind_deblur_brings_a_simulated_clip_closer_to_the_scene(clips):
@@ -94,7 +99,7 @@ def test_learned_blind_deblur_brings_a_simulated_clip_closer_to_the_scene(clips)
     (the scene's global offset removed first, as the clip evaluation does)."""
     from d2turb.eval.clips import remove_global_offset
 
-    fused, flow = clips[("coffee", 2.0, 3.0)]
+    fused, flow = clips[("coffee", 2.0, 3.0)][0]
     deblur = BlindDeblur()
     deblur.bwd_flow_px = flow
     out = deblur(fused)

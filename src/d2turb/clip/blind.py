@@ -46,6 +46,10 @@ LEARNED_MAX_DR0 = 2.5
 # the learned blur's MTF at 0.25 cycles/px (M·T(0.25·λ/(D·ifov); D/r0) + 1 − M) at or above which the frame is
 # taken as sharp (nothing to deblur): the sharp samples of the training are taught M 0.1, an MTF of 0.9+
 LEARNED_SHARP_MTF = 0.8
+# a clip whose registered frames move less than this (rms about the frame's mean, px) shows no turbulence, and so no
+# turbulent blur to undo: the blind deblur leaves it alone (DIS reads about 0.02-0.05 px on a still, noisy clip; the
+# weakest clip of the blind test set, D/r0 1.08, reads 0.64 px)
+STILL_TILT_RMS_PX = 0.15
 # ringing guard of the learned shape (ringing_index of the deblur; RINGING_STEPS on λ/(D·ifov))
 LEARNED_RINGING_MAX = PHYSICS_RINGING_MAX
 
@@ -163,6 +167,14 @@ class BlindDeblur:
         if est.tiles < MIN_TILES:  # too few strong edges: nothing shows the blur, the texture may be noise
             self._no_deblur(rec, f"no deblurring: the blur estimate is not reliable ({est.reason})")
             return
+        if self.bwd_flow_px is not None:
+            flow = self.bwd_flow_px.double()
+            rms = float((flow - flow.mean((1, 2), keepdim=True)).pow(2).sum(0).mean().sqrt())
+            rec["tilt_rms_px"] = rms
+            if rms < STILL_TILT_RMS_PX:
+                rec["reason"] = f"the frames hardly move ({rms:.2f} px rms): no turbulence, nothing to deblur"
+                self.record = rec
+                return
         b = estimate_blur_params(fused, self.bwd_flow_px, self.net)
         rec["learned"] = b.as_dict()
         rec["source"] = "estimated from the fused frame and the registered motion (learned, clip.blur_net)"

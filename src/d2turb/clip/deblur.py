@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 
 from d2turb.errors import D2TurbError
@@ -20,6 +22,13 @@ from d2turb.sim.params import MAX_DR0
 BALANCE_AT_2 = 0.00025
 LAPLACIAN_BALANCE_AT_2 = 0.002
 PRIORS = {"gradient": BALANCE_AT_2, "laplacian": LAPLACIAN_BALANCE_AT_2}  # each prior's weight at D/r0 = 2
+# the tone guard (``tone_guard``): a deblurred pixel beyond the fused frame's range over a TONE_WINDOW_PX square may use
+# at most TONE_HEADROOM of what is left from that range to black or white (crushed shadows, bright rims: issue 49)
+TONE_WINDOW_PX = 5
+TONE_HEADROOM = 0.5
+# ... and within TONE_KNEE of black or white (the fused pixel's own value) the deblur's change fades linearly to none
+# there: deep shadows and highlights hold noise and clipping, not detail (the test3 clip's black area, issue 49)
+TONE_KNEE = 12 / 255
 
 
 def _checked(prior: str) -> str:
@@ -211,3 +220,48 @@ class PhysicsDeblur:
             gain = wiener_gain(self.otf(*size), self.balance, shape, self.prior)
             self._gain[size] = gain.clamp(min=1.0) if self.boost_only else gain
         return wiener_deconvolve(image, self._gain[size])
+
+
+def tone_guard(
+    fused: torch.Tensor,
+    deblurred: torch.Tensor,
+    window: int = TONE_WINDOW_PX,
+    headroom: float = TONE_HEADROOM,
+    knee: float = TONE_KNEE,
+) -> torch.Tensor:
+    """The deblurred frame with its over- and undershoots limited by the tones left: where it leaves the fused frame's
+    local range [lo, hi] (min and max over a ``window`` square, per channel), it keeps its own value within
+    ``[lo − headroom·lo, hi + headroom·(1 − hi)]``. Inside the local range nothing changes, so edges keep the
+    steepness the deblur gave them; a dark region next to a bright one is not pushed to black, nor a bright one to
+    white (the lunar clip's crushed shadows and bright rims, issue 49), while a halo's part within the headroom stays.
+    Within ``knee`` of black or white (the fused pixel's value) the change fades to none at black or white.
+
+    Args:
+        fused: the frame the deblur was given, float in [0, 1].
+        deblurred: its deblurred version.
+        window: side of the square (px) of the local range.
+        headroom: share of the distance from the local range to black (or white) an overshoot may take.
+        knee: tones this close to black or white have the deblur's change scaled by their distance / ``knee``.
+
+    Returns:
+        float32 (C, H, W) in [0, 1].
+
+    Shape:
+        fused, deblurred: (C, H, W), the same.
+    """
+    if fused.shape != deblurred.shape or fused.dim() != 3:
+        raise D2TurbError(f"tone_guard needs two (C,H,W) frames of one shape, got {tuple(fused.shape)}, "
+                          f"{tuple(deblurred.shape)}")  # fmt: skip
+    kernel = np.ones((window, window), np.uint8)
+    src = np.ascontiguousarray(fused.detach().cpu().float().permute(1, 2, 0).numpy())
+    lo = cv2.erode(src, kernel, borderType=cv2.BORDER_REPLICATE).reshape(src.shape)  # local min (a flat structuring
+    hi = cv2.dilate(src, kernel, borderType=cv2.BORDER_REPLICATE).reshape(src.shape)  # element: separable in OpenCV)
+    floor = torch.from_numpy(lo * np.float32(1 - headroom)).permute(2, 0, 1)
+    ceiling = torch.from_numpy(hi + np.float32(headroom) * (1 - hi)).permute(2, 0, 1)
+    out = deblurred.detach().cpu().float()
+    out = torch.minimum(torch.maximum(out, floor), ceiling)
+    if knee > 0:
+        f = fused.detach().cpu().float()
+        weight = (torch.minimum(f, 1 - f) / knee).clamp(0, 1)
+        out = f + (out - f) * weight
+    return out.clamp(0, 1)

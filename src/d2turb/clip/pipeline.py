@@ -4,14 +4,18 @@ a common reference, fusing them and deblurring the result (docs/clips.md).
 For output frame t, the window W(t) holds the ``temporal`` frames around t (shifted inward at the clip's ends).
 Each frame i is registered to a reference of its own window, in ``passes`` rounds:
 
-1. reference R⁰_i = mean of the raw frames of W(i) (the temporal mean: geometrically the mean tilt, blurred);
-   global shift of frame i against it (phase correlation: camera shake);
+0. camera motion: each frame's global shift against the frame before it (phase correlation), summed along the clip,
+   places it on a *canvas* (the first frame's view) where a shaking camera's frames line up (``stabilise``);
+1. reference R⁰_i = mean of the frames of W(i) placed on the canvas (geometrically the mean tilt, blurred);
+   global shift of frame i against it (phase correlation);
 2. round k: dense backward flow of frame i onto R^(k−1)_i (OpenCV DIS, started from the previous round),
    frame i unwarped; R^k_i = mean of the unwarped frames of W(i) (sharper, same geometry);
 3. output t = fusion of the last round's unwarped frames of W(t) (mean; robust: each pixel weighted by its
    agreement with the reference; fba: Fourier burst accumulation, clip/fusion.py); where the frame's own
-   residual stays high (a moving object) the single frame is used instead (no ghost); then deblurred (none, a
-   physics Wiener filter, or a model).
+   residual stays high (a moving object) the single frame is used instead (no ghost); the fusion is moved from the
+   canvas back to frame t's camera pose (a whole-pixel shift: no resampling) and where W(t)'s frames do not all
+   see the scene (the borders a shake uncovers) frame t itself is used; then deblurred (none, a physics Wiener
+   filter, or a model).
 
 Memory holds about 2·temporal·passes frames whatever the clip's length (a stream). Assumes a static scene seen by a
 static or slowly moving camera; moving objects fall back to the single frame (not restored).
@@ -30,13 +34,17 @@ import cv2
 import numpy as np
 import torch
 
+from d2turb.clip.deblur import tone_guard
 from d2turb.clip.fusion import SharpestFusion, coarse_grey, fourier_burst_accumulation, sharp_coefficients
 from d2turb.clip.registration import (
     DenseFlow,
+    _pixel_grid,
     check_registrable,
     global_shift_px,
     remap,
     shift_flow,
+    shrunk,
+    shrunk_shift_px,
     to_gray_u8,
     to_hwc,
     unit_float,
@@ -53,6 +61,13 @@ _RESUM = 256  # running window sums are recomputed from scratch after this many 
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
 _CHANNEL_MEAN = {c: np.full((1, c), 1 / c, np.float32) for c in (2, 3, 4)}  # cv2.transform: the mean over channels
+# the output's camera pose is the median of the global shifts of its window's frames: a jump stays a jump, switching
+# at its frame; the turbulence's whole-frame tilt, which moves small crops by several px from frame to frame and no
+# clip can tell from a shake, is averaged out, and a still camera's output has its window's mean geometry, as the
+# scene (the tilt is zero-mean). The fused frame is moved there by bicubic interpolation (its sub-pixel part: a
+# whole-pixel pose kept the canvas's own sub-pixel offset, the first frames' mean tilt, 0.8x the plain mean's error)
+_REPLICATE_PX = 1.0  # px of an edge replicated into the canvas that still count as seen
+_BORDER_RAMP_PX = 8  # the fusion fades into the single frame over this many px inside the window's common view
 
 
 @dataclass
@@ -62,7 +77,11 @@ class ClipFrame:
     ``frame(x + bwd_flow_px(x)) ≈ fused(x)``; ``fallback`` (H,W) in [0,1]: share of the single frame (1 = moving).
 
     ``bwd_flow_hwc_px`` is that flow as the registration holds it, (H,W,2) float16; ``bwd_flow_px`` is made from it
-    when first read (most callers never read it, and it costs 8 ms a 1080p frame)."""
+    when first read (most callers never read it, and it costs 8 ms a 1080p frame).
+
+    ``camera_px`` (dx, dy): the frame's global shift onto the clip's canvas (the first frame's view),
+    ``frame(x + camera_px) ≈ canvas(x)``: the camera's motion (shake, jumps) plus the turbulence's whole-frame tilt;
+    None without ``stabilise``."""
 
     index: int
     restored: torch.Tensor
@@ -70,6 +89,7 @@ class ClipFrame:
     bwd_flow_hwc_px: np.ndarray
     fallback: torch.Tensor
     _bwd_flow_px: torch.Tensor | None = field(default=None, repr=False)
+    camera_px: tuple[float, float] | None = None  # the frame's camera pose on the canvas (``stabilise``), see below
 
     @property
     def bwd_flow_px(self) -> torch.Tensor:
@@ -97,6 +117,7 @@ class _Frame:
     warped: list = field(default_factory=list)
     sharp: object = None  # fusion "sharpest": the last round's SharpCoefficients (as long as that round's image)
     coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
+    canvas_gray: np.ndarray | None = None  # (H,W,1) uint8: the grey placed on the canvas (``stabilise``), else None
 
     def image(self) -> np.ndarray:
         """The frame as (H,W,C) float32 in [0,1] (bit-identical to the frame given: k/255 in float32)."""
@@ -133,8 +154,11 @@ class ClipRestorer:
             each :class:`ClipFrame` (its flow, before the deblur).
         preset: registration accuracy, a key of ``d2turb.clip.registration.DIS_PRESETS`` (default "fast": the flow at
             half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
-        stabilise: remove a global shift per frame (camera shake) before the dense registration.
+        stabilise: follow the camera (shake, jumps): frames are placed on one canvas by their global shift before the
+            dense registration, and each output is moved back to its frame's camera pose (see the module's step 0).
         fallback: use the single frame where its residual against the fusion stays high (moving objects).
+        tone_guard: limit the deblur's over- and undershoots by the tones left (:func:`~d2turb.clip.deblur.tone_guard`:
+            no crushed shadows or bright rims).
 
     Returns:
         :meth:`restore` yields one :class:`ClipFrame` per input frame, in order.
@@ -153,6 +177,7 @@ class ClipRestorer:
         preset: str = "fast",
         stabilise: bool = True,
         fallback: bool = True,
+        tone_guard: bool = True,
     ):
         if not isinstance(temporal, int) or isinstance(temporal, bool) or temporal < 2:
             raise D2TurbError(f"temporal must be an integer >= 2, got {temporal!r}", param="temporal")
@@ -164,7 +189,7 @@ class ClipRestorer:
             raise D2TurbError(f"deblur must be 'none' or a callable, got {deblur!r}")
         self.temporal, self.passes, self.fusion = temporal, passes, fusion
         self.deblur = None if deblur == "none" else deblur
-        self.stabilise, self.fallback = stabilise, fallback
+        self.stabilise, self.fallback, self.tone_guard = stabilise, fallback, tone_guard
         DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
         self.preset = preset
         self.flow = None  # a fresh solver per clip
@@ -189,7 +214,7 @@ class ClipRestorer:
                 for frame in fused:
                     if observe is not None:
                         observe(frame)
-                    pending.append((frame, pool.submit(self.deblur, frame.fused)))
+                    pending.append((frame, pool.submit(self._deblur, frame.fused)))
                     if len(pending) > 1:
                         yield self._deblurred(*pending.popleft())
                 while pending:
@@ -197,6 +222,11 @@ class ClipRestorer:
             finally:
                 for _, job in pending:
                     job.cancel()
+
+    def _deblur(self, fused: torch.Tensor) -> torch.Tensor:
+        """The deblur of a fused frame, its over- and undershoots limited by the tones left (``tone_guard``)."""
+        out = self.deblur(fused)
+        return tone_guard(fused, out) if self.tone_guard and out is not fused else out
 
     @staticmethod
     def _deblurred(frame: ClipFrame, job) -> ClipFrame:
@@ -238,6 +268,7 @@ class ClipRestorer:
         done = [0] * (passes + 1)  # done[k]: frames whose round k is computed (k = 0: read); next output = done[0]
         emitted = 0
         self.flow = None
+        self._camera = _CameraTrack(self.temporal) if self.stabilise else None
         self._sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
         self._sharp = SharpestFusion()  # the window's current choice (fusion "sharpest")
         self.buffered = 0  # frame images held in memory (bounded by the window, not by the clip's length)
@@ -265,6 +296,8 @@ class ClipRestorer:
                     if self.flow is None:
                         self.flow = DenseFlow(self.preset)
                     buf[done[0]] = _Frame(raw, gray)
+                    if self._camera is not None:
+                        buf[done[0]].canvas_gray = self._camera.place(done[0], gray)
                     done[0] += 1
                 progressed = True
             total = length if length is not None else done[0]
@@ -333,7 +366,9 @@ class ClipRestorer:
         cached = self._sums.get(level)
 
         def image(j):  # levels before the last only feed a round's reference, which DIS reads as 8-bit grey
-            return buf[j].gray[..., None] if level == 0 else buf[j].warped[level - 1]
+            if level == 0:
+                return buf[j].gray[..., None] if buf[j].canvas_gray is None else buf[j].canvas_gray
+            return buf[j].warped[level - 1]
 
         if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
             total = image(members[0]).astype(np.float32)  # summed in place: no stack of the window in memory
@@ -355,13 +390,20 @@ class ClipRestorer:
         ref = self._reference(buf, index, k - 1, length)
         ref_gray = to_gray_u8(ref)
         if k == 1:
-            init = shift_flow(frame.gray.shape, *global_shift_px(ref_gray, frame.gray)) if self.stabilise else None
+            init = None
+            if self.stabilise:  # the frame's shift against its canvas reference: the camera pose the output takes
+                shift = global_shift_px(ref_gray, frame.gray)
+                self._camera.shifts[index] = shift
+                init = shift_flow(frame.gray.shape, *shift)
         else:
             init = frame.flows[-1]
         flow = self.flow(ref_gray, frame.gray, init)
         # held as float16 (1080p: 8.3 MB instead of 16.6 a frame, up to two windows of them; 0.004 px resolution below
         # 8 px): it starts the next round's search and becomes the output's bwd_flow_px (float32 again)
         frame.flows = [cv2.multiply(flow, 1.0, dtype=cv2.CV_16F)]  # as numpy's astype, in a third of its time
+        if k == self.passes and self._camera is not None:  # the pose, to the dense flow's accuracy: its median
+            step = max(1, int(math.sqrt(flow.shape[0] * flow.shape[1] / 65536)))  # about 65k pixels read
+            self._camera.shifts[index] = tuple(float(v) for v in np.median(flow[::step, ::step].reshape(-1, 2), 0))
         if k < self.passes:  # uint8 in, uint8 out (cv2.remap rounds); the float32 flow is no longer needed
             frame.warped.append(remap(frame.gray[..., None], flow, consume=True))
             return
@@ -401,7 +443,12 @@ class ClipRestorer:
         share = None  # the sharpest fusion's moving-object share, made beside it (it reads the mean, not the fusion)
         if self._pyramids is not None and self.fallback:
             share = self._pyramids.submit(self._fallback_share, frame.warped[-1], mean)
-        job = functools.partial(self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1], share)
+        pose = None
+        if self._camera is not None:
+            pose = self._camera.output_pose(index, self._window(buf, index, length), frame.gray.shape)
+        job = functools.partial(
+            self._finish, index, fused, mean, frame.warped[-1], frame.raw, frame.flows[-1], share, pose
+        )
         return job() if pool is None else pool.submit(job)
 
     def _fuse_sharpest(self, window: dict, mean: np.ndarray) -> np.ndarray:
@@ -410,13 +457,18 @@ class ClipRestorer:
             {j: c.result() if isinstance(c, concurrent.futures.Future) else c for j, c in window.items()}, mean
         )
 
-    def _finish(self, index: int, fused, mean, warped, raw, flow, share=None) -> ClipFrame:
+    def _finish(self, index: int, fused, mean, warped, raw, flow, share=None, pose=None) -> ClipFrame:
         """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``:
-        a Future of it, or None to compute it here) and the frame's own images."""
+        a Future of it, or None to compute it here), the frame's own images and its camera pose (an
+        :class:`_OutputPose`, None: the canvas is the frame's view)."""
         fused = fused if isinstance(fused, np.ndarray) else fused()
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
             blend = self._fallback_share(warped, fused if mean is None else mean) if share is None else share.result()
+        if pose is not None:
+            fused, blend, flow = pose.apply(fused, blend, flow)
+            if blend.any():  # the frame's own pixels moved by what its pose differs from the output's (sub-pixel)
+                raw = pose.frame_at_output(raw)
             rows = np.flatnonzero(blend.any(axis=1))
             if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
                 part = slice(rows[0], rows[-1] + 1)
@@ -429,7 +481,8 @@ class ClipRestorer:
         fused_t = torch.from_numpy(fused if self.deblur is None else np.ascontiguousarray(fused.transpose(2, 0, 1)))
         if self.deblur is None:
             fused_t = fused_t.permute(2, 0, 1)
-        return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend))
+        camera = None if pose is None else tuple(float(v) for v in pose.frame_shift)
+        return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend), camera_px=camera)
 
     @staticmethod
     def _robust(stack: list[np.ndarray], mean: np.ndarray) -> np.ndarray:
@@ -469,6 +522,107 @@ class ClipRestorer:
         # average as wide as the growth: the share stays 1 over the object itself and fades over box/2 around it
         share = cv2.blur(cv2.dilate(share, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (box, box))), (box, box))
         return cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR) if half else share
+
+
+class _CameraTrack:
+    """A clip's camera motion (``ClipRestorer(stabilise=True)``): each frame's global shift (phase correlation)
+    against the mean of the frames placed before it (the last ``memory``, at a reduced size) is its pose g_i on the
+    canvas, ``frame_i(x + g_i) ≈ canvas(x)``; the canvas is the first frame's view, so a shake of ±5 % and its jumps
+    stay on it. Against a mean rather than the frame before, the errors do not add up along the clip (strong
+    turbulence moves a small crop's frames by pixels, and a chain of frame-to-frame shifts wandered by up to 9 px in
+    12 frames). ``shifts`` holds each frame's refined shift against its own canvas reference (pass 1), from which
+    the outputs take their pose."""
+
+    def __init__(self, memory: int):
+        self.poses: dict[int, tuple[float, float]] = {}
+        self.shifts: dict[int, tuple[float, float]] = {}
+        self._placed: collections.deque = collections.deque(maxlen=memory)  # reduced greys on the canvas
+        self._sum = None  # their float32 sum
+
+    def place(self, index: int, gray: np.ndarray) -> np.ndarray:
+        """The frame's grey (H,W) uint8 moved onto the canvas, (H,W,1) uint8 (edges replicated)."""
+        small, scale = shrunk(gray)
+        pose = (0.0, 0.0)
+        if self._placed:
+            pose = shrunk_shift_px(self._sum / np.float32(len(self._placed)), small, scale)
+        self.poses[index] = pose
+        if pose != (0.0, 0.0):
+            placed = remap(small, shift_flow(small.shape, pose[0] * scale, pose[1] * scale), consume=True)
+        else:
+            placed = small
+        if len(self._placed) == self._placed.maxlen:
+            self._sum -= self._placed[0]
+        self._sum = placed.copy() if self._sum is None else self._sum + placed
+        self._placed.append(placed)
+        if pose == (0.0, 0.0):
+            return gray[..., None]
+        return remap(gray[..., None], shift_flow(gray.shape, *pose), consume=True)
+
+    def output_pose(self, index: int, window: list[int], shape: tuple[int, int]) -> _OutputPose:
+        """Output ``index``'s pose (the median of its window's) and the part of the canvas every frame of its
+        window sees; forgets the frames no later output reads."""
+        poses = np.array([self.shifts.get(j, self.poses[j]) for j in window])
+        median = np.median(poses, axis=0)
+        h, w = shape
+        # canvas x is seen by frame j where 0 <= x + g_j <= w - 1: the window's common view; an edge replicated by
+        # less than _REPLICATE_PX (the turbulence's own global jitter) is taken as seen
+        x0, y0 = np.ceil(np.maximum(-poses.min(axis=0) - _REPLICATE_PX, 0)).astype(int)
+        x1, y1 = np.floor(np.minimum([w - 1, h - 1] - poses.max(axis=0) + _REPLICATE_PX, [w - 1, h - 1])).astype(int)
+        for j in [j for j in self.poses if j < window[0]]:
+            del self.poses[j]
+            self.shifts.pop(j, None)
+        pose = (float(median[0]), float(median[1]))
+        return _OutputPose(pose, (x0, y0, x1, y1), self.shifts.get(index, self.poses[index]))
+
+
+@dataclass
+class _OutputPose:
+    """Moves a fused frame from the canvas to an output's camera pose ``(dx, dy)``
+    (``output(y) = canvas(y − pose)``): what falls outside the canvas, or outside the ``common`` view
+    ``(x0, y0, x1, y1)`` (inclusive, canvas px) of the window's frames, is taken from the frame itself (share 1),
+    fading in over ``_BORDER_RAMP_PX``."""
+
+    shift: tuple[float, float]
+    common: tuple[int, int, int, int]
+    frame_shift: tuple[float, float]  # the frame's own pose on the canvas
+
+    def frame_at_output(self, raw: np.ndarray) -> np.ndarray:
+        """The frame (H,W,C) as held, resampled to the output's pose: ``frame(y + g − pose)`` (bilinear)."""
+        dx, dy = self.frame_shift[0] - self.shift[0], self.frame_shift[1] - self.shift[1]
+        if abs(dx) < 1e-3 and abs(dy) < 1e-3:
+            return raw
+        return remap(raw, shift_flow(raw.shape[:2], dx, dy), consume=True)
+
+    def apply(self, fused: np.ndarray, share: np.ndarray, flow: np.ndarray):
+        """(fused (H,W,C), moving-object share (H,W), flow (H,W,2)) on the canvas → the same at the output's pose."""
+        h, w = share.shape
+        x0, y0, x1, y1 = self.common
+        # the share of the fusion: 1 inside the common view, falling to 0 over the ramp towards its edges
+        ramp = float(_BORDER_RAMP_PX)
+        xs, ys = np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)
+        if (x0, y0, x1, y1) != (0, 0, w - 1, h - 1):
+            wx = np.clip(np.minimum(_ramp(xs - x0, x0 > 0), _ramp(x1 - xs, x1 < w - 1)) / ramp, 0, 1)
+            wy = np.clip(np.minimum(_ramp(ys - y0, y0 > 0), _ramp(y1 - ys, y1 < h - 1)) / ramp, 0, 1)
+            share = 1 - (1 - share) * (wy[:, None] * wx[None, :])
+        dx, dy = self.shift
+        if abs(dx) < 1e-3 and abs(dy) < 1e-3:
+            return fused, share, flow
+        maps = shift_flow((h, w), -dx, -dy)
+        maps += _pixel_grid((h, w))
+        out = cv2.remap(fused, maps, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).reshape(fused.shape)
+        # off the canvas the frame itself is used (share 1), moved by its own pose less the output's
+        out_share = cv2.remap(share, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+        # frame(y − pose + flow(y − pose)) ≈ canvas(y − pose) = output(y)
+        out_flow = cv2.remap(flow.astype(np.float32), maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out_flow -= np.array([dx, dy], dtype=np.float32)
+        off = out_share >= 1.0
+        out_flow[off] = (self.frame_shift[0] - dx, self.frame_shift[1] - dy)
+        return out, out_share, out_flow.astype(flow.dtype)
+
+
+def _ramp(inside_px: np.ndarray, edge: bool) -> np.ndarray:
+    """Distance inside an uncovered ``edge`` (+1, so its first covered pixel fades in), or no fade without one."""
+    return inside_px + 1 if edge else np.full_like(inside_px, np.inf)
 
 
 def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:

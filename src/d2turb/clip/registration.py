@@ -83,12 +83,23 @@ def global_shift_px(ref_gray: np.ndarray, frame_gray: np.ndarray, max_side: int 
     """The translation (dx, dy) with ``frame(x + (dx, dy)) ≈ ref(x)``, to a fraction of a pixel, by phase correlation
     with a Hann window (``cv2.phaseCorrelate``); frames larger than ``max_side`` are correlated at a reduced size
     (area averaging) and the shift scaled back: it only starts the dense registration."""
-    a, b = ref_gray.astype(np.float32), frame_gray.astype(np.float32)
+    (a, scale), (b, _) = shrunk(ref_gray, max_side), shrunk(frame_gray, max_side)
+    return shrunk_shift_px(a, b, scale)
+
+
+def shrunk(gray: np.ndarray, max_side: int = 512) -> tuple[np.ndarray, float]:
+    """(the grey as float32, reduced by area averaging to at most ``max_side`` px a side, the scale applied)."""
+    a = gray.astype(np.float32)
     scale = min(1.0, max_side / max(a.shape))
     if scale < 1.0:
         size = (max(2, round(a.shape[1] * scale)), max(2, round(a.shape[0] * scale)))
-        a, b = (cv2.resize(x, size, interpolation=cv2.INTER_AREA) for x in (a, b))
-    (dx, dy), _ = cv2.phaseCorrelate(a, b, _hann(a.shape))
+        a = cv2.resize(a, size, interpolation=cv2.INTER_AREA)
+    return a, scale
+
+
+def shrunk_shift_px(ref: np.ndarray, frame: np.ndarray, scale: float) -> tuple[float, float]:
+    """:func:`global_shift_px` of two greys already :func:`shrunk` by ``scale``, in full-size px."""
+    (dx, dy), _ = cv2.phaseCorrelate(ref, frame, _hann(ref.shape))
     return float(dx) / scale, float(dy) / scale
 
 
