@@ -23,8 +23,9 @@ averaged first), so crops of one image are not counted as independent.
     ... --name sizes --sizes                   # no training: the crop-mean share of the flow at 64² ... 256²
     ... --table benchmarks/results/rectifier_tilt_{dis,mixed,oracle}.json     # the table of docs/training.md
 
-Writes benchmarks/results/rectifier_tilt_<name>.json (config, training curve, per-crop rows, per-category, -folder
-and -bin summaries); ``--cache DIR`` keeps the decoded images and depth priors between runs.
+Writes benchmarks/results/rectifier_tilt_<name>.json (config, training curve, per-category, -folder and -bin
+summaries; ``--rows``: every held-out crop's row too, as in the commit that first added these files);
+``--cache DIR`` keeps the decoded images and depth priors between runs.
 """
 
 from __future__ import annotations
@@ -395,6 +396,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None)
     ap.add_argument("--cache", type=Path, default=None, help="folder for the decoded images and depth priors")
+    ap.add_argument("--rows", action="store_true", help="keep every held-out crop's row in the JSON (≈ 0.25 MB)")
     args = ap.parse_args()
     config = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
     if args.table:
@@ -415,7 +417,9 @@ def main() -> None:
     if args.dis:
         eval_set = build_eval(args, synth_seed=12345)
         rows = evaluate(None, eval_set, args)
-        result = {"config": config | {"method": "cv2.DISOpticalFlow MEDIUM, clean → tilted (grey)"}, "rows": rows}
+        result = {"config": config | {"method": "cv2.DISOpticalFlow MEDIUM, clean → tilted (grey)"}}
+        if args.rows:
+            result["rows"] = rows
         result["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
         for key, f in (("category", "cat"), ("folder", "folder")):
             result[f"by_{key}"] = summarise(rows, lambda r, f=f: r[f])
@@ -484,8 +488,9 @@ def main() -> None:
         "by_folder": summarise(rows, lambda r: r["folder"]),
         "by_bin": summarise(rows, lambda r: ["weak", "medium", "strong"][r["bin"]]),
         "curve": curve,
-        "rows": rows,
     }
+    if args.rows:
+        result["rows"] = rows
     write_json(out, result)
     out.with_name(out.stem + "_curve.json").unlink(missing_ok=True)
     print(json.dumps({k: result[k] for k in ("iterations", "train_cpu_s", "by_category")}, indent=1))
