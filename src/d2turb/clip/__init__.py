@@ -1,7 +1,9 @@
 """d2turb.clip: restore and measure a clip of a static scene seen through turbulence (docs/clips.md, docs/measure.md).
 
 One room for the multi-frame work, ground floor up: ``registration`` (global shift and dense flow onto a
-reference), ``fusion`` (mean, robust, FBA, sharpest), ``deblur`` (the Wiener filter with the short-exposure OTF),
+reference), ``camera`` (the camera's motion, the canvas frames are registered on, each output's return to its
+frame's pose), ``fusion`` (mean, robust, FBA, sharpest), ``deblur`` (the Wiener filter with the short-exposure OTF, the
+tone guard),
 ``blur`` (the edge estimate of a fused frame's blur), ``blur_net`` (the learned estimate), ``blind`` (the
 default blind deblur that uses them), ``pipeline`` (:class:`ClipRestorer`: the sliding
 window), ``motion`` (the image motion a measurement reads) and ``strength`` (D/r0, r0, Cn² and θ0 from it,

@@ -149,7 +149,7 @@ def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray, consume: bool = False)
     Shape:
         frame_hwc: (H, W, C); bwd_flow_px: (H, W, 2), x then y.
     """
-    grid = _pixel_grid(bwd_flow_px.shape[:2])
+    grid = pixel_grid(bwd_flow_px.shape[:2])
     # absolute coordinates (H,W,2), one map for cv2.remap
     maps = np.add(bwd_flow_px, grid, out=bwd_flow_px) if consume else bwd_flow_px + grid
     out = cv2.remap(frame_hwc, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -157,7 +157,8 @@ def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray, consume: bool = False)
 
 
 @functools.lru_cache(maxsize=4)
-def _pixel_grid(shape: tuple[int, int]) -> np.ndarray:
+def pixel_grid(shape: tuple[int, int]) -> np.ndarray:
+    """(H,W,2) float32 of each pixel's own (x, y), read-only (cached: shared by every call of one size)."""
     h, w = shape
     grid = np.empty((h, w, 2), dtype=np.float32)
     grid[..., 0] = np.arange(w, dtype=np.float32)[None, :]
