@@ -12,11 +12,13 @@ import numpy as np
 
 from d2turb.clip.registration import pixel_grid, remap, shift_flow, shrunk, shrunk_shift_px
 
-# the output's camera pose is the median of the global shifts of its window's frames: a jump stays a jump, switching
-# at its frame; the turbulence's whole-frame tilt, which moves small crops by several px from frame to frame and no
-# clip can tell from a shake, is averaged out, and a still camera's output has its window's mean geometry, as the
-# scene (the tilt is zero-mean). The fused frame is moved there by bicubic interpolation (its sub-pixel part: a
-# whole-pixel pose kept the canvas's own sub-pixel offset, the first frames' mean tilt, 0.8x the plain mean's error)
+# _POSE: the output's camera pose is the median of its window's frames' global shifts, each first moved to the output's
+# time by the window's median velocity (the median of its frame-to-frame steps): a pan is followed (the window's plain
+# median left dost_street_clip's frame 2 some 40 px from its own view), a jump stays a jump, switching at its frame,
+# and the turbulence's whole-frame tilt, which moves small crops by several px from frame to frame and no clip can
+# tell from a shake, is averaged out: a still camera's output has its window's mean geometry, as the scene. The fused
+# frame is moved there by bicubic interpolation (a whole-pixel pose kept the canvas's own sub-pixel offset, the first
+# frames' mean tilt: 0.8x the plain mean's error on a zero-mean warp test)
 _REPLICATE_PX = 1.0  # px of an edge replicated into the canvas that still count as seen
 _BORDER_RAMP_PX = 8  # the fusion fades into the single frame over this many px inside the window's common view
 
@@ -56,10 +58,11 @@ class CameraTrack:
         return remap(gray[..., None], shift_flow(gray.shape, *pose), consume=True)
 
     def output_pose(self, index: int, window: list[int], shape: tuple[int, int]) -> OutputPose:
-        """Output ``index``'s pose (the median of its window's) and the part of the canvas every frame of its
-        window sees; forgets the frames no later output reads."""
+        """Output ``index``'s pose (see ``_POSE``) and the part of the canvas every frame of its window sees;
+        forgets the frames no later output reads."""
         poses = np.array([self.shifts.get(j, self.poses[j]) for j in window])
-        median = np.median(poses, axis=0)
+        velocity = np.median(np.diff(poses, axis=0), axis=0) if len(window) > 1 else np.zeros(2)
+        median = np.median(poses - (np.array(window) - index)[:, None] * velocity, axis=0)
         h, w = shape
         # canvas x is seen by frame j where 0 <= x + g_j <= w - 1: the window's common view; an edge replicated by
         # less than _REPLICATE_PX (the turbulence's own global jitter) is taken as seen
