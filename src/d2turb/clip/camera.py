@@ -12,13 +12,14 @@ import numpy as np
 
 from d2turb.clip.registration import pixel_grid, remap, shift_flow, shrunk, shrunk_shift_px
 
-# _POSE: the output's camera pose is the median of its window's frames' global shifts, each first moved to the output's
-# time by the window's median velocity (the median of its frame-to-frame steps): a pan is followed (the window's plain
-# median left dost_street_clip's frame 2 some 40 px from its own view), a jump stays a jump, switching at its frame,
-# and the turbulence's whole-frame tilt, which moves small crops by several px from frame to frame and no clip can
-# tell from a shake, is averaged out: a still camera's output has its window's mean geometry, as the scene. The fused
-# frame is moved there by bicubic interpolation (a whole-pixel pose kept the canvas's own sub-pixel offset, the first
-# frames' mean tilt: 0.8x the plain mean's error on a zero-mean warp test)
+# _POSE: the output's camera pose is the median of the global shifts of the frames within _POSE_HALF of it, each first
+# moved to the output's time by its window's median velocity (the median of the frame-to-frame steps): a pan is
+# followed, a jump stays a jump, switching at its frame, and the turbulence's whole-frame tilt, which moves small crops
+# by several px from frame to frame and no clip can tell from a shake, is damped. Over the whole window the median left
+# dost_street_clip's frame 2, four frames before a 55-px jump, some 40 px from its own view. The fused frame is moved
+# there by bicubic interpolation (a whole-pixel pose kept the canvas's own sub-pixel offset, the first frames' mean
+# tilt: 0.8x the plain mean's error on a zero-mean warp test)
+_POSE_HALF = 2
 _REPLICATE_PX = 1.0  # px of an edge replicated into the canvas that still count as seen
 _BORDER_RAMP_PX = 8  # the fusion fades into the single frame over this many px inside the window's common view
 
@@ -62,7 +63,9 @@ class CameraTrack:
         forgets the frames no later output reads."""
         poses = np.array([self.shifts.get(j, self.poses[j]) for j in window])
         velocity = np.median(np.diff(poses, axis=0), axis=0) if len(window) > 1 else np.zeros(2)
-        median = np.median(poses - (np.array(window) - index)[:, None] * velocity, axis=0)
+        near = [k for k, j in enumerate(window) if abs(j - index) <= _POSE_HALF]
+        lag = np.array([window[k] - index for k in near], dtype=np.float64)
+        median = np.median(poses[near] - lag[:, None] * velocity, axis=0)
         h, w = shape
         # canvas x is seen by frame j where 0 <= x + g_j <= w - 1: the window's common view; an edge replicated by
         # less than _REPLICATE_PX (the turbulence's own global jitter) is taken as seen
