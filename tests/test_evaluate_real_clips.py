@@ -61,7 +61,7 @@ def test_report_writes_sheets_and_results_from_one_registration_pass_per_restora
         write_image(root / "pair" / f"p{i}.png", torch.rand(3, 32, 32))
     out = tmp_path / "out"
     assert main(["evaluate", "--real-clips", str(root), "--temporal", "6", "--out", str(out)]) == 0
-    assert calls["flow"] == 2 * (2 * 12) + 3 * 11
+    assert calls["flow"] == 2 * (2 * 12 + 11) + 3 * 11  # per restoration two rounds and 11 placements (clip.camera)
     assert len(built) == 2 and "deblur" not in built[0]  # restore's default deblur (auto: the blind one)
     assert built[1] == {"deblur": "none"}  # --deblur none: its own fusion (the sharpest)
     res = json.loads((out / "results.json").read_text())

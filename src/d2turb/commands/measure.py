@@ -157,7 +157,7 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from d2turb.clip.strength import answer_quantity
+    from d2turb.clip.strength import answer_quantity  # with the plot only: the command module stays light for --help
 
     wins = result.get("windows") or [{"start_frame": 0, "frames": result["inputs"]["frames"], **result}]
     mid = [w["start_frame"] + w["frames"] / 2 for w in wins]

@@ -26,7 +26,9 @@ import cv2
 import numpy as np
 import torch
 
+from d2turb.data.generate import crop_box
 from d2turb.errors import D2TurbError
+from d2turb.ops.splat import invert_flow
 from d2turb.sim.camera import linear_to_srgb, optics_blur, poisson_gaussian_noise, srgb_to_linear, unsharp_mask
 
 FIELD_RANGES = {
@@ -296,7 +298,7 @@ def camera_pipeline(linear: torch.Tensor, cam: dict, noise_seed: int, fps: float
 def coded(frames_u8: np.ndarray, cam: dict, fps: float) -> np.ndarray:
     """The codec of ``cam`` (``jpeg`` at ``jpeg_quality``, ``h264``/``h265`` at ``bitrate_bps``) on (N, H, W, 3)
     uint8 frames."""
-    from d2turb.video import encode_decode
+    from d2turb.video import encode_decode  # PyAV is the video extra: needed only when a clip is encoded
 
     if cam["codec"] == "jpeg":
         return jpeg_round_trip(frames_u8, cam["jpeg_quality"])
@@ -325,7 +327,6 @@ def simulate_field_chunk(sim, scenes: list[dict], dr0: torch.Tensor, generator, 
     Returns:
         per clip, dict(turb, tilt, gt: (3, N·P, P) float32 filmstrips in [0, 1]; bwd_flow_px (N, 2, P, P)).
     """
-    from d2turb.ops.splat import invert_flow
 
     lin = [torch.from_numpy(s["frames_lin"]).permute(0, 3, 1, 2).clamp(0, 1) for s in scenes]  # (N, 3, P, P)
     with_depth = scenes[0]["depth"] is not None
@@ -362,7 +363,6 @@ def prepare_scene(plan, cfg, image: torch.Tensor, dmap, object_cache, n_sources:
     """Render one field clip's clean linear frames from its (resized) source image and depth.
 
     Returns dict(frames_lin, depth, draw, window [x0, y0, x1, y1], boxes)."""
-    from d2turb.data.generate import crop_box
 
     p, n = cfg.patch, cfg.frames
     m = window_margin(p)

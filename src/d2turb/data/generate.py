@@ -216,7 +216,7 @@ def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: 
     sequence = {"frames": cfg.frames, "sequence": cfg.sequence} if cfg.frames > 1 else {}
     camera = {"camera": cfg.camera} if cfg.camera else {}
     if cfg.profile == "field":
-        from d2turb.data.field import FIELD_RANGES
+        from d2turb.data.field import FIELD_RANGES  # the field profile's module imports this one: no cycle here
 
         camera["profile"] = "field"
         camera["field"] = FIELD_RANGES
@@ -357,6 +357,7 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
     sims: dict[int, Simulator] = {}
     field_profile = cfg.profile == "field"
     if field_profile:  # the frame's window with the border the camera's shake brings into view
+        # the field profile's module imports this one: imported here, no cycle
         from d2turb.data.field import prepare_scene, simulate_field_chunk, window_margin
 
         window = cfg.patch + 2 * window_margin(cfg.patch)
