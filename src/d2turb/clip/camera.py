@@ -16,7 +16,7 @@ from d2turb.clip.registration import MIN_SIDE_PX, DenseFlow, pixel_grid, remap, 
 # the scene's for a still camera (the turbulence's whole-frame tilt is zero-mean; it moves small crops by several px
 # from frame to frame and no clip can tell it from a shake), and a steady pan's middle frame. The demo's clips (no
 # offset removed) scored +5.0 / +2.1 / +1.2 dB with it against +4.5 / +2.0 / −0.1 with the median (a drifting tilt)
-# and +4.5 / +1.9 / −0.3 with each frame moved to the output's time by the window's median velocity. Near a jump the
+# and +5.0 / −0.6 / +1.0 with the median of the frames within 2, moved by the window's median velocity. Near a jump the
 # window's pose is between its sides (dost_street_clip's frame 2, four frames before a 55-px jump, landed some 40 px
 # from its own view): there the frames within _POSE_HALF decide. The fused frame is moved by bicubic interpolation.
 _POSE_HALF = 2

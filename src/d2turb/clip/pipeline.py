@@ -146,7 +146,7 @@ class ClipRestorer:
         preset: registration accuracy, a key of ``d2turb.clip.registration.DIS_PRESETS`` (default "fast": the flow at
             half resolution, as good as "medium" after fusion on the validation clips and 4× faster; docs/clips.md).
         stabilise: follow the camera (shake, jumps): frames are placed on one canvas by their global shift before the
-            dense registration, and each output is moved back to its frame's camera pose (see the module's step 0).
+            dense registration, and each output is moved back to its window's camera pose (``clip.camera``).
         fallback: use the single frame where its residual against the fusion stays high (moving objects).
         tone_guard: limit the deblur's over- and undershoots by the tones left (:func:`~d2turb.clip.deblur.tone_guard`:
             no crushed shadows or bright rims).
