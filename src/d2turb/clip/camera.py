@@ -24,7 +24,7 @@ _POSE_HALF = 2
 # robust spreads and _POSE_MIN_PX (a jump, a clip's end): a still camera's output keeps its window's mean
 # geometry, which is the scene's (the turbulence's tilt is zero-mean; following each frame's neighbours put its
 # whole-frame tilt into the output: the demo's strong clip fell to the input's PSNR, no offset removed)
-_POSE_OUTLIER, _POSE_MIN_PX = 3.0, 1.0
+_POSE_OUTLIER, _POSE_MIN_PX = 3.0, 3.0
 # frames are placed at this size: the median of a DIS flow there, not phase correlation, which a dark square moving
 # 8 px a frame over a blurred scene dragged along (its poses wandered by 100 px in 12 frames)
 _PLACE_SIDE_PX = 256
@@ -79,7 +79,10 @@ class CameraTrack:
         poses = np.array([self.shifts.get(j, self.poses[j]) for j in window])
         pose = poses.mean(axis=0)
         near = np.median(poses[[k for k, j in enumerate(window) if abs(j - index) <= _POSE_HALF]], axis=0)
-        spread = 1.4826 * np.median(np.abs(poses - np.median(poses, axis=0)), axis=0)
+        # the frame-to-frame jitter's robust scale (about the poses' own spread it missed dost_street_clip's jump: the
+        # window's two sides made that spread 15 px, and frame 2 landed 48 px from its own view)
+        steps = np.abs(np.diff(poses, axis=0)) if len(window) > 1 else np.zeros((1, 2))
+        spread = 1.4826 * np.median(steps, axis=0) / np.sqrt(2)
         if np.any(np.abs(near - pose) > np.maximum(_POSE_OUTLIER * spread, _POSE_MIN_PX)):
             pose = near  # the camera moved (a jump): the frames around the output, not the window
         h, w = shape
