@@ -11,14 +11,14 @@ from d2turb.io import read_image
 from d2turb.sim import Simulator, TurbulenceParams
 
 
-def draw_case(rng) -> dict:
-    """One clip's turbulence and optics drawn in issue 36's acceptance ranges, in this order from ``rng``: λ/(D·ifov)
-    ``q`` 1-4 px and path ``L`` 0.5-10 km log-uniform, ``dr0`` 1-6, ``wind`` 0.5-4 m/s, ``boil`` 0-0.3, camera
-    ``noise`` σ 0-3 grey levels (val36.py, val36b.py, cal36.py)."""
+def draw_case(rng, q=(1.0, 4.0), L=(500.0, 10000.0), dr0=(1.0, 6.0)) -> dict:
+    """One clip's turbulence and optics drawn in issue 36's acceptance ranges (or the ranges given), in this order from
+    ``rng``: λ/(D·ifov) ``q`` 1-4 px and path ``L`` 0.5-10 km log-uniform, ``dr0`` 1-6, ``wind`` 0.5-4 m/s, ``boil``
+    0-0.3, camera ``noise`` σ 0-3 grey levels (val36.py, val36b.py, cal36.py; val53.py with issue 53's ranges)."""
     return {
-        "q": float(np.exp(rng.uniform(np.log(1), np.log(4)))),
-        "L": float(np.exp(rng.uniform(np.log(500), np.log(10000)))),
-        "dr0": float(rng.uniform(1, 6)),
+        "q": float(np.exp(rng.uniform(np.log(q[0]), np.log(q[1])))),
+        "L": float(np.exp(rng.uniform(np.log(L[0]), np.log(L[1])))),
+        "dr0": float(rng.uniform(*dr0)),
         "wind": float(rng.uniform(0.5, 4)),
         "boil": float(rng.uniform(0, 0.3)),
         "noise": float(rng.uniform(0, 3)),

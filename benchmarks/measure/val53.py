@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, __import__("os").path.dirname(__file__))
-from sim36 import clip
+from sim36 import clip, draw_case
 from val36b import jpeg
 
 from d2turb.clip import strength as M
@@ -23,16 +23,10 @@ SIZE, FRAMES = 320, 64
 
 
 def draw_case53(rng) -> dict:
-    """One clip's turbulence and optics in issue 53's acceptance ranges, in this order from ``rng``."""
-    return {
-        "q": float(np.exp(rng.uniform(np.log(1.5), np.log(3.0)))),
-        "L": float(np.exp(rng.uniform(np.log(500), np.log(3000)))),
-        "dr0": float(rng.uniform(1.5, 4.5)),
-        "wind": float(rng.uniform(0.5, 4)),
-        "boil": float(rng.uniform(0, 0.3)),
-        "noise": float(rng.uniform(0, 3)),
-        "jpeg": int(rng.integers(75, 96)),
-    }
+    """One clip's turbulence and optics in issue 53's acceptance ranges, in this order from ``rng``: sim36's draw in
+    λ/(D·ifov) 1.5-3 px, path 0.5-3 km, D/r0 1.5-4.5, then the JPEG quality 75-95."""
+    case = draw_case(rng, q=(1.5, 3.0), L=(500.0, 3000.0), dr0=(1.5, 4.5))
+    return {**case, "jpeg": int(rng.integers(75, 96))}
 
 
 def summary(r: dict) -> dict:
