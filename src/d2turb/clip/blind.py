@@ -28,7 +28,7 @@ from d2turb.clip.blur import (
     physics_lod_for_sigma,
     ringing_index,
 )
-from d2turb.clip.blur_net import PATCH_PX, estimate_blur_params, load_blur_net
+from d2turb.clip.blur_net import PATCH_PX, TILT_SPREAD_FLOOR_PX, estimate_blur_params, load_blur_net, tilt_spread
 from d2turb.clip.deblur import PhysicsDeblur, fusion_prior
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import short_exposure_width, turbulence_otf
@@ -167,9 +167,8 @@ class BlindDeblur:
         if est.tiles < MIN_TILES:  # too few strong edges: nothing shows the blur, the texture may be noise
             self._no_deblur(rec, f"no deblurring: the blur estimate is not reliable ({est.reason})")
             return
-        if self.bwd_flow_px is not None:
-            flow = self.bwd_flow_px.double()
-            rms = float((flow - flow.mean((1, 2), keepdim=True)).pow(2).sum(0).mean().sqrt())
+        if self.bwd_flow_px is not None:  # tilt_spread: ln(rms about the frame's mean + 0.05 px), the network's input
+            rms = math.exp(tilt_spread(self.bwd_flow_px)) - TILT_SPREAD_FLOOR_PX
             rec["tilt_rms_px"] = rms
             if rms < STILL_TILT_RMS_PX:
                 rec["reason"] = f"the frames hardly move ({rms:.2f} px rms): no turbulence, nothing to deblur"

@@ -76,6 +76,9 @@ def textured_patches(image, count: int) -> np.ndarray:
     return out / (out.std((1, 2), keepdims=True) + 0.01)
 
 
+TILT_SPREAD_FLOOR_PX = 0.05  # added to the rms in tilt_spread, so that a still clip's stays finite
+
+
 def tilt_spread(bwd_flow_px) -> float:
     """ln of the RMS of a registered frame's flow about its mean (px; + 0.05 px so a still clip stays finite): the
     image motion that the blur's two parameters share.
@@ -85,7 +88,7 @@ def tilt_spread(bwd_flow_px) -> float:
     """
     f = np.asarray(bwd_flow_px.detach().cpu() if isinstance(bwd_flow_px, torch.Tensor) else bwd_flow_px, np.float32)
     f = f - f.mean((1, 2), keepdims=True)
-    return math.log(float(np.sqrt((f**2).sum(0).mean())) + 0.05)
+    return math.log(float(np.sqrt((f**2).sum(0).mean())) + TILT_SPREAD_FLOOR_PX)
 
 
 class BlurNet(nn.Module):

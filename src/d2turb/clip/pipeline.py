@@ -4,8 +4,9 @@ a common reference, fusing them and deblurring the result (docs/clips.md).
 For output frame t, the window W(t) holds the ``temporal`` frames around t (shifted inward at the clip's ends).
 Each frame i is registered to a reference of its own window, in ``passes`` rounds:
 
-0. camera motion: each frame's global shift against the frame before it (phase correlation), summed along the clip,
-   places it on a *canvas* (the first frame's view) where a shaking camera's frames line up (``stabilise``);
+0. camera motion (``clip.camera``, ``stabilise``): each frame's global shift against the mean of the frames placed
+   before it (the median of a dense flow at ≤ 256 px) places it on a *canvas* (the first frame's view) where a shaking
+   camera's frames line up;
 1. reference R⁰_i = mean of the frames of W(i) placed on the canvas (geometrically the mean tilt, blurred);
    global shift of frame i against it (phase correlation);
 2. round k: dense backward flow of frame i onto R^(k−1)_i (OpenCV DIS, started from the previous round),
@@ -13,9 +14,9 @@ Each frame i is registered to a reference of its own window, in ``passes`` round
 3. output t = fusion of the last round's unwarped frames of W(t) (mean; robust: each pixel weighted by its
    agreement with the reference; fba: Fourier burst accumulation, clip/fusion.py); where the frame's own
    residual stays high (a moving object) the single frame is used instead (no ghost); the fusion is moved from the
-   canvas back to frame t's camera pose (a whole-pixel shift: no resampling) and where W(t)'s frames do not all
-   see the scene (the borders a shake uncovers) frame t itself is used; then deblurred (none, a physics Wiener
-   filter, or a model).
+   canvas to W(t)'s mean camera pose (bicubic; near a jump, that of the frames around t) and where W(t)'s frames do
+   not all see the scene (the borders a shake uncovers) frame t itself is used; then deblurred (none, a physics
+   Wiener filter, or a model) and the deblur's over- and undershoots limited (``clip.deblur.tone_guard``).
 
 Memory holds about 2·temporal·passes frames whatever the clip's length (a stream). Assumes a static scene seen by a
 static or slowly moving camera; moving objects fall back to the single frame (not restored).
@@ -381,11 +382,7 @@ class ClipRestorer:
         ref = self._reference(buf, index, k - 1, length)
         ref_gray = to_gray_u8(ref)
         if k == 1:
-            init = None
-            if self.stabilise:  # the frame's shift against its canvas reference: the camera pose the output takes
-                shift = global_shift_px(ref_gray, frame.gray)
-                self._camera.shifts[index] = shift
-                init = shift_flow(frame.gray.shape, *shift)
+            init = shift_flow(frame.gray.shape, *global_shift_px(ref_gray, frame.gray)) if self.stabilise else None
         else:
             init = frame.flows[-1]
         flow = self.flow(ref_gray, frame.gray, init)
@@ -450,8 +447,8 @@ class ClipRestorer:
 
     def _finish(self, index: int, fused, mean, warped, raw, flow, share=None, pose=None) -> ClipFrame:
         """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``:
-        a Future of it, or None to compute it here), the frame's own images and its camera pose (an
-        :class:`_OutputPose`, None: the canvas is the frame's view)."""
+        a Future of it, or None to compute it here), the frame's own images and the output's camera pose (a
+        :class:`~d2turb.clip.camera.OutputPose`, None without ``stabilise``)."""
         fused = fused if isinstance(fused, np.ndarray) else fused()
         blend = np.zeros(fused.shape[:2], dtype=np.float32)
         if self.fallback:
