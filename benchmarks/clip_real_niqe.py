@@ -41,7 +41,8 @@ from d2turb.clip.strength import measure_clip
 from d2turb.errors import D2TurbError
 from d2turb.eval.niqe import niqe
 from d2turb.io import to_uint8
-from d2turb.restore.files import MEASURE_FRAMES, clip_frames
+from d2turb.restore.clip_build import MEASURE_FRAMES
+from d2turb.restore.clip_source import clip_frames
 from d2turb.restore.single import Restorer
 
 CLIPS = {

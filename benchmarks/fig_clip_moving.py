@@ -5,7 +5,7 @@ and a cyclist moving through a static street, camera shake) against the same run
         [--deblur auto|none|physics] [--fusion mean|sharpest|...]
         [--out docs/images/clip_moving_dost.jpg] [--json benchmarks/results/clip_moving_dost.json]
 
-Both runs are ``d2turb restore CLIP --temporal 16`` (``d2turb.restore.files.clip_restorer``, default options: two
+Both runs are ``d2turb restore CLIP --temporal 16`` (``d2turb.restore.clip_build.clip_restorer``, default options: two
 registration rounds, mean fusion, the blind deblur; ``--deblur none``: the sharpest fusion, restore's default without a
 deblur); the second sets ``ClipRestorer.fallback = False``. The regions
 shown are found, not chosen: the largest connected areas where the default run used the single frame (fallback share
@@ -35,7 +35,7 @@ def restore(files: list[Path], temporal: int, fallback: bool, pick: int, **optio
     """(restored frame ``pick`` (H,W,3) float32, its fallback share (H,W)) of the clip restoration with restore's
     defaults (``options``: ClipOptions fields, e.g. deblur, fusion)."""
     from d2turb.io import read_image
-    from d2turb.restore.files import clip_restorer
+    from d2turb.restore.clip_build import clip_restorer
 
     restorer, _, _ = clip_restorer(files[0].parent, temporal, **options)
     restorer.fallback = fallback

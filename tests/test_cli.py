@@ -319,7 +319,7 @@ def test_library_errors_name_the_parameter_the_command_line_its_flag(tmp_path, c
     ("argv", "options", "given"),
     [
         (["restore", "a.png", "--out", "o"], "d2turb.restore.files.RestoreOptions", set()),
-        (["restore", "a.mp4", "--temporal", "4", "--out", "o"], "d2turb.restore.files.ClipOptions", {"params"}),
+        (["restore", "a.mp4", "--temporal", "4", "--out", "o"], "d2turb.restore.clip_build.ClipOptions", {"params"}),
         (["simulate", "a.png", "--out", "o"], "d2turb.data.simulate.SimulateOptions", {"save_tilt"}),
     ],
 )
@@ -345,7 +345,8 @@ def test_job_options_by_keyword_as_the_old_signatures_took_them(tmp_path):
     of their earlier signatures still works (a keyword replaces that field of the options), an unknown keyword is a
     TypeError as it was."""
     from d2turb.data.simulate import SimulateOptions, simulate_files
-    from d2turb.restore.files import ClipOptions, RestoreOptions, clip_restorer, restore_files
+    from d2turb.restore.clip_build import ClipOptions, clip_restorer
+    from d2turb.restore.files import RestoreOptions, restore_files
     from d2turb.sim import TurbulenceParams
 
     assert RestoreOptions.of(None, tile=256) == RestoreOptions(tile=256)

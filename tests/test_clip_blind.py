@@ -247,7 +247,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
     from d2turb.cli import main
     from d2turb.clip import registration
     from d2turb.clip import strength as measure
-    from d2turb.restore import files
+    from d2turb.restore import clip_build, clip_source
 
     calls = {"flow": 0, "read": 0}
     real_call = registration.DenseFlow.__call__
@@ -256,7 +256,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         calls["flow"] += 1
         return real_call(self, *args, **kwargs)
 
-    real_read = files.read_frame
+    real_read = clip_source.read_frame
 
     def counting_read(path):
         calls["read"] += 1
@@ -266,8 +266,8 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         raise AssertionError("the default path must not run d2turb.clip.strength")
 
     monkeypatch.setattr(registration.DenseFlow, "__call__", counting)
-    monkeypatch.setattr(files, "read_frame", counting_read)
-    monkeypatch.setattr(files, "measure_clip", no_measure)
+    monkeypatch.setattr(clip_source, "read_frame", counting_read)
+    monkeypatch.setattr(clip_build, "measure_clip", no_measure)
     monkeypatch.setattr(measure, "measure_clip", no_measure)
     rng = np.random.default_rng(5)
     img = cv2.GaussianBlur(_crop("coffee", 96), (0, 0), 1.5)

@@ -219,7 +219,7 @@ def test_restore_without_a_deblur_fuses_the_sharpest_unless_told(tmp_path):
 
     from d2turb.cli import main
     from d2turb.io import read_image, write_image
-    from d2turb.restore.files import ClipOptions
+    from d2turb.restore.clip_build import ClipOptions
 
     img = _scene(96)
     clip = tmp_path / "clip"

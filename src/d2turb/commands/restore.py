@@ -135,9 +135,10 @@ def _optics(args) -> dict:
 
 
 def run_clips(args) -> int:
-    """``restore CLIP --temporal N``: register, fuse and deblur across frames (d2turb.restore.files)."""
+    """``restore CLIP --temporal N``: register, fuse and deblur across frames (d2turb.restore.clips)."""
     # lazy: see d2turb.commands
-    from d2turb.restore.files import ClipOptions, restore_clip_files
+    from d2turb.restore.clip_build import ClipOptions
+    from d2turb.restore.clips import restore_clip_files
 
     if len(args.inputs) != 1:
         n = len(args.inputs)

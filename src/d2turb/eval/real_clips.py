@@ -37,7 +37,8 @@ from d2turb.eval.artifacts import worst_window
 from d2turb.eval.niqe import niqe
 from d2turb.eval.piqe import piqe
 from d2turb.io import list_images, to_uint8, write_image, write_json, write_text
-from d2turb.restore.files import check_frame_sizes, clip_frames, clip_restorer
+from d2turb.restore.clip_build import clip_restorer
+from d2turb.restore.clip_source import check_frame_sizes, clip_frames
 from d2turb.video import VIDEO_SUFFIXES, is_video, video_size
 
 MIN_CLIP_FRAMES = 4  # a folder with fewer frames is not a clip (e.g. three frames 20 apart)

@@ -20,7 +20,7 @@ from d2turb.io.writer import BackgroundWriter
 @dataclasses.dataclass(frozen=True)
 class JobOptions:
     """What every file job takes beside its inputs; each job's options are a subclass
-    (:class:`~d2turb.restore.files.RestoreOptions`, :class:`~d2turb.restore.files.ClipOptions`,
+    (:class:`~d2turb.restore.files.RestoreOptions`, :class:`~d2turb.restore.clip_build.ClipOptions`,
     :class:`~d2turb.data.simulate.SimulateOptions`), and its command builds them from its parsed arguments
     (:meth:`from_args`).
 

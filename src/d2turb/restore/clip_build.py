@@ -1,0 +1,162 @@
+"""The one place that builds the :class:`~d2turb.clip.ClipRestorer` of ``d2turb restore CLIP --temporal N`` with
+its deblur (``restore --temporal``, ``evaluate --real-clips`` and the page all call :func:`clip_restorer`, so their
+defaults agree), and the options it reads (:class:`ClipOptions`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from pathlib import Path
+from types import SimpleNamespace
+
+from d2turb.clip import ClipRestorer, PhysicsDeblur
+from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.strength import estimate_words, measure_clip, undetermined_dr0
+from d2turb.defaults import DEFAULT_FUSION, FUSION_WITHOUT_DEBLUR
+from d2turb.errors import D2TurbError
+from d2turb.restore.clip_source import clip_frames
+from d2turb.restore.files import RestoreOptions
+from d2turb.restore.single import Restorer
+from d2turb.sim import Optics, TurbulenceParams
+
+
+@dataclasses.dataclass(frozen=True)
+class ClipOptions(RestoreOptions):
+    """The options of :func:`restore_clip_files` (``d2turb restore --temporal``) and :func:`clip_restorer`, besides
+    :class:`RestoreOptions`'.
+
+    Args:
+        deblur, dr0, params: see :func:`clip_deblur`.
+        passes, preset: registration rounds, DIS preset.
+        fusion: fusion of the registered frames; None: the sharpest with ``deblur="none"``, the mean before a deblur
+            (:attr:`fusion_used`).
+        fps: frame rate of a folder clip's mp4 (None: 30).
+    """
+
+    deblur: str = "auto"
+    dr0: float | None = None
+    params: dict | None = None
+    passes: int = 2
+    preset: str = "fast"
+    fusion: str | None = None
+    fps: float | None = None
+
+    @property
+    def fusion_used(self) -> str:
+        """The fusion the clip gets: ``fusion`` if given, else the sharpest without a deblur (the sharper frame) and the
+        mean before one (the Wiener filter models the mean's blur; docs/clips.md)."""
+        if self.fusion is not None:
+            return self.fusion
+        return FUSION_WITHOUT_DEBLUR if self.deblur == "none" else DEFAULT_FUSION
+
+
+MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when it is not given
+
+
+def _clip_head(src: Path) -> list:
+    """The clip's first MEASURE_FRAMES readable frames (bad frames are reported once, by the restoring pass)."""
+    _, frames = clip_frames(src, SimpleNamespace(record=lambda exc: None))
+    return list(itertools.islice(frames, MEASURE_FRAMES))
+
+
+def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
+    """TurbulenceParams from the given optics (the path length is the measurement's only); one-line error."""
+    try:
+        return TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, **extra)
+    except TypeError as exc:
+        raise D2TurbError(f"--param: {exc}") from exc
+
+
+def _measured_dr0(head: list, params: dict) -> dict:
+    """``d2turb measure``'s result on the clip's first frames ``head`` (the same estimates and intervals: what
+    ``restore`` calls measured, ``measure`` measures); D2TurbError where measure refuses, or where D/r0 is not
+    determined (the physics deblur needs it), said in measure's terms: the seeing angle without the camera."""
+    optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
+    measured = measure_clip(head, optics, bootstrap=50)
+    if not measured["dr0_determined"]:
+        raise D2TurbError(undetermined_dr0(measured))
+    return measured
+
+
+def clip_deblur(
+    choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64, fusion=DEFAULT_FUSION
+):
+    """The deblur step of a clip: (None, a PhysicsDeblur, a BlindDeblur or a model's restore; its description; a
+    record of the value used and where it came from, for the output folder's restore.json).
+
+    Args:
+        choice: ``none``; ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 that
+            ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused where it is not determined);
+            ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blind.BlindDeblur`,
+            estimated on the fused frames of the one restoring pass: no second decode or registration); or a
+            weights name/path.
+        params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
+        fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
+            (:meth:`~d2turb.clip.PhysicsDeblur.for_fusion`) and the blind one keeps the Laplacian prior.
+    """
+    if choice == "none":
+        return None, "none", {"method": "none"}
+    params = dict(params or {})
+    if choice == "auto" and dr0 is None:
+        blind = BlindDeblur(fusion=fusion)
+        return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
+    if choice in ("physics", "auto"):
+        source, measured = "given (--dr0)", None
+        optics = "given" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
+        if dr0 is None:
+            head = _clip_head(src)
+            try:
+                measured = _measured_dr0(head, params)
+            except D2TurbError as exc:
+                raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
+            dr0 = measured["dr0"]
+            source = (
+                f"measured on the clip's first {len(head)} frames (d2turb measure, 90 %: {estimate_words(measured)})"
+            )
+            if "ifov_rad" not in params:  # the λ/(D·ifov) at which measure's estimate holds
+                o = Optics(**{k: params[k] for k in ("aperture_m", "wavelength_m") if k in params})
+                params["ifov_rad"] = o.wavelength_m / (o.aperture_m * measured["lambda_over_d_px"])
+                optics = "λ/(D·ifov) of d2turb measure's estimate"
+        p = _turbulence_params(params, dr0=min(dr0, 10.0))
+        deblur = PhysicsDeblur.for_fusion(p.dr0, p.lambda_over_d_px, fusion)
+        model = "" if deblur.dr0 == p.dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
+        record = {
+            "method": "physics",
+            "dr0": p.dr0,
+            "dr0_source": source,
+            **({k: measured[k] for k in ("dr0_ci", "seeing_px", "seeing_px_ci")} if measured else {}),
+            "otf_dr0": deblur.dr0,
+            "lambda_over_d_px": p.lambda_over_d_px,
+            "optics": optics,
+            "balance": deblur.balance,
+            "prior": deblur.prior,
+        }
+        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px{model})", record
+    restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
+    return restorer.restore, restorer.name, {"method": "model", "weights": restorer.name}
+
+
+def clip_restorer(
+    src, temporal: int, options: ClipOptions | None = None, **kwargs
+) -> tuple[ClipRestorer, str, dict | None]:
+    """The :class:`~d2turb.clip.ClipRestorer` of ``d2turb restore CLIP --temporal N`` with its deblur: the one place
+    that builds it (``restore --temporal`` and ``evaluate --real-clips`` both call it, so their defaults agree).
+
+    Args:
+        src: the clip (a video file or a folder of frames; read here only when the physics deblur measures D/r0).
+        temporal: frames per window.
+        options: :class:`ClipOptions` (None: restore's defaults; ``kwargs``: its fields by name, in place of those);
+            of them this reads deblur, dr0, params, device, tile, overlap (see :func:`clip_deblur`) and passes,
+            preset, fusion (:attr:`ClipOptions.fusion_used`).
+
+    Returns:
+        (the restorer, its deblur already set; the deblur's description; its record for restore.json, None for the
+        blind deblur until it has seen a fused frame: then ``restorer.deblur.record``).
+    """
+    o = ClipOptions.of(options, **kwargs)
+    deblur, fusion = o.deblur, o.fusion_used
+    restorer = ClipRestorer(temporal=temporal, passes=o.passes, fusion=fusion, preset=o.preset)
+    restorer.deblur, name, record = clip_deblur(
+        deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
+    )
+    return restorer, name, record
