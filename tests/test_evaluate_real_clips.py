@@ -121,7 +121,7 @@ def test_a_clip_that_fails_is_reported_and_the_others_done(tmp_path, capsys):
 
 
 def test_textured_window_finds_the_detail():
-    from d2turb.eval.real_clips import textured_window
+    from d2turb.eval.real_clip_measures import textured_window
 
     img = torch.full((3, 120, 200), 0.5)
     img[:, 40:72, 120:152] = torch.rand(3, 32, 32, generator=torch.Generator().manual_seed(0))

@@ -195,7 +195,8 @@ def run(args):
 def _run_real_clips(args) -> int:
     """``--real-clips DIR``: the real clips report (d2turb.eval.real_clips)."""
     # lazy: the clip pipeline (OpenCV) and the no-reference metrics load only here
-    from d2turb.eval.real_clips import evaluate_real_clips, markdown
+    from d2turb.eval.real_clip_markdown import markdown
+    from d2turb.eval.real_clips import evaluate_real_clips
     from d2turb.io import check_output_dir, remove_stale_temp_files
 
     out = check_output_dir(args.out)
