@@ -156,6 +156,62 @@ def _markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+VIDEO_NOT_SCORED = (
+    "a video: --real scores image files; `d2turb restore VIDEO --weights input --out DIR` writes its frames as PNGs "
+    "(and DIR/VIDEO.mp4), then `d2turb evaluate --real DIR` scores them"
+)
+
+
+def _inputs(real_dir: Path, recursive: bool, max_samples: int | None) -> tuple[list[Path], list[dict]]:
+    """(the images to score, [{"file", "reason"} of each video found beside them]); raises ``D2TurbError`` when
+    there is no image (naming the sub-folders' images without ``recursive``, and the videos)."""
+    paths = list_images(real_dir, recursive=recursive)
+    if max_samples is not None:
+        paths = paths[:max_samples]
+    videos = _videos(real_dir, recursive)
+    not_scored = [{"file": v.relative_to(real_dir).as_posix(), "reason": VIDEO_NOT_SCORED} for v in videos]
+    if not paths:
+        nested = not recursive and list_images(real_dir, recursive=True)
+        raise D2TurbError(
+            f"{real_dir}: no images found"
+            + (" (its sub-folders hold some: --recursive)" if nested else "")
+            + (f" ({len(videos)} video file(s), not scored: {not_scored[0]['reason']})" if videos else "")
+        )
+    return paths, not_scored
+
+
+def _restore_and_score(path: Path, restorers: dict, scorers: dict) -> tuple[torch.Tensor, dict, dict]:
+    """(the image at ``path``, {model: its output}, {(model, metric): score}); a failing score raises
+    ``D2TurbError`` naming the file, the model and the metric."""
+    image = read_image(path)
+    outputs = {}
+    for n, r in restorers.items():
+        outputs[n] = image if r is None else r(image).detach().float().cpu().clamp(0, 1)
+    scores = {}
+    for n, restored in outputs.items():
+        for m, score in scorers.items():
+            try:
+                scores[n, m] = score(restored)
+            except D2TurbError as exc:
+                raise D2TurbError(f"{path} ({n}, {m}): {exc}") from exc
+    return image, outputs, scores
+
+
+def _folder_means(names: list[str], mean: KeyedMean, metric_names: list[str], model_names: list[str]) -> dict:
+    """``results["folders"]``: per folder of the scored ``names`` {"images", "models": {model: {metric: mean}}}."""
+    folders: dict[str, list[str]] = {}
+    for name in names:
+        folders.setdefault(PurePosixPath(name).parent.as_posix(), []).append(name)
+    folder_means = {folder: mean.compute(folder) for folder in folders}
+    return {
+        folder: {
+            "images": members,
+            "models": {n: {m: folder_means[folder][n, m] for m in metric_names} for n in model_names},
+        }
+        for folder, members in folders.items()
+    }
+
+
 def evaluate_real(
     real_dir: str | os.PathLike,
     metrics=("niqe", "piqe"),
@@ -192,25 +248,7 @@ def evaluate_real(
     metric_names = parse_metrics(metrics)
     scorers = {m: no_reference_metric(m, device, musiq_weights) for m in metric_names}
     real_dir = Path(real_dir)
-    paths = list_images(real_dir, recursive=recursive)
-    if max_samples is not None:
-        paths = paths[:max_samples]
-    videos = _videos(real_dir, recursive)
-    not_scored = [
-        {
-            "file": v.relative_to(real_dir).as_posix(),
-            "reason": "a video: --real scores image files; `d2turb restore VIDEO --weights input --out DIR` writes "
-            "its frames as PNGs (and DIR/VIDEO.mp4), then `d2turb evaluate --real DIR` scores them",
-        }
-        for v in videos
-    ]
-    if not paths:
-        nested = not recursive and list_images(real_dir, recursive=True)
-        raise D2TurbError(
-            f"{real_dir}: no images found"
-            + (" (its sub-folders hold some: --recursive)" if nested else "")
-            + (f" ({len(videos)} video file(s), not scored: {not_scored[0]['reason']})" if videos else "")
-        )
+    paths, not_scored = _inputs(real_dir, recursive, max_samples)
     for entry in not_scored:
         if on_note is not None:
             on_note(f"{entry['file']}: not scored, {entry['reason']}")
@@ -230,17 +268,7 @@ def evaluate_real(
     out_dir = Path(out_dir)
     for path, rel, name in zip(paths, relative, names):
         try:
-            image = read_image(path)
-            outputs = {}
-            for n, r in restorers.items():
-                outputs[n] = image if r is None else r(image).detach().float().cpu().clamp(0, 1)
-            scores = {}
-            for n, restored in outputs.items():
-                for m, score in scorers.items():
-                    try:
-                        scores[n, m] = score(restored)
-                    except D2TurbError as exc:
-                        raise D2TurbError(f"{path} ({n}, {m}): {exc}") from exc
+            image, outputs, scores = _restore_and_score(path, restorers, scorers)
         except D2TurbError as exc:
             if fail_fast or len(paths) == 1:
                 raise
@@ -274,17 +302,7 @@ def evaluate_real(
     }
     results.update({m: results["models"][model_names[0]][m] for m in metric_names})
     if recursive:
-        folders: dict[str, list[str]] = {}
-        for name in names:
-            folders.setdefault(PurePosixPath(name).parent.as_posix(), []).append(name)
-        folder_means = {folder: mean.compute(folder) for folder in folders}
-        results["folders"] = {
-            folder: {
-                "images": members,
-                "models": {n: {m: folder_means[folder][n, m] for m in metric_names} for n in model_names},
-            }
-            for folder, members in folders.items()
-        }
+        results["folders"] = _folder_means(names, mean, metric_names, model_names)
     write_json(out_dir / "results.json", results)
     write_text(out_dir / "results.md", _markdown(results))
     return results
