@@ -14,6 +14,7 @@ import inspect
 import logging
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import gradio as gr
 
@@ -97,17 +98,19 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
         core.check_pixels(p.name, w, h, max(limits.sim_pixels, limits.restore_pixels))
         return core.preview(read_image(p), workspace.new_run("preview") / "input.png")
 
-    @guard
-    def show_restore_input(path):
-        if path and Path(path).suffix.lower() in _video_suffixes():
-            return None  # the first frame is shown with the result
-        return show_input(path)
+    with gr.Blocks(title="d2turb", **_blocks_kwargs()) as demo:
+        gr.Markdown(INTRO)
+        with gr.Tab("Simulate", id="simulate"):
+            _simulate_tab(demo, workspace, limits, guard, show_input)
+        with gr.Tab("Restore", id="restore"):
+            _restore_tab(workspace, limits, guard, show_input)
+        with gr.Tab("Clip", id="clip"):
+            _clip_tab(workspace, limits, guard)
+    return demo
 
-    @guard
-    def show_sample(name):
-        path = workspace.new_run("preview") / f"{name}.png"
-        write_image(path, core.sample_image(name))
-        return path
+
+def _simulate_callback(workspace: core.Workspace, limits: core.Limits, guard):
+    """The Simulate button: the page's fields → :func:`d2turb.app.core.run_simulation` → the result's views."""
 
     @guard
     def simulate(
@@ -161,6 +164,124 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             [str(f) for f in r.files],
         )
 
+    return simulate
+
+
+def _simulate_controls() -> SimpleNamespace:
+    """The Simulate tab's left column: the image, the strength, the optics, the depth and the modulation."""
+    with gr.Row():
+        source = gr.Radio(list(core.IMAGE_SOURCES), value="sample", label="image")
+        sample = gr.Dropdown(list(core.SAMPLES), value="astronaut", label="built-in sample")
+    upload = gr.File(
+        label="upload an image",
+        file_types=sorted(core.IMAGE_SUFFIXES),
+        type="filepath",
+        height=120,
+        visible=False,
+    )
+    shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
+    strength = gr.Radio(list(core.STRENGTHS), value="D/r0", label="strength given as")
+    dr0 = gr.Slider(0.1, 10.0, value=3.0, step=0.05, label=f"D/r0 ({BINS_RULE})")
+    cn2 = gr.Number(value=1e-14, label="Cn² (m^-2/3), constant along the path", visible=False)
+    with gr.Row():
+        aperture = gr.Number(value=SIM_DEFAULTS.aperture_m, label="aperture D (m)")
+        wavelength = gr.Textbox(value=SIM_DEFAULTS.wavelength_nm, label="wavelength (nm): one, or three R G B")
+    with gr.Row():
+        path_length = gr.Number(value=SIM_DEFAULTS.path_length_m, label="path length L (m)")
+        ifov = gr.Number(value=0, label="pixel IFOV (µrad), 0 = Nyquist λ/(2D)")
+    depth = gr.Radio(list(core.DEPTH_SOURCES), value="prior", label="depth")
+    depth_upload = gr.File(
+        label="depth map (.png/.tif/.npy; far = large)",
+        file_types=[".png", ".tif", ".tiff", ".npy", ".pgm"],
+        type="filepath",
+        height=120,
+        visible=False,
+    )
+    disparity = gr.Checkbox(value=False, label="the map holds disparity (near = large)", visible=False)
+    with gr.Row():
+        modulation = gr.Dropdown(list(MODULATIONS), value="power_offset", label="modulation M")
+        offset = gr.Slider(0.0, 1.0, value=0.5, step=0.05, label="offset s (Eq. 1)")
+    seed = gr.Number(value=0, precision=0, label="seed")
+    run = gr.Button("Simulate", variant="primary", elem_id="simulate-button")
+    inputs = [source, sample, upload, strength, dr0, cn2, aperture, wavelength, path_length, ifov]
+    inputs += [depth, depth_upload, disparity, modulation, offset, seed]
+    return SimpleNamespace(
+        run=run,
+        inputs=inputs,
+        source=source,
+        sample=sample,
+        upload=upload,
+        shown=shown,
+        strength=strength,
+        dr0=dr0,
+        cn2=cn2,
+        depth=depth,
+        depth_upload=depth_upload,
+        disparity=disparity,
+    )
+
+
+def _simulate_results() -> list:
+    """The Simulate tab's right column: the images, the derived quantities, the command and the downloads (the
+    simulate callback's outputs, in its order)."""
+    with gr.Row():
+        turb = gr.Image(label="I_turb (blur + tilt)", type="filepath", elem_id="sim-turb", height=300)
+        tilt = gr.Image(label="I_tilt (tilt only)", type="filepath", height=300)
+    with gr.Row():
+        flow = gr.Image(label="flow Δ (colour wheel)", type="filepath", height=240)
+        depth_view = gr.Image(label="depth (far = white)", type="filepath", height=240)
+        modulation_view = gr.Image(label="modulation M (white = 1)", type="filepath", height=240)
+    with gr.Row():
+        with gr.Column(scale=1, min_width=260):
+            derived = gr.Markdown()
+        with gr.Column(scale=1, min_width=260):
+            command = gr.Code(label="command line (run it in the unpacked zip)", language="shell", **_code_kwargs())
+            files = gr.File(label="downloads", file_count="multiple")
+    with gr.Accordion("derived quantities (JSON)", open=False):
+        derived_json = gr.JSON()
+    return [turb, tilt, flow, depth_view, modulation_view, derived, derived_json, command, files]
+
+
+def _simulate_tab(demo: gr.Blocks, workspace: core.Workspace, limits: core.Limits, guard, show_input) -> None:
+    """The Simulate tab (API name ``/simulate``) and its events."""
+    simulate = _simulate_callback(workspace, limits, guard)
+
+    @guard
+    def show_sample(name):
+        path = workspace.new_run("preview") / f"{name}.png"
+        write_image(path, core.sample_image(name))
+        return path
+
+    with gr.Row():
+        with gr.Column(scale=1, min_width=300):
+            c = _simulate_controls()
+        with gr.Column(scale=2):
+            outputs = _simulate_results()
+    c.run.click(simulate, c.inputs, outputs, api_name="simulate", concurrency_limit=1)
+    c.upload.upload(show_input, c.upload, c.shown, api_name=False)
+    c.sample.change(show_sample, c.sample, c.shown, api_name=False)
+    c.source.change(lambda v: gr.update(visible=v == "upload"), c.source, c.upload, api_name=False)
+    c.strength.change(
+        lambda v: (gr.update(visible=v == "D/r0"), gr.update(visible=v != "D/r0")),
+        c.strength,
+        [c.dr0, c.cn2],
+        api_name=False,
+    )
+    c.depth.change(
+        lambda v: (gr.update(visible=v == "upload"),) * 2, c.depth, [c.depth_upload, c.disparity], api_name=False
+    )
+    demo.load(show_sample, c.sample, c.shown, api_name=False)
+
+
+def _restore_tab(workspace: core.Workspace, limits: core.Limits, guard, show_input) -> None:
+    """The Restore tab (API name ``/restore``): an image or a short video through a model, and its events."""
+
+    @guard
+    def show_restore_input(path):
+        if path and Path(path).suffix.lower() in _video_suffixes():
+            return None  # the first frame is shown with the result
+        return show_input(path)
+
     @guard
     def restore(upload, weights, weights_path, tile, overlap, device, progress=gr.Progress()):  # noqa: B008
         chosen = (weights_path or "").strip() or weights
@@ -179,6 +300,57 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
             [str(f) for f in r.files],
         )
 
+    def refresh_weights(current):
+        found = core.weights_choices()
+        value = current if current in {name for name, _ in found} else core.default_weights(found)
+        return gr.update(choices=[(_weights_label(n, p), n) for n, p in found], value=value)
+
+    with gr.Row():
+        with gr.Column(scale=1, min_width=300):
+            r_upload = gr.File(
+                label="image or short video",
+                file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
+                type="filepath",
+                height=120,
+                elem_id="restore-upload",
+            )
+            r_shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
+            found = core.weights_choices()
+            weights = gr.Dropdown(
+                [(_weights_label(n, p), n) for n, p in found],
+                value=core.default_weights(found),
+                label="weights (found locally)",
+            )
+            weights_path = gr.Textbox(value="", label="or a local .safetensors path")
+            refresh = gr.Button("rescan weights", size="sm")
+            with gr.Row():
+                tile = gr.Number(value=512, precision=0, label="tile (px)")
+                overlap = gr.Number(value=64, precision=0, label="overlap (px)")
+            devices = ["cpu"] + (["cuda"] if _cuda() else [])
+            device = gr.Dropdown(devices, value=devices[-1], label="device")
+            run_restore = gr.Button("Restore", variant="primary", elem_id="restore-button")
+        with gr.Column(scale=2):
+            compare = gr.ImageSlider(label="input | restored (drag the handle)", type="filepath")
+            r_flow = gr.Image(label="predicted flow V̂ (colour wheel)", type="filepath")
+            niqe = gr.Markdown()
+            r_command = gr.Code(label="command line", language="shell", **_code_kwargs())
+            r_files = gr.File(label="downloads", file_count="multiple")
+            with gr.Accordion("details (JSON)", open=False):
+                r_json = gr.JSON()
+    run_restore.click(
+        restore,
+        [r_upload, weights, weights_path, tile, overlap, device],
+        [compare, r_flow, niqe, r_json, r_command, r_files],
+        api_name="restore",
+        concurrency_limit=1,
+    )
+    refresh.click(refresh_weights, weights, weights, api_name=False)
+    r_upload.upload(show_restore_input, r_upload, r_shown, api_name=False)
+
+
+def _clip_tab(workspace: core.Workspace, limits: core.Limits, guard) -> None:
+    """The Clip tab (API name ``/clip``): a short video, or an image to simulate a clip from, restored as a clip."""
+
     @guard
     def clip(upload, temporal, dr0, progress=gr.Progress()):  # noqa: B008
         progress(0, desc="restoring the clip")
@@ -186,159 +358,32 @@ def build_app(workspace: core.Workspace, limits: core.Limits | None = None) -> g
         notes = "\n".join(f"* {n}" for n in r.notes)
         return (str(r.before), str(r.after)), notes, r.command, [str(f) for f in r.files]
 
-    def refresh_weights(current):
-        found = core.weights_choices()
-        value = current if current in {name for name, _ in found} else core.default_weights(found)
-        return gr.update(choices=[(_weights_label(n, p), n) for n, p in found], value=value)
-
-    with gr.Blocks(title="d2turb", **_blocks_kwargs()) as demo:
-        gr.Markdown(INTRO)
-        with gr.Tab("Simulate", id="simulate"):
-            with gr.Row():
-                with gr.Column(scale=1, min_width=300):
-                    with gr.Row():
-                        source = gr.Radio(list(core.IMAGE_SOURCES), value="sample", label="image")
-                        sample = gr.Dropdown(list(core.SAMPLES), value="astronaut", label="built-in sample")
-                    upload = gr.File(
-                        label="upload an image",
-                        file_types=sorted(core.IMAGE_SUFFIXES),
-                        type="filepath",
-                        height=120,
-                        visible=False,
-                    )
-                    shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
-                    strength = gr.Radio(list(core.STRENGTHS), value="D/r0", label="strength given as")
-                    dr0 = gr.Slider(0.1, 10.0, value=3.0, step=0.05, label=f"D/r0 ({BINS_RULE})")
-                    cn2 = gr.Number(value=1e-14, label="Cn² (m^-2/3), constant along the path", visible=False)
-                    with gr.Row():
-                        aperture = gr.Number(value=SIM_DEFAULTS.aperture_m, label="aperture D (m)")
-                        wavelength = gr.Textbox(
-                            value=SIM_DEFAULTS.wavelength_nm, label="wavelength (nm): one, or three R G B"
-                        )
-                    with gr.Row():
-                        path_length = gr.Number(value=SIM_DEFAULTS.path_length_m, label="path length L (m)")
-                        ifov = gr.Number(value=0, label="pixel IFOV (µrad), 0 = Nyquist λ/(2D)")
-                    depth = gr.Radio(list(core.DEPTH_SOURCES), value="prior", label="depth")
-                    depth_upload = gr.File(
-                        label="depth map (.png/.tif/.npy; far = large)",
-                        file_types=[".png", ".tif", ".tiff", ".npy", ".pgm"],
-                        type="filepath",
-                        height=120,
-                        visible=False,
-                    )
-                    disparity = gr.Checkbox(value=False, label="the map holds disparity (near = large)", visible=False)
-                    with gr.Row():
-                        modulation = gr.Dropdown(list(MODULATIONS), value="power_offset", label="modulation M")
-                        offset = gr.Slider(0.0, 1.0, value=0.5, step=0.05, label="offset s (Eq. 1)")
-                    seed = gr.Number(value=0, precision=0, label="seed")
-                    run_sim = gr.Button("Simulate", variant="primary", elem_id="simulate-button")
-                with gr.Column(scale=2):
-                    with gr.Row():
-                        turb = gr.Image(label="I_turb (blur + tilt)", type="filepath", elem_id="sim-turb", height=300)
-                        tilt = gr.Image(label="I_tilt (tilt only)", type="filepath", height=300)
-                    with gr.Row():
-                        flow = gr.Image(label="flow Δ (colour wheel)", type="filepath", height=240)
-                        depth_view = gr.Image(label="depth (far = white)", type="filepath", height=240)
-                        modulation_view = gr.Image(label="modulation M (white = 1)", type="filepath", height=240)
-                    with gr.Row():
-                        with gr.Column(scale=1, min_width=260):
-                            derived = gr.Markdown()
-                        with gr.Column(scale=1, min_width=260):
-                            command = gr.Code(
-                                label="command line (run it in the unpacked zip)", language="shell", **_code_kwargs()
-                            )
-                            files = gr.File(label="downloads", file_count="multiple")
-                    with gr.Accordion("derived quantities (JSON)", open=False):
-                        derived_json = gr.JSON()
-            sim_inputs = [source, sample, upload, strength, dr0, cn2, aperture, wavelength, path_length, ifov]
-            sim_inputs += [depth, depth_upload, disparity, modulation, offset, seed]
-            sim_outputs = [turb, tilt, flow, depth_view, modulation_view, derived, derived_json, command, files]
-            run_sim.click(simulate, sim_inputs, sim_outputs, api_name="simulate", concurrency_limit=1)
-            upload.upload(show_input, upload, shown, api_name=False)
-            sample.change(show_sample, sample, shown, api_name=False)
-            source.change(lambda v: gr.update(visible=v == "upload"), source, upload, api_name=False)
-            strength.change(
-                lambda v: (gr.update(visible=v == "D/r0"), gr.update(visible=v != "D/r0")),
-                strength,
-                [dr0, cn2],
-                api_name=False,
+    with gr.Row():
+        with gr.Column(scale=1, min_width=300):
+            c_upload = gr.File(
+                label="short video (a static scene), or an image to simulate a clip from",
+                file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
+                type="filepath",
+                height=120,
+                elem_id="clip-upload",
             )
-            depth.change(
-                lambda v: (gr.update(visible=v == "upload"),) * 2, depth, [depth_upload, disparity], api_name=False
+            c_temporal = gr.Slider(2, 64, value=32, step=1, label="window (frames)")
+            c_dr0 = gr.Number(
+                value=0, label="D/r0 for the physics deblur (0 = none; an image is simulated at it, default 3)"
             )
-            demo.load(show_sample, sample, shown, api_name=False)
-
-        with gr.Tab("Restore", id="restore"):
-            with gr.Row():
-                with gr.Column(scale=1, min_width=300):
-                    r_upload = gr.File(
-                        label="image or short video",
-                        file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
-                        type="filepath",
-                        height=120,
-                        elem_id="restore-upload",
-                    )
-                    r_shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
-                    found = core.weights_choices()
-                    weights = gr.Dropdown(
-                        [(_weights_label(n, p), n) for n, p in found],
-                        value=core.default_weights(found),
-                        label="weights (found locally)",
-                    )
-                    weights_path = gr.Textbox(value="", label="or a local .safetensors path")
-                    refresh = gr.Button("rescan weights", size="sm")
-                    with gr.Row():
-                        tile = gr.Number(value=512, precision=0, label="tile (px)")
-                        overlap = gr.Number(value=64, precision=0, label="overlap (px)")
-                    devices = ["cpu"] + (["cuda"] if _cuda() else [])
-                    device = gr.Dropdown(devices, value=devices[-1], label="device")
-                    run_restore = gr.Button("Restore", variant="primary", elem_id="restore-button")
-                with gr.Column(scale=2):
-                    compare = gr.ImageSlider(label="input | restored (drag the handle)", type="filepath")
-                    r_flow = gr.Image(label="predicted flow V̂ (colour wheel)", type="filepath")
-                    niqe = gr.Markdown()
-                    r_command = gr.Code(label="command line", language="shell", **_code_kwargs())
-                    r_files = gr.File(label="downloads", file_count="multiple")
-                    with gr.Accordion("details (JSON)", open=False):
-                        r_json = gr.JSON()
-            run_restore.click(
-                restore,
-                [r_upload, weights, weights_path, tile, overlap, device],
-                [compare, r_flow, niqe, r_json, r_command, r_files],
-                api_name="restore",
-                concurrency_limit=1,
-            )
-            refresh.click(refresh_weights, weights, weights, api_name=False)
-            r_upload.upload(show_restore_input, r_upload, r_shown, api_name=False)
-
-        with gr.Tab("Clip", id="clip"):
-            with gr.Row():
-                with gr.Column(scale=1, min_width=300):
-                    c_upload = gr.File(
-                        label="short video (a static scene), or an image to simulate a clip from",
-                        file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
-                        type="filepath",
-                        height=120,
-                        elem_id="clip-upload",
-                    )
-                    c_temporal = gr.Slider(2, 64, value=32, step=1, label="window (frames)")
-                    c_dr0 = gr.Number(
-                        value=0, label="D/r0 for the physics deblur (0 = none; an image is simulated at it, default 3)"
-                    )
-                    run_clip = gr.Button("Restore clip", variant="primary", elem_id="clip-button")
-                with gr.Column(scale=2):
-                    c_compare = gr.ImageSlider(label="input | restored, middle frame", type="filepath")
-                    c_notes = gr.Markdown()
-                    c_command = gr.Code(label="command line", language="shell", **_code_kwargs())
-                    c_files = gr.File(label="downloads", file_count="multiple")
-            run_clip.click(
-                clip,
-                [c_upload, c_temporal, c_dr0],
-                [c_compare, c_notes, c_command, c_files],
-                api_name="clip",
-                concurrency_limit=1,
-            )
-    return demo
+            run_clip = gr.Button("Restore clip", variant="primary", elem_id="clip-button")
+        with gr.Column(scale=2):
+            c_compare = gr.ImageSlider(label="input | restored, middle frame", type="filepath")
+            c_notes = gr.Markdown()
+            c_command = gr.Code(label="command line", language="shell", **_code_kwargs())
+            c_files = gr.File(label="downloads", file_count="multiple")
+    run_clip.click(
+        clip,
+        [c_upload, c_temporal, c_dr0],
+        [c_compare, c_notes, c_command, c_files],
+        api_name="clip",
+        concurrency_limit=1,
+    )
 
 
 def _bars(progress: gr.Progress):
