@@ -25,8 +25,9 @@ import torch
 
 from d2turb.io import write_json
 from d2turb.sim import Simulator, TurbulenceParams
+from d2turb.sim.fields import VectorFieldSampler
 from d2turb.sim.sequence import FrozenFlow
-from d2turb.sim.tilt import VectorFieldSampler, tilt_correlation
+from d2turb.sim.tilt import tilt_correlation
 
 
 def theory(n: int, params: TurbulenceParams) -> dict:

@@ -19,8 +19,8 @@ from scipy import stats
 
 from d2turb.cli import main
 from d2turb.data import check_dataset, plan_sample
-from d2turb.data.generate import crop_box
 from d2turb.data.layout import FILES, read_depth_png
+from d2turb.data.plan import crop_box
 from d2turb.data.sources import resize_up
 from d2turb.io import read_image
 from d2turb.sim import BINS, bin_spans, dr0_bin, dr0_from_uniform

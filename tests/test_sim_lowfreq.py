@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from d2turb.sim import Simulator, TurbulenceParams
+from d2turb.sim.fields import VectorFieldSampler
 from d2turb.sim.sequence import FrozenFlow
-from d2turb.sim.tilt import VectorFieldSampler
 
 
 def _oracle_axes(oracle, params, r):

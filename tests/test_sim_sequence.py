@@ -14,9 +14,9 @@ import torch
 
 from d2turb.errors import D2TurbError
 from d2turb.sim import Simulator, TurbulenceParams
+from d2turb.sim.fields import PlaneWaveGrid
 from d2turb.sim.psf import PupilOptics
 from d2turb.sim.sequence import FrozenFlow, wind_speeds
-from d2turb.sim.tilt import PlaneWaveGrid
 from d2turb.sim.zernike import noll_covariance
 
 # physics.md §2: one layer's (I0 ± I2)/I0(0) table

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from d2turb.data.generate import crop_box
+from d2turb.data.plan import crop_box, keyed_rng
 from d2turb.errors import D2TurbError
 from d2turb.ops.splat import invert_flow
 from d2turb.sim.camera import linear_to_srgb, optics_blur, poisson_gaussian_noise, srgb_to_linear, unsharp_mask
@@ -54,10 +54,6 @@ FIELD_RANGES = {
     "jpeg_quality": [60, 95],  # integer, uniform (OpenCV, 4:2:0)
     "video_bpp": [0.1, 0.6],  # bits per pixel and frame, log-uniform: bitrate = bpp · W · H · fps (PyAV)
 }
-
-
-def _rng(*key: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([int(k) for k in key]))
 
 
 def window_margin(patch: int) -> int:
@@ -160,7 +156,7 @@ def draw_camera(rng: np.random.Generator, patch: int, fps: float) -> dict:
 
 def draw_clip(seed: int, index: int, frames: int, patch: int, fps: float, n_sources: int, scene_source: int) -> dict:
     """Everything drawn about field clip ``index`` (shake, objects, camera, noise seed), from (seed, index) only."""
-    rng = _rng(seed, 4, index)
+    rng = keyed_rng(seed, 4, index)
     shake = draw_shake(rng, frames, patch)
     objects = draw_objects(rng, frames, patch, n_sources, scene_source)
     camera = draw_camera(rng, patch, fps)

@@ -6,7 +6,8 @@ noise for the batch ("chunk") ``c = i // batch`` is seeded from ``(seed, c)``. C
 round-robin (``c ≡ rank mod world``; with ``--batch 1`` that is ``i ≡ rank mod world``), so for a given
 seed, batch size and device the output does not depend on the number of processes or on restarts.
 
-The source images are read by :mod:`~d2turb.data.sources`; which samples are done, and the clean-up of an
+The settings and their record are :mod:`~d2turb.data.config`, what each sample draws :mod:`~d2turb.data.plan`;
+the source images are read by :mod:`~d2turb.data.sources`; which samples are done, and the clean-up of an
 unfinished run, is :mod:`~d2turb.data.resume`.
 """
 
@@ -14,25 +15,25 @@ from __future__ import annotations
 
 import contextlib
 import datetime
-import json
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from d2turb.data.config import DatasetConfig, dataset_config_record, params_record, validate
+from d2turb.data.field import prepare_scene, simulate_field_chunk, window_margin
 from d2turb.data.layout import (
     CONFIG_NAME,
     FILES,
-    FORMAT_VERSION,
     append_line,
     file_path,
     sample_id,
     truncate_partial_line,
     write_depth_png,
 )
+from d2turb.data.plan import chunk_geometry, chunk_seed, crop_box, keyed_rng, plan_sample
 from d2turb.data.resume import (
     check_same_config,
     collect_records,
@@ -42,13 +43,11 @@ from d2turb.data.resume import (
     reset_unfinished,
     shard_dir,
 )
-from d2turb.data.sequence import sequence_settings, simulate_sequence_chunk
+from d2turb.data.sequence import simulate_sequence_chunk
 from d2turb.data.sources import SourceCache, check_patch_fits, make_depth_fn
-from d2turb.defaults import DEFAULT_DEPTH, DEFAULT_DEVICE
 from d2turb.device import DistributedEnv, distributed_env, resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
-    DEFAULT_PNG_LEVEL,
     BackgroundWriter,
     FolderLock,
     check_output_dir,
@@ -59,81 +58,7 @@ from d2turb.io import (
 )
 from d2turb.ops.splat import invert_flow
 from d2turb.sim import Simulator
-from d2turb.sim.geometry import footprint_px, geometry_bank
-from d2turb.sim.params import BINS, bin_spans, dr0_bin, dr0_from_uniform
-
-SPLITS = ("train", "test")
-
-
-@dataclass
-class DatasetConfig:
-    clean: list[str]
-    out: str
-    pairs: int
-    patch: int = 256
-    split: str = "train"
-    bins: tuple[str, ...] = tuple(BINS)
-    depth: str = DEFAULT_DEPTH
-    depth_is_disparity: bool = False
-    seed: int = 0
-    batch: int = 8
-    device: str = DEFAULT_DEVICE
-    params: dict = field(default_factory=dict)  # TurbulenceParams overrides
-    geometry: str = "fixed"  # a d2turb.sim.geometry.GEOMETRIES name; one geometry per chunk of `batch` samples
-    png_level: int = DEFAULT_PNG_LEVEL  # zlib level of the PNG files (not part of the dataset's identity)
-    frames: int = 1  # > 1: sequence samples (d2turb.data.sequence)
-    sequence: dict = field(default_factory=dict)  # fps, wind, wind_dir, boil
-    # camera degradation of the turbulent frames, drawn per sample: {"noise": [lo, hi] grey levels (σ of Gaussian
-    # noise on the 0–255 scale), "jpeg": [lo, hi] JPEG quality}; empty: none (issue 35's blind test set)
-    camera: dict = field(default_factory=dict)
-    # "field": field-realistic clips (camera shake, moving objects, a camera in linear light; d2turb.data.field)
-    profile: str = "standard"
-
-
-PROFILES = ("standard", "field")
-
-
-@dataclass
-class SamplePlan:
-    index: int
-    id: str
-    source: int  # index into the sorted source list
-    dr0: float
-    bin: str
-    crop_u: float  # crop offsets as fractions of the free range, resolved once the image size is known
-    crop_v: float
-
-
-PATCH_MAX = 4096  # as train's data.patch: one 4096² sample already holds ~0.5 GB of float32 intermediates
-
-
-def validate(cfg: DatasetConfig) -> None:
-    if cfg.pairs < 1:
-        raise D2TurbError(f"pairs must be at least 1, got {cfg.pairs}", param="pairs")
-    if not 16 <= cfg.patch <= PATCH_MAX:
-        raise D2TurbError(f"patch must be from 16 to {PATCH_MAX} px, got {cfg.patch}", param="patch")
-    if cfg.split not in SPLITS:
-        raise D2TurbError(f"split must be one of {', '.join(SPLITS)}, got {cfg.split!r}", param="split")
-    bin_spans(cfg.bins)
-    if cfg.batch < 1:
-        raise D2TurbError(f"batch must be at least 1, got {cfg.batch}", param="batch")
-    if not 0 <= cfg.seed < 2**63:
-        raise D2TurbError(f"seed must be between 0 and 2**63 - 1, got {cfg.seed}", param="seed")
-    if cfg.frames != 1 or cfg.sequence:
-        cfg.sequence = sequence_settings(cfg.frames, cfg.sequence)
-    for key, (lo_ok, hi_ok) in {"noise": (0.0, 50.0), "jpeg": (1, 100)}.items():
-        span = cfg.camera.get(key)
-        if span is not None and not (len(span) == 2 and lo_ok <= span[0] <= span[1] <= hi_ok):
-            raise D2TurbError(f"camera {key} must be a range lo,hi within [{lo_ok:g}, {hi_ok:g}], got {span!r}")
-    if set(cfg.camera) - {"noise", "jpeg"}:
-        raise D2TurbError(f"unknown camera settings {sorted(set(cfg.camera) - {'noise', 'jpeg'})}")
-    if cfg.profile not in PROFILES:
-        raise D2TurbError(f"profile must be one of {', '.join(PROFILES)}, got {cfg.profile!r}", param="profile")
-    if cfg.profile == "field":
-        if cfg.frames < 2:
-            raise D2TurbError("the field profile makes clips: give --frames N (N >= 2)", param="frames")
-        if cfg.camera:
-            raise D2TurbError("the field profile draws its own camera: leave out --camera-noise and --jpeg")
+from d2turb.sim.geometry import geometry_bank
 
 
 def camera_degrade(turb: torch.Tensor, camera: dict, seed: int, index: int, rows: int) -> tuple[torch.Tensor, dict]:
@@ -142,7 +67,7 @@ def camera_degrade(turb: torch.Tensor, camera: dict, seed: int, index: int, rows
     quantisation, then each frame JPEG-compressed at a quality uniform in ``camera["jpeg"]`` (OpenCV)."""
     import cv2
 
-    rng = _rng(seed, 3, index)
+    rng = keyed_rng(seed, 3, index)
     drawn = {}
     img = turb.float().clamp(0, 1).numpy().transpose(1, 2, 0) * 255
     if "noise" in camera:
@@ -158,89 +83,6 @@ def camera_degrade(turb: torch.Tensor, camera: dict, seed: int, index: int, rows
                 raise D2TurbError("JPEG encoding failed")
             u8[y : y + rows] = cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1]
     return torch.from_numpy(u8.transpose(2, 0, 1).astype(np.float32) / 255), drawn
-
-
-def _rng(*key: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([int(k) for k in key]))
-
-
-def chunk_geometry(seed: int, chunk: int, n_geometries: int) -> int:
-    """Index of the imaging geometry of chunk ``chunk`` (from (seed, chunk) only)."""
-    return int(_rng(seed, 2, chunk).integers(n_geometries)) if n_geometries > 1 else 0
-
-
-def chunk_seed(seed: int, chunk: int) -> int:
-    """Simulator seed of chunk ``chunk`` (63-bit, from (seed, chunk) only)."""
-    return int(np.random.SeedSequence([int(seed), 1, int(chunk)]).generate_state(1, np.uint64)[0] >> np.uint64(1))
-
-
-def plan_sample(index: int, seed: int, split: str, bins: tuple[str, ...], n_sources: int) -> SamplePlan:
-    """Everything random about sample ``index`` except the simulator noise, from (seed, index) only.
-
-    test: bin = bins[i % n_bins], D/r0 uniform inside it, source = (i // n_bins) % n_sources (each image
-    appears once per bin before any repeats); train: D/r0 uniform over the union of bins, random source.
-    """
-    rng = _rng(seed, 0, index)
-    if split == "test":
-        name = bins[index % len(bins)]
-        dr0 = float(dr0_from_uniform(rng.random(), bin_spans([name])))
-        source = (index // len(bins)) % n_sources
-    else:
-        dr0 = float(dr0_from_uniform(rng.random(), bin_spans(bins)))
-        name = dr0_bin(dr0)
-        source = int(rng.integers(n_sources))
-    u, v = rng.random(2)
-    return SamplePlan(index, sample_id(index), source, dr0, name, float(u), float(v))
-
-
-def crop_box(plan: SamplePlan, height: int, width: int, patch: int) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) of the patch inside a height×width image."""
-    x0 = min(int(plan.crop_u * (width - patch + 1)), width - patch)
-    y0 = min(int(plan.crop_v * (height - patch + 1)), height - patch)
-    return x0, y0, x0 + patch, y0 + patch
-
-
-PER_SAMPLE_KEYS = ("dr0", "r0_m")  # drawn per sample (its bin): the record's "dr0", not the simulator's default
-
-
-def params_record(params) -> dict:
-    """TurbulenceParams as a JSON-ready dict (with the tilt footprint) for the metadata, without D/r0 and r0: each
-    sample draws its own D/r0 from its bin (the sample's ``dr0`` field), so the simulator's default would only
-    stand beside the true value as a second, wrong one."""
-    full = {**params.to_dict(), "footprint_px": footprint_px(params)}
-    full = {k: v for k, v in full.items() if k not in PER_SAMPLE_KEYS}
-    return json.loads(json.dumps(full, default=str))
-
-
-def dataset_config_record(cfg: DatasetConfig, sources: list[Path], params_full: dict) -> dict:
-    sequence = {"frames": cfg.frames, "sequence": cfg.sequence} if cfg.frames > 1 else {}
-    camera = {"camera": cfg.camera} if cfg.camera else {}
-    if cfg.profile == "field":
-        from d2turb.data.field import FIELD_RANGES  # the field profile's module imports this one: no cycle here
-
-        camera["profile"] = "field"
-        camera["field"] = FIELD_RANGES
-    return {
-        **sequence,
-        **camera,
-        "version": FORMAT_VERSION,
-        "pairs": cfg.pairs,
-        "patch": cfg.patch,
-        "split": cfg.split,
-        "bins": list(cfg.bins),
-        "bin_ranges": {b: list(BINS[b]) for b in cfg.bins},
-        "seed": cfg.seed,
-        "batch": cfg.batch,
-        "depth": cfg.depth,
-        "depth_is_disparity": cfg.depth_is_disparity,
-        "params": params_full,
-        "geometry": cfg.geometry,
-        "clean": [str(c) for c in cfg.clean],
-        "sources": len(sources),
-        "files": {k: f"{k}/<id>{s}" for k, s in FILES.items()},
-        "bwd_flow_px": "float16 (2,H,W) backward flow in px, x then y: warp(tilt, bwd_flow_px) ~ gt",
-        "depth_encoding": "16-bit PNG, depth = value / 65535, far = 1",
-    }
 
 
 # ------------------------------------------------------------------------------------------ distributed
@@ -357,9 +199,6 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
     sims: dict[int, Simulator] = {}
     field_profile = cfg.profile == "field"
     if field_profile:  # the frame's window with the border the camera's shake brings into view
-        # the field profile's module imports this one: imported here, no cycle
-        from d2turb.data.field import prepare_scene, simulate_field_chunk, window_margin
-
         window = cfg.patch + 2 * window_margin(cfg.patch)
         object_cache = SourceCache(sources, window, None)
     cache = SourceCache(

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from d2turb.sim.tilt import fast_size
+from d2turb.sim.fields import fast_size
 from d2turb.sim.zernike import zernike
 
 

@@ -29,7 +29,8 @@ import torch
 
 from d2turb.errors import D2TurbError
 from d2turb.ops.checks import check_shape
-from d2turb.sim.tilt import PlaneWaveGrid, layer_tilt_radial_cdf, path_nodes
+from d2turb.sim.fields import PlaneWaveGrid
+from d2turb.sim.tilt import layer_tilt_radial_cdf, path_nodes
 
 # ring edges in cycles per unit s: sparse below 0.01 (25 % of the power, nearly uniform over an image),
 # dense where the structure visible in a frame lives

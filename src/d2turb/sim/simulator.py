@@ -14,10 +14,11 @@ from d2turb.deprecation import warn_once
 from d2turb.errors import D2TurbError
 from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
+from d2turb.sim.fields import ScalarFieldSampler, VectorFieldSampler
 from d2turb.sim.params import MAX_DR0, TurbulenceParams, depth_modulation
 from d2turb.sim.psf import PupilOptics, blur_with_basis, pca_basis
 from d2turb.sim.sequence import simulate_sequence
-from d2turb.sim.tilt import ScalarFieldSampler, VectorFieldSampler, path_nodes
+from d2turb.sim.tilt import path_nodes
 from d2turb.sim.zernike import noll_covariance, noll_to_nm
 
 
