@@ -14,13 +14,14 @@ import platform
 
 import torch
 
+from d2turb.commands.common import model_config
 from d2turb.models.complexity import benchmark, efficiency_entries
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("name", nargs="?", default="d2turb")
-    p.add_argument("--config", default="{}", help="model config as JSON")
+    p.add_argument("--config", help="model config as JSON (string or path to a .json file)")
     p.add_argument("--all", action="store_true", help="every row of the efficiency table")
     p.add_argument("--size", type=int, default=256)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -28,7 +29,7 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
     args = p.parse_args()
-    entries = efficiency_entries() if args.all else [(args.name, json.loads(args.config))]
+    entries = efficiency_entries() if args.all else [(args.name, model_config(args.config))]
     if args.device.startswith("cuda"):
         machine = torch.cuda.get_device_name()
     else:

@@ -108,7 +108,7 @@ def main() -> None:
     p.add_argument("--width", type=int, default=4000)
     p.add_argument("--height", type=int, default=3000)
     p.add_argument("--model", default="d2turb_lite")
-    p.add_argument("--config", default="{}", help="model config as JSON")
+    p.add_argument("--config", help="model config as JSON (string or path to a .json file)")
     p.add_argument("--tile", type=int, default=512)
     p.add_argument("--overlap", type=int, default=64)
     p.add_argument("--threads", type=int, default=2)
@@ -121,6 +121,9 @@ def main() -> None:
         help="instead: compare tiled with untiled restoration on IMAGE (default: the test photo)",
     )
     args = p.parse_args()
+    from d2turb.commands.common import model_config  # no torch: the threads are set first
+
+    config = model_config(args.config)
     torch_threads(args.threads)
     if args.compare_untiled is not None:
         r = compare_untiled(
@@ -128,7 +131,7 @@ def main() -> None:
             args.width,
             args.height,
             args.model,
-            json.loads(args.config),
+            config,
             args.tile,
             args.overlap,
         )
@@ -139,7 +142,7 @@ def main() -> None:
         tmp = Path(tmp)
         photo, weights = tmp / "photo.jpg", tmp / "model.safetensors"
         make_photo(photo, args.width, args.height)
-        params = make_weights(weights, args.model, json.loads(args.config))
+        params = make_weights(weights, args.model, config)
         env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
         cmd = [
             sys.executable,
@@ -170,7 +173,7 @@ def main() -> None:
             {
                 "image": f"{args.width}x{args.height}",
                 "model": args.model,
-                "config": json.loads(args.config),
+                "config": config,
                 "parameters": params,
                 "tile": args.tile,
                 "overlap": args.overlap,

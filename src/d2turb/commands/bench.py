@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from d2turb.commands.common import model_config
 from d2turb.defaults import DEFAULT_DEVICE
 from d2turb.errors import D2TurbError
 
@@ -35,22 +36,7 @@ def register(sub):
 
 
 def _config(args) -> dict:
-    import json
-    from pathlib import Path
-
-    cfg = {}
-    if args.config:
-        text = (
-            Path(args.config).read_text()
-            if args.config.endswith(".json") and Path(args.config).is_file()
-            else args.config
-        )
-        try:
-            cfg = json.loads(text)
-        except ValueError as exc:
-            raise D2TurbError(f"--config: not valid JSON ({exc})") from exc
-        if not isinstance(cfg, dict):
-            raise D2TurbError("--config: expected a JSON object")
+    cfg = model_config(args.config)
     for key in ("backbone", "injection"):
         if getattr(args, key):
             cfg[key] = getattr(args, key)

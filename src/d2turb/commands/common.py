@@ -137,6 +137,24 @@ def parse_params(texts: list[str], keys=None) -> dict:
     return params
 
 
+def model_config(text: str | None) -> dict:
+    """A ``--config`` value → the model config (a dict; ``{}`` when not given): ``text`` is the JSON object itself or
+    the path of a .json file holding it. Not JSON, or not an object: a one-line ``D2TurbError``."""
+    from pathlib import Path
+
+    if not text:
+        return {}
+    if text.endswith(".json") and Path(text).is_file():
+        text = Path(text).read_text()
+    try:
+        cfg = json.loads(text)
+    except ValueError as exc:
+        raise D2TurbError(f"--config: not valid JSON ({exc})") from exc
+    if not isinstance(cfg, dict):
+        raise D2TurbError("--config: expected a JSON object")
+    return cfg
+
+
 # ---- the optics (d2turb.sim.Optics): one spelling on every command that takes them --------------------------------
 # field → flag (argparse dest: the flag's name with _); `--param FIELD=…` is the old spelling of restore, measure and
 # make-dataset, kept as an alias for one release (a warning line names the flag)

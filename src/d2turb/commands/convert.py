@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from d2turb.commands.common import model_config
 from d2turb.errors import D2TurbError
 
 
@@ -27,23 +28,6 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def _config(text: str | None) -> dict:
-    import json
-    from pathlib import Path
-
-    if not text:
-        return {}
-    if text.endswith(".json") and Path(text).is_file():
-        text = Path(text).read_text()
-    try:
-        cfg = json.loads(text)
-    except ValueError as exc:
-        raise D2TurbError(f"--config: not valid JSON ({exc})") from exc
-    if not isinstance(cfg, dict):
-        raise D2TurbError("--config: expected a JSON object")
-    return cfg
-
-
 def run(args):
     # lazy: see d2turb.commands
     from pathlib import Path
@@ -55,7 +39,7 @@ def run(args):
         raise D2TurbError(f"{dst}: output must end in .safetensors")
     if Path(args.src).resolve() == dst.resolve():
         raise D2TurbError(f"{dst}: output must differ from the input")
-    model = load_pretrained(args.src, model=args.model, config=_config(args.config), key=args.key)
+    model = load_pretrained(args.src, model=args.model, config=model_config(args.config), key=args.key)
     save_pretrained(model, dst)
     print(f"{dst}: {model.config['name']}, {count_parameters(model):,} parameters")
     return 0
