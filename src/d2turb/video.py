@@ -123,10 +123,40 @@ def can_write_mp4() -> bool:
 # x264's speed preset: "veryfast" encodes 1080p at about half the CPU of the default "medium" with files of the same
 # size at the default quality (CRF 23) on the real street clip (benchmarks/RESULTS.md, issue 35)
 X264_PRESET = "veryfast"
+# Mp4Writer's slice threads, fixed: x264's bytes depend on its thread count, which "auto" takes from the CPUs this
+# process may use (2 = auto on the 2-core machine: its 1080p files unchanged)
+X264_THREADS = 2
+# the CPU features with which x264 runs its AVX-512 code (x264 common/cpu.c: F, CD, DQ, BW and VL)
+_X264_AVX512 = ("AVX512F", "AVX512CD", "AVX512DQ", "AVX512BW", "AVX512VL")
+
+
+def _cpu_features() -> dict:
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__  # numpy >= 2
+    except ImportError:
+        try:
+            from numpy.core._multiarray_umath import __cpu_features__
+        except ImportError:
+            return {}
+    return dict(__cpu_features__)
+
+
+def x264_params() -> str:
+    """Mp4Writer's ``x264-params``: the same frames give the same file, run after run.
+
+    x264's AVX-512 code reads memory it has not written (its macroblock-tree rate control): the bytes of a 56x48
+    clip depended on what the heap held before (``MALLOC_PERTURB_`` 0, 77, 165 and 200 gave four different files of
+    the same frames, measured; the page's in-process run and its command line's rerun differed so). Where x264 would
+    use AVX-512 its assembly stops at AVX2 (every CPU with x264's AVX-512 set has AVX2, FMA3 and BMI2): the files
+    are then the same under every perturbation, and 1080p encodes in no more CPU time (1.45 s against 1.8 s for 20
+    frames of the street clip). Elsewhere x264 chooses its own assembly."""
+    features = _cpu_features()
+    return "asm=AVX2" if all(features.get(name) for name in _X264_AVX512) else ""
 
 
 class Mp4Writer:
-    """Streams frames into an H.264 mp4 (PyAV, libx264 ``X264_PRESET``, yuv420p: odd sizes are padded by one edge
+    """Streams frames into an H.264 mp4 (PyAV, libx264 ``X264_PRESET``, ``X264_THREADS`` slice threads and
+    :func:`x264_params`: the same frames give the same bytes; yuv420p: odd sizes are padded by one edge
     row/column), encoding in a thread of its own (at most two frames wait: the caller computes the next frame while
     the last one is encoded; the encoder releases the GIL).
 
@@ -147,7 +177,10 @@ class Mp4Writer:
             self._container = av.open(str(tmp), "w", format="mp4")
             self._stream = self._container.add_stream("libx264", rate=Fraction(fps).limit_denominator(65535))
             self._stream.pix_fmt = "yuv420p"
-            self._stream.options = {"preset": X264_PRESET}
+            self._stream.codec_context.thread_type = "SLICE"
+            self._stream.codec_context.thread_count = X264_THREADS
+            params = x264_params()
+            self._stream.options = {"preset": X264_PRESET, **({"x264-params": params} if params else {})}
         except Exception as exc:  # noqa: BLE001 - e.g. a PyAV without libx264: one line, no temp file left
             self._stack.__exit__(type(exc), exc, exc.__traceback__)
             raise D2TurbError(f"cannot write {self.path}: {_first_line(exc)} ({VIDEO_HINT})") from exc
