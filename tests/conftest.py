@@ -122,18 +122,11 @@ def published_tilt():
 def tiny_d2turb_weights(tmp_path_factory) -> Path:
     """A tiny random D²Turb (NAFNet + U-Net rectifier) with a non-zero flow head, saved as safetensors in a
     folder of its own (usable as $D2TURB_WEIGHTS_DIR)."""
-    from d2turb.models import create_model, save_pretrained
+    from _tiny_models import tiny_d2turb
 
-    torch.manual_seed(0)
-    model = create_model(
-        "d2turb",
-        backbone="nafnet",
-        injection="aspi_cosine",
-        rectifier="unet",
-        backbone_cfg={"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1]},
-        rectifier_cfg={"width": 8, "mults": [1, 1, 2, 2], "depth": 3},
-    )
-    torch.nn.init.normal_(model.rectifier.flow_head.weight, std=2.0)
+    from d2turb.models import save_pretrained
+
+    model = tiny_d2turb(flow_std=2.0)
     return save_pretrained(model.eval(), tmp_path_factory.mktemp("weights") / "tiny-app.safetensors")
 
 

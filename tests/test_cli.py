@@ -171,9 +171,7 @@ def test_outputs_are_readable_by_others(umask_022, tmp_path, capsys):
     image = rgb(tmp_path / "in" / "a.png")
     assert main(["simulate", str(image), "--out", str(tmp_path / "sim"), "--save-flow"]) == 0
     assert main(make_dataset_args(image.parent, tmp_path / "ds")) == 0
-    weights = save_pretrained(
-        create_model("nafnet", width=8, enc_blocks=[1], dec_blocks=[1]), tmp_path / "w.safetensors"
-    )
+    weights = save_pretrained(create_model("nafnet", **TINY_NAFNET), tmp_path / "w.safetensors")
     assert main(["restore", str(image), "--weights", str(weights), "--out", str(tmp_path / "res")]) == 0
     capsys.readouterr()
     modes = {**_modes(tmp_path / "sim"), **_modes(tmp_path / "ds"), **_modes(tmp_path / "res")}

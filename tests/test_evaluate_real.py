@@ -254,10 +254,11 @@ def test_videos_beside_the_images_are_named_not_skipped_silently(tmp_path, capsy
 def test_run_folders_weights_are_named_by_their_config_model_and_folder(tmp_path):
     """Every run folder calls its weights model.safetensors: the tables name them by the model in the file's
     config and the folder (two runs stay apart), a file with its own name keeps it."""
+    from _tiny_models import TINY_NAFNET as tiny
+
     from d2turb.eval.labels import weights_label
     from d2turb.models import create_model, save_pretrained
 
-    tiny = {"width": 8, "enc_blocks": [1], "dec_blocks": [1], "middle_blocks": 1}
     a = save_pretrained(create_model("nafnet", **tiny), tmp_path / "run-a" / "model.safetensors")
     b = save_pretrained(create_model("nafnet", **tiny), tmp_path / "run-b" / "best.safetensors")
     own = save_pretrained(create_model("nafnet", **tiny), tmp_path / "run-a" / "sharp.safetensors")

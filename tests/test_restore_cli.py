@@ -136,10 +136,12 @@ def test_mp4_in_mp4_out_with_the_input_frame_count_and_fps(tmp_path):
 @pytest.fixture
 def tiny_weights(tmp_path_factory):
     """A tiny NAFNet whose (finite, checksummed) weights overflow to inf/NaN in its forward pass."""
+    from _tiny_models import TINY_NAFNET
+
     from d2turb.models import create_model, save_pretrained
 
     torch.manual_seed(0)
-    model = create_model("nafnet", width=8, enc_blocks=[1], dec_blocks=[1])
+    model = create_model("nafnet", **TINY_NAFNET)
     with torch.no_grad():
         model.backbone.intro.weight.fill_(1e30)
     path = tmp_path_factory.mktemp("weights") / "overflow.safetensors"

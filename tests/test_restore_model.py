@@ -11,20 +11,11 @@ TILE, OVERLAP = 128, 32
 
 @pytest.fixture(scope="module")
 def tiny_model():
-    from d2turb.models import create_model
+    from _tiny_models import tiny_d2turb
 
-    torch.manual_seed(0)
-    model = create_model(
-        "d2turb",
-        backbone="nafnet",
-        injection="aspi_cosine",
-        rectifier="unet",
-        backbone_cfg={"width": 8, "enc_blocks": [1, 1], "dec_blocks": [1, 1]},
-        rectifier_cfg={"width": 8, "mults": [1, 1, 2, 2], "depth": 3},
-    )
-    # the flow head is zero-initialised (identity warp): make it nonzero so the warp matters (|V̂| ≈ 4-5 px), and
-    # switch on the NAFBlocks' residual gains so their global channel attention is active too
-    torch.nn.init.normal_(model.rectifier.flow_head.weight, std=5.0)
+    # the flow head is zero-initialised (identity warp): nonzero so the warp matters (|V̂| ≈ 4-5 px), and the
+    # NAFBlocks' residual gains switched on so their global channel attention is active too
+    model = tiny_d2turb(flow_std=5.0)
     for name, p in model.named_parameters():
         if name.endswith(("beta", "gamma")):
             torch.nn.init.normal_(p, std=0.5)
