@@ -36,7 +36,7 @@ import numpy as np
 from skimage.registration import phase_cross_correlation
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur
-from d2turb.clip.fusion import sharpest_fusion
+from d2turb.clip.sharpest import sharpest_fusion
 from d2turb.data.sequence import SequenceDataset
 from d2turb.eval.clips import physics_deblur_for
 

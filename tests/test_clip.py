@@ -16,7 +16,7 @@ from skimage import data as skdata
 
 from d2turb.clip import FUSIONS, ClipRestorer, PhysicsDeblur, wiener_padding, window_start
 from d2turb.clip.blind import BlindDeblur
-from d2turb.clip.fusion import fourier_burst_accumulation
+from d2turb.clip.fba import fourier_burst_accumulation
 from d2turb.clip.registration import DenseFlow, global_shift_px, remap, to_gray_u8, to_hwc
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import diffraction_otf, turbulence_otf
@@ -223,7 +223,7 @@ def test_window_start_and_bounded_memory_on_a_long_stream():
     )
     count = 0
     for _ in restorer.restore(frames):
-        sizes.append(restorer.buffered)
+        sizes.append(restorer.state.buffered)
         count += 1
     assert count == 120
     # frame images held (raw + one per round): about 3.5 windows' worth, bounded by the window, not the clip's length

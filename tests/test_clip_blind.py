@@ -362,15 +362,15 @@ def test_a_blur_that_varies_across_the_image_is_deblurred_only_where_all_of_it_i
 def test_eight_bit_frames_are_held_as_uint8_exactly():
     """A frame read from an 8-bit file (k/255 in float32, as d2turb.io.read_image divides) is held as uint8 and
     given back bit-identical; any other frame is held as it is."""
-    from d2turb.clip.pipeline import _compact, _Frame
+    from d2turb.clip.frames import HeldFrame, compact
 
     k = np.random.default_rng(7).integers(0, 256, (8, 9, 3)).astype(np.uint8)
     frame = k.astype(np.float32)
     frame /= np.float32(255)
-    held = _compact(frame)
-    assert held.dtype == np.uint8 and np.array_equal(_Frame(held, None).image(), frame)
+    held = compact(frame)
+    assert held.dtype == np.uint8 and np.array_equal(HeldFrame(held, None).image(), frame)
     other = frame + np.float32(1e-3)
-    assert _compact(other) is other
+    assert compact(other) is other
 
 
 def test_blind_test_set_draws_optics_noise_and_jpeg_per_clip(tmp_path):

@@ -11,10 +11,10 @@ from d2turb.clip import PhysicsDeblur, prior_power
 from d2turb.clip.deblur import (
     BALANCE_AT_2,
     LAPLACIAN_BALANCE_AT_2,
-    SHARPEST_DR0_SCALE,
     default_balance,
     fusion_prior,
 )
+from d2turb.clip.fusion import SHARPEST_DR0_SCALE
 from d2turb.errors import D2TurbError
 
 

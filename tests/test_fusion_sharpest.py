@@ -11,7 +11,7 @@ from scipy import ndimage
 from skimage import data as skdata
 
 from d2turb.clip import ClipRestorer
-from d2turb.clip.fusion import (
+from d2turb.clip.sharpest import (
     SharpestFusion,
     collapse_pyramid,
     laplacian_pyramid,
@@ -47,7 +47,7 @@ def test_pyramid_collapses_back_exactly():
 def test_an_8_bit_frames_fixed_point_pyramid_collapses_back_within_a_fraction_of_a_grey_level():
     """The sharpest fusion holds its pyramids in int16 of 1/FIXED_ONE (1/64 of a grey level): an 8-bit frame's comes
     back within 1/32 of a grey level (OpenCV rounds each level once), a float frame's within the fixed point's step."""
-    from d2turb.clip.fusion import FIXED_ONE, to_fixed
+    from d2turb.clip.sharpest import FIXED_ONE, to_fixed
 
     rng = np.random.default_rng(1)
     u8 = rng.integers(0, 256, (53, 70, 3), dtype=np.uint8)
@@ -181,7 +181,7 @@ def test_memory_stays_bounded_on_a_long_stream():
     frames = (np.clip(base + 0.01 * rng.standard_normal(base.shape), 0, 1).astype(np.float32) for _ in range(80))
     held, count = [], 0
     for _ in restorer.restore(frames):
-        held.append((len(restorer._sharp.amps), restorer.buffered))
+        held.append((len(restorer.state.fusion.choice.amps), restorer.state.buffered))
         count += 1
     assert count == 80
     assert max(h[0] for h in held) <= 6 and max(h[1] for h in held) <= 4 * 6, held
@@ -193,17 +193,17 @@ def test_the_pyramids_held_never_exceed_one_window_even_at_the_clip_end(monkeypa
     ready at once (the registration used to run ahead then: 1.5 windows at 1080p, 0.3 GB)."""
     import weakref
 
-    import d2turb.clip.pipeline as pipeline
+    import d2turb.clip.fusion as fusion
 
     made = []  # weak references: a pyramid is alive while the restorer holds it
-    make = pipeline.sharp_coefficients
+    make = fusion.sharp_coefficients
 
     def tracked(*args, **kwargs):
         out = make(*args, **kwargs)
         made.append(weakref.ref(out))
         return out
 
-    monkeypatch.setattr(pipeline, "sharp_coefficients", tracked)
+    monkeypatch.setattr(fusion, "sharp_coefficients", tracked)
     rng = np.random.default_rng(7)
     base = _scene(32)
     frames = (np.clip(base + 0.01 * rng.standard_normal(base.shape), 0, 1).astype(np.float32) for _ in range(40))
@@ -249,7 +249,7 @@ def test_the_fusion_thread_gives_the_serial_outputs_and_stops_with_the_stream():
         for s in rng.uniform(0.3, 2, 20)
     ]
     threaded = list(ClipRestorer(temporal=6, fusion="sharpest").restore(iter(frames)))
-    serial = list(ClipRestorer(temporal=6, fusion="sharpest")._stream(iter(frames)))  # no pool: in this thread
+    serial = list(ClipRestorer(temporal=6, fusion="sharpest", threaded=False).restore(iter(frames)))
     assert [o.index for o in threaded] == list(range(20)) == [o.index for o in serial]
     for a, b in zip(threaded, serial):
         assert torch.equal(a.fused, b.fused) and torch.equal(a.fallback, b.fallback)

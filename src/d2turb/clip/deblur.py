@@ -5,11 +5,13 @@ applies either after fusion."""
 from __future__ import annotations
 
 import math
+from typing import Protocol, runtime_checkable
 
 import cv2
 import numpy as np
 import torch
 
+from d2turb.clip.fusion import fusion_class
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
@@ -41,23 +43,41 @@ def default_balance(dr0: float, prior: str = "laplacian") -> float:
     return PRIORS[_checked(prior)] * (dr0 / 2.0) ** (5 / 3)
 
 
-# The physics deblur after the sharpest fusion: each coefficient comes from the frame that kept it best, so what is
-# left is the blur of a weaker turbulence than the mean short-exposure one: the Wiener filter uses the OTF at
-# D/r0 × SHARPEST_DR0_SCALE (chosen on the validation clips, docs/clips.md) and the Laplacian prior: the selection
-# keeps noise that the gradient prior lets through (24 validation clips: −1.7 / −1.1 / −1.2 dB against it).
-SHARPEST_DR0_SCALE = 0.3  # 0.6 / 0.5 / 0.4 / 0.3: 0.3 best in every bin (docs/clips.md), still below the mean + Wiener
+@runtime_checkable
+class ClipDeblur(Protocol):
+    """What the clip room asks of a deblur: a call from a fused frame, (C,H,W) float32 in [0, 1], to its deblurred
+    version of the same shape (:func:`check_deblur`). One with an ``observe(frame)`` method is first given each
+    :class:`~d2turb.clip.frames.ClipFrame` (its flow and pose, before its deblur): the blind deblur
+    (:class:`~d2turb.clip.blind.BlindDeblur`) decides from them. :class:`PhysicsDeblur`, the blind deblur and a model's
+    ``restore`` are ones."""
+
+    def __call__(self, fused: torch.Tensor) -> torch.Tensor: ...
+
+
+def check_deblur(deblur: ClipDeblur, fused: torch.Tensor) -> torch.Tensor:
+    """``deblur(fused)``, checked at the boundary: a tensor of ``fused``'s shape, or a D2TurbError naming the deblur.
+
+    Shape:
+        fused, output: (C, H, W)."""
+    out = deblur(fused)
+    if not isinstance(out, torch.Tensor) or out.shape != fused.shape:
+        got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        raise D2TurbError(
+            f"the deblur {deblur!r} gave {got} for a frame of {tuple(fused.shape)}: it must keep the shape"
+        )
+    return out
 
 
 def deblur_dr0(dr0: float, fusion: str) -> float:
     """The D/r0 at which the physics deblur of a clip fused by ``fusion`` models the fused frame's blur."""
-    return dr0 * SHARPEST_DR0_SCALE if fusion == "sharpest" else dr0
+    return dr0 * fusion_class(fusion).deblur_dr0_scale
 
 
 def fusion_prior(fusion: str) -> str:
     """The Wiener prior (:func:`prior_power`) of the blind deblur of a frame fused by ``fusion``. The deblur at a
     given D/r0 keeps the Laplacian: at the true, large D/r0 the gradient prior's sharper frame gained with the global
     offset removed but lost plain PSNR (the fixed test clips' medium and strong bins; the demo's strong bin)."""
-    return "laplacian" if fusion == "sharpest" else "gradient"
+    return fusion_class(fusion).deblur_prior
 
 
 def prior_power(height: int, width: int, prior: str = "laplacian") -> torch.Tensor:

@@ -150,13 +150,14 @@ def clip_restorer(
             preset, fusion (:attr:`ClipOptions.fusion_used`).
 
     Returns:
-        (the restorer, its deblur already set; the deblur's description; its record for restore.json, None for the
+        (the restorer with its deblur; the deblur's description; its record for restore.json, None for the
         blind deblur until it has seen a fused frame: then ``restorer.deblur.record``).
     """
     o = ClipOptions.of(options, **kwargs)
-    deblur, fusion = o.deblur, o.fusion_used
-    restorer = ClipRestorer(temporal=temporal, passes=o.passes, fusion=fusion, preset=o.preset)
-    restorer.deblur, name, record = clip_deblur(
-        deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
+    fusion = o.fusion_used
+    ClipRestorer.check_settings(temporal, o.passes, fusion, o.preset)  # before the physics deblur reads the clip
+    deblur, name, record = clip_deblur(
+        o.deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
     )
-    return restorer, name, record
+    deblur = "none" if deblur is None else deblur
+    return ClipRestorer(temporal=temporal, passes=o.passes, fusion=fusion, preset=o.preset, deblur=deblur), name, record

@@ -1,0 +1,111 @@
+"""The frames of the clip room: what a restored frame is (:class:`ClipFrame`), how an input frame is held while the
+windows that read it are computed (:class:`HeldFrame`, one layout: (H,W,C) arrays), and which frames form the window
+of an output (:func:`window_start`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from d2turb.clip.registration import to_gray_u8, to_hwc, unit_float
+
+# the last round's unwarped frames (what the fusion averages) are held as 8 bits where the frame is (remapped from the
+# 8-bit frame, rounded to nearest: ±0.5 grey levels per frame, about 0.07 after a mean of 16, far below the fusion's
+# noise; a quarter of float32), else as float16 (relative error 2^-11)
+STORE_DTYPE = np.float16
+
+
+@dataclass
+class ClipFrame:
+    """One restored frame: ``restored`` (deblurred fusion), ``fused`` (before deblurring) (3,H,W) float32 tensors
+    in [0,1]; ``bwd_flow_px`` (2,H,W) float32 maps the input frame onto the restored geometry,
+    ``frame(x + bwd_flow_px(x)) ≈ fused(x)``; ``fallback`` (H,W) in [0,1]: share of the single frame (1 = moving).
+
+    ``bwd_flow_hwc_px`` is that flow as the registration holds it, (H,W,2) float16; ``bwd_flow_px`` is made from it
+    when first read (most callers never read it, and it costs 8 ms a 1080p frame).
+
+    ``camera_px`` (dx, dy): the frame's global shift onto the clip's canvas (the first frame's view),
+    ``frame(x + camera_px) ≈ canvas(x)``: the camera's motion (shake, jumps) plus the turbulence's whole-frame tilt;
+    None without ``stabilise``."""
+
+    index: int
+    restored: torch.Tensor
+    fused: torch.Tensor
+    bwd_flow_hwc_px: np.ndarray
+    fallback: torch.Tensor
+    _bwd_flow_px: torch.Tensor | None = field(default=None, repr=False)
+    camera_px: tuple[float, float] | None = None  # the frame's camera pose on the canvas (``stabilise``), see below
+
+    @property
+    def bwd_flow_px(self) -> torch.Tensor:
+        if self._bwd_flow_px is None:
+            self._bwd_flow_px = torch.from_numpy(self.bwd_flow_hwc_px.transpose(2, 0, 1).astype(np.float32))
+        return self._bwd_flow_px
+
+
+def window_start(index: int, temporal: int, length: int | None) -> int:
+    """First frame of W(index): centred, shifted inward at the clip's ends (``length`` None: end not known yet)."""
+    lo = max(0, index - temporal // 2)
+    if length is not None:
+        lo = min(lo, max(0, length - temporal))
+    return lo
+
+
+@dataclass
+class HeldFrame:
+    """An input frame while the windows that read it are computed (``ClipState.release`` drops what is no longer read).
+
+    Levels: 0 is the frame itself (``raw``; ``gray`` its 8-bit luma, ``canvas_gray`` that luma placed on the clip's
+    canvas), k ≥ 1 is registration round k's unwarped frame (``warped[k-1]``)."""
+
+    raw: np.ndarray  # (H,W,C) uint8 when that holds the float32 frame exactly (8-bit input), else float32; see .image
+    gray: np.ndarray  # (H,W) uint8
+    flows: list = field(default_factory=list)  # the last round's (H,W,2) backward flow onto its reference
+    # per round: the frame unwarped; rounds before the last only feed the next round's reference, which DIS reads as
+    # 8-bit grey, so they hold the frame's 8-bit luma unwarped, (H,W,1) uint8 (a twelfth of the memory and the remap);
+    # the last round, which the fusion averages, the colour frame (H,W,C): uint8 for 8-bit frames, else STORE_DTYPE
+    warped: list = field(default_factory=list)
+    prepared: object = None  # what the fusion prepared from the last round's image (sharpest: its coefficients)
+    coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
+    canvas_gray: np.ndarray | None = None  # (H,W,1) uint8: the grey placed on the canvas (``stabilise``), else None
+
+    @classmethod
+    def of(cls, item) -> HeldFrame:
+        """An input frame ((3,H,W) tensor or (H,W,C) array in [0,1], or (H,W,C) uint8) as held (8-bit: as uint8)."""
+        raw = to_hwc(item)  # float32 in [0, 1] (an 8-bit frame as k/255)
+        gray = to_gray_u8(raw)
+        stored = isinstance(item, np.ndarray) and item.dtype == np.uint8 and item.ndim == 3
+        return cls(np.ascontiguousarray(item) if stored else compact(raw), gray)
+
+    def image(self) -> np.ndarray:
+        """The frame as (H,W,C) float32 in [0,1] (bit-identical to the frame given: k/255 in float32)."""
+        return image_of(self.raw)
+
+    def level_float(self, level: int) -> np.ndarray:
+        """Level ``level``'s image as float32 in [0, 1]: the frame (0), or round ``level``'s unwarped luma."""
+        return self.image() if level == 0 else unit_float(self.warped[level - 1])
+
+    def level_image(self, level: int) -> np.ndarray:
+        """Level ``level``'s image as held, as the running sums of the references read it: the frame's 8-bit luma (on
+        the canvas when the camera is followed) at level 0, round ``level``'s unwarped image after."""
+        if level == 0:
+            return self.gray[..., None] if self.canvas_gray is None else self.canvas_gray
+        return self.warped[level - 1]
+
+
+def image_of(raw: np.ndarray) -> np.ndarray:
+    """A held frame (uint8 or float) as (H,W,C) float32 in [0, 1] (see :meth:`HeldFrame.image`)."""
+    return as_float(raw) if raw.dtype == np.uint8 else raw
+
+
+def as_float(image: np.ndarray) -> np.ndarray:
+    """A held image in [0, 1] as float32 (8-bit ones scaled by 1/255)."""
+    return unit_float(image) if image.dtype == np.uint8 else image.astype(np.float32)
+
+
+def compact(raw: np.ndarray) -> np.ndarray:
+    """``raw`` as uint8 when that is lossless (an 8-bit frame read as k/255: a quarter of the memory), else itself."""
+    q = np.rint(raw * np.float32(255)).clip(0, 255).astype(np.uint8)
+    return q if np.array_equal(q.astype(np.float32) / np.float32(255), raw) else raw

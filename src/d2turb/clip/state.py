@@ -1,0 +1,135 @@
+"""One clip's state while it is restored (:class:`ClipState`): the frames held, how far each stage has come, the
+windows' running sums, the camera track, the dense-flow solver and the fusion. Made afresh by every
+:meth:`ClipRestorer.restore <d2turb.clip.pipeline.ClipRestorer.restore>` (a restorer can restore clip after clip)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from d2turb.clip.camera import CameraTrack
+from d2turb.clip.frames import HeldFrame, window_start
+from d2turb.clip.fusion import Fusion
+from d2turb.clip.registration import DenseFlow, check_registrable
+from d2turb.errors import D2TurbError
+
+_RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
+
+
+class ClipState:
+    """The state of one clip's restoration.
+
+    ``done[k]``: the frames whose level k is computed (0: read, k ≥ 1: registration round k); ``emitted``: the
+    outputs made (the next output is frame ``emitted``); ``length``: the clip's length once its end is read;
+    ``buffered``: frame images held (bounded by the window, not by the clip's length)."""
+
+    def __init__(self, temporal: int, passes: int, fusion: Fusion, preset: str, stabilise: bool):
+        self.temporal, self.passes, self.fusion, self.preset = temporal, passes, fusion, preset
+        self.frames: dict[int, HeldFrame] = {}
+        self.done = [0] * (passes + 1)
+        self.emitted = 0
+        self.length: int | None = None
+        self.shape: tuple | None = None
+        self.flow: DenseFlow | None = None  # the dense-flow solver, made at the first frame
+        self.camera = CameraTrack(temporal) if stabilise else None
+        self.sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
+        self.buffered = 0
+
+    # -- reading -------------------------------------------------------------------------------------------------
+    def hold(self, item) -> None:
+        """Read the next input frame (placed on the camera's canvas when the camera is followed)."""
+        index = self.done[0]
+        frame = HeldFrame.of(item)
+        if self.shape is None:
+            check_registrable(*frame.raw.shape[:2])
+            self.shape = frame.raw.shape
+        elif frame.raw.shape != self.shape:
+            h, w = frame.raw.shape[:2]
+            raise D2TurbError(
+                f"frame {index} is {w}x{h}, the clip's first is {self.shape[1]}x{self.shape[0]}: all frames of a clip "
+                "must have one size"
+            )
+        if self.flow is None:
+            self.flow = DenseFlow(self.preset)
+        self.frames[index] = frame
+        if self.camera is not None:
+            frame.canvas_gray = self.camera.place(index, frame.gray)
+        self.done[0] += 1
+
+    def end(self) -> None:
+        """The clip's end is read."""
+        self.length = self.done[0]
+        if self.length < 2:
+            raise D2TurbError(f"a clip needs at least 2 frames, got {self.length}")
+
+    # -- windows -------------------------------------------------------------------------------------------------
+    def window_end(self, index: int) -> int:
+        """One past the last frame of W(index)."""
+        lo = window_start(index, self.temporal, self.length)
+        return lo + self.temporal if self.length is None else min(self.length, lo + self.temporal)
+
+    def window_ready(self, index: int, level: int) -> bool:
+        """Level ``level`` of every frame of W(index) is computed."""
+        return self.done[level] >= self.window_end(index)
+
+    def window(self, index: int) -> list[int]:
+        """The frames of W(index)."""
+        return list(range(window_start(index, self.temporal, self.length), self.window_end(index)))
+
+    def reference(self, index: int, level: int) -> np.ndarray:
+        """Mean of level ``level`` (0: the frames' luma, k: round k's unwarped frames) over W(index), from a running sum
+        updated by the frames entering and leaving the window (recomputed every ``_RESUM`` updates)."""
+        members = self.window(index)
+        lo, hi = members[0], members[-1] + 1
+        cached = self.sums.get(level)
+
+        def image(j):
+            return self.frames[j].level_image(level)
+
+        if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
+            total = image(members[0]).astype(np.float32)  # summed in place: no stack of the window in memory
+            for j in members[1:]:
+                total += image(j)
+            count = 0
+        else:
+            c_lo, c_hi, total, count = cached
+            for j in range(c_hi, hi):
+                total += image(j)
+            for j in range(c_lo, lo):
+                total -= image(j)
+            count += 1
+        self.sums[level] = (lo, hi, total, count)
+        return total / np.float32((hi - lo) * (255 if image(lo).dtype == np.uint8 else 1))
+
+    # -- memory --------------------------------------------------------------------------------------------------
+    def release(self) -> None:
+        """Free each frame's images once nothing left to compute reads them: level L's image (0: the raw frame, k:
+        round k's unwarped frame) of frame j is read by the references of round L + 1 (windows from
+        W(done[L+1]) on) and by the running sum of level L; the raw frame also by its own registration rounds and
+        by the output's fallback; the last round by the outputs' fusion. Frames with nothing left are dropped."""
+        n, passes, done, emitted = self.temporal, self.passes, self.done, self.emitted
+        guard = done[0] - n if self.length is None else math.inf  # the end may still shift the last windows back
+        readers = []
+        for level in range(passes + 1):
+            first = window_start(emitted if level == passes else done[level + 1], n, self.length)
+            if level in self.sums:
+                first = min(first, self.sums[level][0])
+            if level == 0:
+                first = min(first, emitted, done[passes])
+            readers.append(min(first, guard))
+        frames = self.frames
+        for j in [j for j in frames if j < max(*readers, emitted)]:
+            frame = frames[j]
+            if j < emitted:
+                frame.flows = []  # read by its next round and its own output only (1080p: 16.6 MB a frame)
+            if j < readers[0]:
+                frame.raw = None
+            for level in range(1, passes + 1):
+                if j < readers[level] and len(frame.warped) >= level:
+                    frame.warped[level - 1] = None
+                    if level == passes:
+                        frame.prepared = None
+            if frame.raw is None and len(frame.warped) == passes and all(w is None for w in frame.warped):
+                del frames[j]
+        self.buffered = sum((f.raw is not None) + sum(w is not None for w in f.warped) for f in frames.values())

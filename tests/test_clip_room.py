@@ -1,0 +1,97 @@
+"""The clip room's shape: the fusion registry, the deblur's boundary, the state made afresh per clip, and threads that
+change when a stage runs, never what it computes."""
+
+import numpy as np
+import pytest
+import torch
+
+from d2turb.clip import ClipRestorer, PhysicsDeblur
+from d2turb.clip.fusion import FUSION_REGISTRY, Fusion, make_fusion, register_fusion
+from d2turb.defaults import CLIP_FUSIONS
+from d2turb.errors import D2TurbError
+
+
+def _clip(seed: int, n: int = 12, size: int = 40) -> list[np.ndarray]:
+    """A smooth random scene under a small random translation per frame, 8-bit as a camera stores it."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.random((size + 16, size + 16, 3)).astype(np.float32), (0, 0), 1.5)
+    frames = []
+    for _ in range(n):
+        dx, dy = rng.normal(0, 0.7, 2)
+        m = np.float32([[1, 0, 8 + dx], [0, 1, 8 + dy]])
+        f = cv2.warpAffine(base, m, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        frames.append(np.rint(np.clip(f, 0, 1) * 255).astype(np.uint8))
+    return frames
+
+
+def test_the_registry_holds_the_fusions_the_command_line_offers():
+    assert tuple(FUSION_REGISTRY) == CLIP_FUSIONS
+    assert all(make_fusion(name).name == name for name in CLIP_FUSIONS)
+    with pytest.raises(D2TurbError, match="unknown fusion"):
+        make_fusion("nope")
+    with pytest.raises(D2TurbError, match="unknown fusion"):
+        ClipRestorer(fusion="nope")
+
+
+def test_a_registered_fusion_is_used_by_name():
+    """A fusion added from outside (the window's first frame, as registered) is chosen by its name; on frames that
+    are all the same its output is that frame (identity: no other code path could give it)."""
+
+    @register_fusion
+    class FirstFrame(Fusion):
+        name = "first-test"
+        reads_mean = False
+
+        def fuse(self, window, mean):
+            first = next(iter(window.values())).warped[-1]
+            return first.astype(np.float32) / (255 if first.dtype == np.uint8 else 1)
+
+    try:
+        frame = _clip(1, n=1)[0]
+        out = list(ClipRestorer(temporal=4, fusion="first-test", stabilise=False).restore([frame] * 6))
+        assert len(out) == 6
+        for o in out:
+            assert torch.equal(o.restored, torch.from_numpy(frame.astype(np.float32) / 255).permute(2, 0, 1))
+    finally:
+        FUSION_REGISTRY.pop("first-test")
+
+
+@pytest.mark.parametrize("fusion", CLIP_FUSIONS)
+@pytest.mark.parametrize("deblur", ["none", "physics"])
+def test_threads_change_nothing(fusion, deblur):
+    """The same clip with the stages overlapped in threads and run in the caller's thread: outputs equal to the bit."""
+    frames = _clip(2)
+
+    def run(threaded):
+        d = "none" if deblur == "none" else PhysicsDeblur.for_fusion(2.0, 2.0, fusion)
+        return list(ClipRestorer(temporal=5, fusion=fusion, deblur=d, threaded=threaded).restore(iter(frames)))
+
+    a, b = run(True), run(False)
+    assert [o.index for o in a] == list(range(len(frames))) == [o.index for o in b]
+    for x, y in zip(a, b):
+        assert torch.equal(x.restored, y.restored) and torch.equal(x.fused, y.fused)
+        assert np.array_equal(x.bwd_flow_hwc_px, y.bwd_flow_hwc_px) and torch.equal(x.fallback, y.fallback)
+        assert x.camera_px == y.camera_px
+
+
+def test_each_clip_starts_afresh():
+    """One restorer, two clips in a row: the second clip's outputs are those of a new restorer (no state carried)."""
+    first, second = _clip(3), _clip(4)
+    restorer = ClipRestorer(temporal=5, fusion="sharpest")
+    list(restorer.restore(first))
+    again = list(restorer.restore(second))
+    fresh = list(ClipRestorer(temporal=5, fusion="sharpest").restore(second))
+    for x, y in zip(again, fresh, strict=True):
+        assert torch.equal(x.restored, y.restored)
+
+
+def test_a_deblur_that_changes_the_shape_is_named_in_one_line():
+    def cropping(fused):
+        return fused[:, 1:, :]
+
+    with pytest.raises(D2TurbError, match="must keep the shape"):
+        list(ClipRestorer(temporal=4, deblur=cropping).restore(_clip(5, n=5)))
+    with pytest.raises(D2TurbError, match="deblur must be"):
+        ClipRestorer(deblur="sharpen")
