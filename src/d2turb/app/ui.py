@@ -307,13 +307,7 @@ def _restore_tab(workspace: core.Workspace, limits: core.Limits, guard, show_inp
 
     with gr.Row():
         with gr.Column(scale=1, min_width=300):
-            r_upload = gr.File(
-                label="image or short video",
-                file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
-                type="filepath",
-                height=120,
-                elem_id="restore-upload",
-            )
+            r_upload = _image_or_video_upload("image or short video", "restore-upload")
             r_shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
             found = core.weights_choices()
             weights = gr.Dropdown(
@@ -360,12 +354,8 @@ def _clip_tab(workspace: core.Workspace, limits: core.Limits, guard) -> None:
 
     with gr.Row():
         with gr.Column(scale=1, min_width=300):
-            c_upload = gr.File(
-                label="short video (a static scene), or an image to simulate a clip from",
-                file_types=sorted(core.IMAGE_SUFFIXES | _video_suffixes()),
-                type="filepath",
-                height=120,
-                elem_id="clip-upload",
+            c_upload = _image_or_video_upload(
+                "short video (a static scene), or an image to simulate a clip from", "clip-upload"
             )
             c_temporal = gr.Slider(2, 64, value=32, step=1, label="window (frames)")
             c_dr0 = gr.Number(
@@ -384,6 +374,12 @@ def _clip_tab(workspace: core.Workspace, limits: core.Limits, guard) -> None:
         api_name="clip",
         concurrency_limit=1,
     )
+
+
+def _image_or_video_upload(label: str, elem_id: str) -> gr.File:
+    """The upload field of the Restore and Clip tabs: one image or video file."""
+    file_types = sorted(core.IMAGE_SUFFIXES | _video_suffixes())
+    return gr.File(label=label, file_types=file_types, type="filepath", height=120, elem_id=elem_id)
 
 
 def _bars(progress: gr.Progress):
