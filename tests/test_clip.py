@@ -161,8 +161,11 @@ def test_fba_bad_arguments_are_one_line_errors():
         fourier_burst_accumulation([])
 
 
-@pytest.mark.parametrize("fusion, blind", [("mean", False), ("sharpest", False), ("mean", True)])
-def test_moving_square_falls_back_to_the_frame_without_ghosts(fusion, blind):
+@pytest.mark.parametrize(
+    "fusion, blind, stabilise",
+    [("mean", False, True), ("sharpest", False, True), ("mean", True, True), ("mean", False, False)],
+)
+def test_moving_square_falls_back_to_the_frame_without_ghosts(fusion, blind, stabilise):
     img = _scene(128)
     frames, boxes = [], []
     for i in range(8):
@@ -172,7 +175,7 @@ def test_moving_square_falls_back_to_the_frame_without_ghosts(fusion, blind):
         frames.append(torch.from_numpy(f).permute(2, 0, 1).contiguous())
         boxes.append(x0)
     deblur = BlindDeblur() if blind else "none"  # blind: the default deblur of restore --temporal
-    outs = list(ClipRestorer(temporal=8, fusion=fusion, deblur=deblur).restore(frames))
+    outs = list(ClipRestorer(temporal=8, fusion=fusion, deblur=deblur, stabilise=stabilise).restore(frames))
     plain = torch.stack(frames).mean(0)
     for o in outs:
         x0 = boxes[o.index]

@@ -88,12 +88,12 @@ def finish(index: int, fused, against, warped, raw, flow, fallback: bool, share=
         fused, blend, flow = pose.apply(fused, blend, flow)
         if blend.any():  # the frame's own pixels moved by what its pose differs from the output's (sub-pixel)
             raw = pose.frame_at_output(raw)
-        rows = np.flatnonzero(blend.any(axis=1))
-        if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
-            part = slice(rows[0], rows[-1] + 1)
-            step = np.subtract(image_of(raw[part]), fused[part])
-            step *= blend[part, :, None]
-            fused[part] += step
+    rows = np.flatnonzero(blend.any(axis=1))
+    if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
+        part = slice(rows[0], rows[-1] + 1)
+        step = np.subtract(image_of(raw[part]), fused[part])
+        step *= blend[part, :, None]
+        fused[part] += step
     # (3,H,W) as a view of the (H,W,3) array; a deblur gets a contiguous copy (schedule.deblurred)
     fused = np.clip(fused, 0, 1, out=fused)
     fused_t = torch.from_numpy(fused).permute(2, 0, 1)
