@@ -30,7 +30,6 @@ import numpy as np
 import torch
 
 from d2turb.clip import (
-    ClipFrame,
     ClipRestorer,
     PhysicsDeblur,
     default_balance,
@@ -85,20 +84,6 @@ def physics_variants(name: str, dr0, flows: list, lambda_over_d_px: float = 2.0)
     raise ValueError(f"unknown deblur variant {name!r}")
 
 
-class _Sampled(ClipRestorer):
-    """A ClipRestorer that fuses only the output frames in ``wanted`` (the others carry their flow only)."""
-
-    def __init__(self, wanted: set, **kwargs):
-        super().__init__(**kwargs)
-        self.wanted = wanted
-
-    def _output(self, buf, index, length):
-        if index in self.wanted:
-            return super()._output(buf, index, length)
-        flow = torch.from_numpy(np.ascontiguousarray(buf[index].flows[-1].transpose(2, 0, 1)))
-        return ClipFrame(index, None, None, flow, None)
-
-
 def _frames(path: Path, n: int) -> list:
     _, frames = clip_frames(path, SimpleNamespace(record=lambda exc: print(f"note: {exc}")))
     return list(itertools.islice(frames, n))
@@ -138,7 +123,7 @@ def run_clip(
 ) -> dict:
     clip = _frames(path, frames)
     wanted = set(range(0, len(clip), stride))
-    restorer = _Sampled(wanted, temporal=temporal, fusion=fusion)
+    restorer = ClipRestorer(temporal=temporal, fusion=fusion)  # every frame fused (the seconds count them all)
     t0 = time.perf_counter()
     fused = {}
     flows = []

@@ -56,8 +56,8 @@ class CameraTrack:
             ref = self._sum / np.float32(len(self._placed))
             if min(small.shape) >= MIN_SIDE_PX:  # the median of a dense flow: a moving object is outvoted
                 u8 = [np.clip(x + 0.5, 0, 255).astype(np.uint8) for x in (ref, small)]
-                flow = self._flow(u8[0], u8[1])
-                pose = tuple(float(v) / scale for v in np.median(flow.reshape(-1, 2), axis=0))
+                bwd_flow_px = self._flow(u8[0], u8[1])
+                pose = tuple(float(v) / scale for v in np.median(bwd_flow_px.reshape(-1, 2), axis=0))
             else:
                 pose = shrunk_shift_px(ref, small, scale)
         self.poses[index] = pose
@@ -115,8 +115,9 @@ class OutputPose:
             return raw
         return remap(raw, shift_flow(raw.shape[:2], dx, dy), consume=True)
 
-    def apply(self, fused: np.ndarray, share: np.ndarray, flow: np.ndarray):
-        """(fused (H,W,C), moving-object share (H,W), flow (H,W,2)) on the canvas → the same at the output's pose."""
+    def apply(self, fused: np.ndarray, share: np.ndarray, bwd_flow_px: np.ndarray):
+        """(fused (H,W,C), moving-object share (H,W), the frame's backward flow (H,W,2) px) on the canvas → the same at
+        the output's pose."""
         h, w = share.shape
         x0, y0, x1, y1 = self.common
         # the share of the fusion: 1 inside the common view, falling to 0 over the ramp towards its edges
@@ -128,18 +129,19 @@ class OutputPose:
             share = 1 - (1 - share) * (wy[:, None] * wx[None, :])
         dx, dy = self.shift
         if abs(dx) < 1e-3 and abs(dy) < 1e-3:
-            return fused, share, flow
+            return fused, share, bwd_flow_px
         maps = shift_flow((h, w), -dx, -dy)
         maps += pixel_grid((h, w))
         out = cv2.remap(fused, maps, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).reshape(fused.shape)
         # off the canvas the frame itself is used (share 1), moved by its own pose less the output's
         out_share = cv2.remap(share, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
         # frame(y − pose + flow(y − pose)) ≈ canvas(y − pose) = output(y)
-        out_flow = cv2.remap(flow.astype(np.float32), maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        replicate = cv2.BORDER_REPLICATE
+        out_flow = cv2.remap(bwd_flow_px.astype(np.float32), maps, None, cv2.INTER_LINEAR, borderMode=replicate)
         out_flow -= np.array([dx, dy], dtype=np.float32)
         off = out_share >= 1.0
         out_flow[off] = (self.frame_shift[0] - dx, self.frame_shift[1] - dy)
-        return out, out_share, out_flow.astype(flow.dtype)
+        return out, out_share, out_flow.astype(bwd_flow_px.dtype)
 
 
 def _ramp(inside_px: np.ndarray, edge: bool) -> np.ndarray:

@@ -62,7 +62,7 @@ class HeldFrame:
 
     raw: np.ndarray  # (H,W,C) uint8 when that holds the float32 frame exactly (8-bit input), else float32; see .image
     gray: np.ndarray  # (H,W) uint8
-    flows: list = field(default_factory=list)  # the last round's (H,W,2) backward flow onto its reference
+    bwd_flows_px: list = field(default_factory=list)  # the last round's (H,W,2) backward flow onto its reference
     # per round: the frame unwarped; rounds before the last only feed the next round's reference, which DIS reads as
     # 8-bit grey, so they hold the frame's 8-bit luma unwarped, (H,W,1) uint8 (a twelfth of the memory and the remap);
     # the last round, which the fusion averages, the colour frame (H,W,C): uint8 for 8-bit frames, else STORE_DTYPE

@@ -37,21 +37,21 @@ def register(state: ClipState, index: int, k: int, submit: Callable = _now) -> N
             shift_flow(frame.gray.shape, *global_shift_px(ref_gray, frame.gray)) if state.camera is not None else None
         )
     else:
-        init = frame.flows[-1]
-    flow = state.flow(ref_gray, frame.gray, init)
+        init = frame.bwd_flows_px[-1]
+    bwd_flow_px = state.flow_solver(ref_gray, frame.gray, init)
     # held as float16 (1080p: 8.3 MB instead of 16.6 a frame, up to two windows of them; 0.004 px resolution below
     # 8 px): it starts the next round's search and becomes the output's bwd_flow_px (float32 again)
-    frame.flows = [cv2.multiply(flow, 1.0, dtype=cv2.CV_16F)]  # as numpy's astype, in a third of its time
+    frame.bwd_flows_px = [cv2.multiply(bwd_flow_px, 1.0, dtype=cv2.CV_16F)]  # as numpy's astype, in a third of its time
     if k == state.passes and state.camera is not None:  # the pose, to the dense flow's accuracy: its median
-        step = max(1, int(math.sqrt(flow.shape[0] * flow.shape[1] / 65536)))  # about 65k pixels read
-        state.camera.shifts[index] = tuple(float(v) for v in np.median(flow[::step, ::step].reshape(-1, 2), 0))
+        step = max(1, int(math.sqrt(bwd_flow_px.shape[0] * bwd_flow_px.shape[1] / 65536)))  # about 65k pixels read
+        state.camera.shifts[index] = tuple(float(v) for v in np.median(bwd_flow_px[::step, ::step].reshape(-1, 2), 0))
     if k < state.passes:  # uint8 in, uint8 out (cv2.remap rounds); the float32 flow is no longer needed
-        frame.warped.append(remap(frame.gray[..., None], flow, consume=True))
+        frame.warped.append(remap(frame.gray[..., None], bwd_flow_px, consume=True))
         return
     if frame.raw.dtype == np.uint8:
-        frame.warped.append(remap(frame.raw, flow, consume=True))
+        frame.warped.append(remap(frame.raw, bwd_flow_px, consume=True))
     else:
-        frame.warped.append(remap(frame.raw, flow, consume=True).astype(STORE_DTYPE))
+        frame.warped.append(remap(frame.raw, bwd_flow_px, consume=True).astype(STORE_DTYPE))
     state.fusion.prepare(frame, [state.frames[j] for j in state.window(index)], k - 1, submit)
 
 
@@ -72,11 +72,11 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
     if state.camera is not None:
         pose = state.camera.output_pose(index, list(window), frame.gray.shape)
     return functools.partial(
-        finish, index, fused, against, frame.warped[-1], frame.raw, frame.flows[-1], fallback, share, pose
+        finish, index, fused, against, frame.warped[-1], frame.raw, frame.bwd_flows_px[-1], fallback, share, pose
     )
 
 
-def finish(index: int, fused, against, warped, raw, flow, fallback: bool, share=None, pose=None) -> ClipFrame:
+def finish(index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None) -> ClipFrame:
     """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``: a
     Future of it, or None to compute it here against ``against``, or the fusion when None), the frame's own images
     and the output's camera pose (a :class:`~d2turb.clip.camera.OutputPose`, None when the camera is not followed)."""
@@ -85,7 +85,7 @@ def finish(index: int, fused, against, warped, raw, flow, fallback: bool, share=
     if fallback:
         blend = fallback_share(warped, fused if against is None else against) if share is None else share.result()
     if pose is not None:
-        fused, blend, flow = pose.apply(fused, blend, flow)
+        fused, blend, bwd_flow_px = pose.apply(fused, blend, bwd_flow_px)
         if blend.any():  # the frame's own pixels moved by what its pose differs from the output's (sub-pixel)
             raw = pose.frame_at_output(raw)
     rows = np.flatnonzero(blend.any(axis=1))
@@ -98,7 +98,7 @@ def finish(index: int, fused, against, warped, raw, flow, fallback: bool, share=
     fused = np.clip(fused, 0, 1, out=fused)
     fused_t = torch.from_numpy(fused).permute(2, 0, 1)
     camera = None if pose is None else tuple(float(v) for v in pose.frame_shift)
-    return ClipFrame(index, fused_t, fused_t, flow, torch.from_numpy(blend), camera_px=camera)
+    return ClipFrame(index, fused_t, fused_t, bwd_flow_px, torch.from_numpy(blend), camera_px=camera)
 
 
 def fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:

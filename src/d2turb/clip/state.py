@@ -31,7 +31,7 @@ class ClipState:
         self.emitted = 0
         self.length: int | None = None
         self.shape: tuple | None = None
-        self.flow: DenseFlow | None = None  # the dense-flow solver, made at the first frame
+        self.flow_solver: DenseFlow | None = None  # the dense-flow solver, made at the first frame
         self.camera = CameraTrack(temporal) if stabilise else None
         self.sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
         self.buffered = 0
@@ -50,8 +50,8 @@ class ClipState:
                 f"frame {index} is {w}x{h}, the clip's first is {self.shape[1]}x{self.shape[0]}: all frames of a clip "
                 "must have one size"
             )
-        if self.flow is None:
-            self.flow = DenseFlow(self.preset)
+        if self.flow_solver is None:
+            self.flow_solver = DenseFlow(self.preset)
         self.frames[index] = frame
         if self.camera is not None:
             frame.canvas_gray = self.camera.place(index, frame.gray)
@@ -122,7 +122,7 @@ class ClipState:
         for j in [j for j in frames if j < max(*readers, emitted)]:
             frame = frames[j]
             if j < emitted:
-                frame.flows = []  # read by its next round and its own output only (1080p: 16.6 MB a frame)
+                frame.bwd_flows_px = []  # read by its next round and its own output only (1080p: 16.6 MB a frame)
             if j < readers[0]:
                 frame.raw = None
             for level in range(1, passes + 1):
