@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
+
 
 def torch_threads(n: int) -> None:
     import torch
@@ -109,8 +111,8 @@ def main() -> None:
     p.add_argument("--height", type=int, default=3000)
     p.add_argument("--model", default="d2turb_lite")
     p.add_argument("--config", help="model config as JSON (string or path to a .json file)")
-    p.add_argument("--tile", type=int, default=512)
-    p.add_argument("--overlap", type=int, default=64)
+    p.add_argument("--tile", type=int, default=DEFAULT_TILE_PX)
+    p.add_argument("--overlap", type=int, default=DEFAULT_OVERLAP_PX)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
     p.add_argument(

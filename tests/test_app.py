@@ -19,6 +19,7 @@ from PIL import Image
 
 from d2turb.app import core
 from d2turb.cli import main
+from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
 from d2turb.errors import D2TurbError
 from d2turb.sim import TurbulenceParams, derived_quantities
 
@@ -249,7 +250,8 @@ def test_restore_identity_image_and_video(workspace, tmp_path):
     img = tmp_path / "scene.png"
     Image.fromarray(_rgb(200, 240)).save(img)
     r = core.run_restore(str(img), "input", workspace)
-    assert r.command == "d2turb restore scene.png --weights input --out out --tile 512 --overlap 64 --save-flow"
+    tiles = f"--tile {DEFAULT_TILE_PX} --overlap {DEFAULT_OVERLAP_PX}"  # the command line's defaults, written out
+    assert r.command == f"d2turb restore scene.png --weights input --out out {tiles} --save-flow"
     np.testing.assert_array_equal(np.asarray(Image.open(r.after)), _rgb(200, 240))  # identity: output = input
     assert isinstance(r.niqe["input"], float) and r.niqe["input"] == r.niqe["restored"]
     assert not np.load(r.files[2]).any() and r.flow_scale_px == 0

@@ -21,6 +21,8 @@ import pytest
 import torch
 from PIL import Image
 
+from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
+
 if importlib.util.find_spec("gradio") is None:  # the server needs it; this process only needs the client
     pytest.skip("gradio is not installed (pip install 'd2turb[app]')", allow_module_level=True)
 gradio_client = pytest.importorskip("gradio_client")
@@ -204,8 +206,8 @@ def test_http_api_simulate_restore_and_errors(server, tmp_path, monkeypatch):
             upload=gradio_client.handle_file(str(bad)),
             weights="input",
             weights_path="",
-            tile=512,
-            overlap=64,
+            tile=DEFAULT_TILE_PX,
+            overlap=DEFAULT_OVERLAP_PX,
             device="cpu",
             api_name="/restore",
         )

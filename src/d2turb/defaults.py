@@ -20,8 +20,20 @@ BATCH_PIXELS = 1 << 21
 CLIP_FUSIONS = ("mean", "robust", "fba", "sharpest")
 DEFAULT_FUSION = "mean"
 FUSION_WITHOUT_DEBLUR = "sharpest"
-# the clip pipeline's window (d2turb.clip.DEFAULT_TEMPORAL), the default of `evaluate --real-clips --temporal`
+# the clip pipeline's window (d2turb.clip.DEFAULT_TEMPORAL, ClipRestorer's), the default of `evaluate --real-clips
+# --temporal`: 24 since the clip core (1c2dcab); not re-measured against 32
 DEFAULT_TEMPORAL = 24
+# the window of docs/clips.md's validation and test figures, hence `evaluate --clips`' default and the page's Clip tab
+MEASURED_TEMPORAL = 32
+# `restore --tile`, Restorer's, the page's: 512² tiles restore a 1080p frame as fast as untiled, in 0.6 GiB instead
+# of 1.5 (benchmarks/RESULTS.md, "One 1920×1080 frame with the shipped model")
+DEFAULT_TILE_PX = 512
+# `restore --overlap`: pixels neighbouring tiles share; a jump Δ between them leaves a step ≤ Δ·π/overlap
+# (docs/restore.md, "Any size: tiling without seams")
+DEFAULT_OVERLAP_PX = 64
+# D/r0 of TurbulenceParams, the page's slider and its clip simulated from an image: the middle of the medium bin
+# (2.25–3.75, d2turb.sim.params.BINS)
+DEFAULT_DR0 = 3.0
 # `evaluate --real-clips --max-frames`: frames read per clip (the 1080p clip costs about 1 s of CPU per frame)
 DEFAULT_REAL_CLIP_FRAMES = 48
 # the default optics (d2turb.sim.Optics, TurbulenceParams, `--aperture`, `--wavelength`, `--path-length`, the page):
@@ -29,3 +41,6 @@ DEFAULT_REAL_CLIP_FRAMES = 48
 DEFAULT_APERTURE_M = 0.1
 DEFAULT_WAVELENGTH_M = 525e-9
 DEFAULT_PATH_LENGTH_M = 1000.0
+# pixels per λ/D at Nyquist sampling (ifov = λ/(2D)): what the clip deblur and registration_dr0 take when the pixel
+# angle is not known
+NYQUIST_LAMBDA_OVER_D_PX = 2.0

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from d2turb.data.samples import SAMPLES, sample_images
-from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
+from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_DR0, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
 from d2turb.models.hub import (
     IDENTITY_NAME,
@@ -108,7 +108,7 @@ class SimSettings:
     sample: str = "astronaut"
     upload: str | None = None
     strength: str = "D/r0"
-    dr0: float = 3.0
+    dr0: float = DEFAULT_DR0
     cn2: float = 1e-14
     aperture_m: float = DEFAULT_APERTURE_M
     wavelength_nm: str = f"{DEFAULT_WAVELENGTH_M * 1e9:g}"  # "525": parsed back to exactly DEFAULT_WAVELENGTH_M

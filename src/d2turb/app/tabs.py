@@ -35,6 +35,7 @@ from d2turb.app.jobs import (
 )
 from d2turb.app.views import PREVIEW_SIDE, flow_view, niqe_or_reason, preview
 from d2turb.app.workspace import Workspace, bundle
+from d2turb.defaults import DEFAULT_DR0, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, MEASURED_TEMPORAL
 from d2turb.depth import depth_for_image
 from d2turb.depth.io import DEPTH_SUFFIXES
 from d2turb.errors import D2TurbError
@@ -164,8 +165,8 @@ def run_restore(
     upload: str | None,
     weights: str,
     workspace: Workspace,
-    tile: int = 512,
-    overlap: int = 64,
+    tile: int = DEFAULT_TILE_PX,
+    overlap: int = DEFAULT_OVERLAP_PX,
     device: str = "cpu",
     limits: Limits | None = None,
     progress: Progress | None = None,
@@ -259,7 +260,7 @@ class ClipOutput:
 def run_clip(
     upload: str | None,
     workspace: Workspace,
-    temporal: int = 32,
+    temporal: int = MEASURED_TEMPORAL,
     dr0: float | None = None,
     limits: Limits | None = None,
     progress: Progress | None = None,
@@ -287,7 +288,7 @@ def run_clip(
     elif src.suffix.lower() in IMAGE_SUFFIXES:
         w, h = image_size(src)
         check_pixels(src.name, w, h, limits.sim_pixels)
-        dr0 = dr0 or 3.0
+        dr0 = dr0 or DEFAULT_DR0
         make_params(dr0=float(f"{dr0:g}"))  # the value the command line gives, checked here with the page's words
         argvs.append(clip_simulate_argv(name, dr0, out="clip"))
         clip, frames, mp4 = "clip/turb", CLIP_SIM_FRAMES, "turb_restored.mp4"

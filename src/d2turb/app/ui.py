@@ -19,6 +19,7 @@ from types import SimpleNamespace
 import gradio as gr
 
 from d2turb.app import core
+from d2turb.defaults import DEFAULT_DR0, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, MEASURED_TEMPORAL
 from d2turb.errors import D2TurbError
 from d2turb.eval.labels import GENERIC_STEMS, weights_label
 from d2turb.io import image_size, read_image, write_image
@@ -181,7 +182,7 @@ def _simulate_controls() -> SimpleNamespace:
     )
     shown = gr.Image(label="input", type="filepath", interactive=False, height=180)
     strength = gr.Radio(list(core.STRENGTHS), value="D/r0", label="strength given as")
-    dr0 = gr.Slider(0.1, 10.0, value=3.0, step=0.05, label=f"D/r0 ({BINS_RULE})")
+    dr0 = gr.Slider(0.1, 10.0, value=DEFAULT_DR0, step=0.05, label=f"D/r0 ({BINS_RULE})")
     cn2 = gr.Number(value=1e-14, label="Cn² (m^-2/3), constant along the path", visible=False)
     with gr.Row():
         aperture = gr.Number(value=SIM_DEFAULTS.aperture_m, label="aperture D (m)")
@@ -318,8 +319,8 @@ def _restore_tab(workspace: core.Workspace, limits: core.Limits, guard, show_inp
             weights_path = gr.Textbox(value="", label="or a local .safetensors path")
             refresh = gr.Button("rescan weights", size="sm")
             with gr.Row():
-                tile = gr.Number(value=512, precision=0, label="tile (px)")
-                overlap = gr.Number(value=64, precision=0, label="overlap (px)")
+                tile = gr.Number(value=DEFAULT_TILE_PX, precision=0, label="tile (px)")
+                overlap = gr.Number(value=DEFAULT_OVERLAP_PX, precision=0, label="overlap (px)")
             devices = ["cpu"] + (["cuda"] if _cuda() else [])
             device = gr.Dropdown(devices, value=devices[-1], label="device")
             run_restore = gr.Button("Restore", variant="primary", elem_id="restore-button")
@@ -357,9 +358,10 @@ def _clip_tab(workspace: core.Workspace, limits: core.Limits, guard) -> None:
             c_upload = _image_or_video_upload(
                 "short video (a static scene), or an image to simulate a clip from", "clip-upload"
             )
-            c_temporal = gr.Slider(2, 64, value=32, step=1, label="window (frames)")
+            c_temporal = gr.Slider(2, 64, value=MEASURED_TEMPORAL, step=1, label="window (frames)")
             c_dr0 = gr.Number(
-                value=0, label="D/r0 for the physics deblur (0 = none; an image is simulated at it, default 3)"
+                value=0,
+                label=f"D/r0 for the physics deblur (0 = none; an image is simulated at it, default {DEFAULT_DR0:g})",
             )
             run_clip = gr.Button("Restore clip", variant="primary", elem_id="clip-button")
         with gr.Column(scale=2):

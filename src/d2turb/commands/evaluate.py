@@ -7,7 +7,13 @@ import os
 import sys
 
 from d2turb.commands.common import add_device_arg, add_fail_fast_arg, add_max_pixels_arg
-from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, DEFAULT_REAL_CLIP_FRAMES, DEFAULT_TEMPORAL
+from d2turb.defaults import (
+    CLIP_FUSIONS,
+    DEFAULT_FUSION,
+    DEFAULT_REAL_CLIP_FRAMES,
+    DEFAULT_TEMPORAL,
+    MEASURED_TEMPORAL,
+)
 from d2turb.errors import D2TurbError, print_error, summary
 
 
@@ -42,8 +48,8 @@ def register(sub):
         type=int,
         default=None,
         metavar="N",
-        help=f"with --clips: window (default 32); with --real-clips: the restoration's window (default "
-        f"{DEFAULT_TEMPORAL}, must be shorter than each clip)",
+        help=f"with --clips: window (default {MEASURED_TEMPORAL}); with --real-clips: the restoration's window "
+        f"(default {DEFAULT_TEMPORAL}, must be shorter than each clip)",
     )
     p.add_argument(
         "--max-frames",
@@ -133,7 +139,7 @@ def run(args):
             args.clips,
             args.out,
             deblur=args.deblur,
-            temporal=32 if args.temporal is None else args.temporal,
+            temporal=MEASURED_TEMPORAL if args.temporal is None else args.temporal,
             preset=args.preset,
             fusion=args.fusion,
             max_samples=args.max_samples,

@@ -14,7 +14,7 @@ from d2turb.commands.common import (
     parse_params,
     wait_passively,
 )
-from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, FUSION_WITHOUT_DEBLUR
+from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
 
 
@@ -93,8 +93,13 @@ def register(sub):
     )
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--tile", type=int, default=512, help="tile size in pixels (default 512)")
-    p.add_argument("--overlap", type=int, default=64, help="pixels shared by neighbouring tiles (default 64)")
+    p.add_argument("--tile", type=int, default=DEFAULT_TILE_PX, help=f"tile size in pixels (default {DEFAULT_TILE_PX})")
+    p.add_argument(
+        "--overlap",
+        type=int,
+        default=DEFAULT_OVERLAP_PX,
+        help=f"pixels shared by neighbouring tiles (default {DEFAULT_OVERLAP_PX})",
+    )
     add_device_arg(p)
     p.add_argument(
         "--save-flow",

@@ -25,7 +25,7 @@ from skimage.registration import phase_cross_correlation
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
 from d2turb.data.sequence import SequenceDataset
-from d2turb.defaults import DEFAULT_FUSION
+from d2turb.defaults import DEFAULT_FUSION, MEASURED_TEMPORAL
 from d2turb.errors import D2TurbError
 from d2turb.eval.cwssim import cw_ssim
 from d2turb.eval.metrics import KeyedMean, end_point_error, psnr, ssim
@@ -159,7 +159,7 @@ def evaluate_clips(
     root: str | os.PathLike,
     out: str | os.PathLike,
     deblur: list[str] = ("physics",),
-    temporal: int = 32,
+    temporal: int = MEASURED_TEMPORAL,
     preset: str = "fast",
     fusion: str = DEFAULT_FUSION,
     passes: int = 2,

@@ -17,6 +17,7 @@ import torch
 
 from d2turb.data import PairDataset
 from d2turb.data.layout import BIN_NAMES
+from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
 from d2turb.errors import D2TurbError
 from d2turb.eval.labels import GENERIC_STEMS, weights_label
 from d2turb.eval.lpips import LPIPS
@@ -181,8 +182,8 @@ def evaluate_synthetic(
     lpips_weights: str | os.PathLike | None = None,
     lpips_backbone: str | os.PathLike | None = None,
     lpips_net: str = "alex",
-    tile: int = 512,
-    overlap: int = 64,
+    tile: int = DEFAULT_TILE_PX,
+    overlap: int = DEFAULT_OVERLAP_PX,
     grid_per_bin: int = 2,
     progress: bool = False,
     fail_fast: bool = False,

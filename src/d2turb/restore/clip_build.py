@@ -12,7 +12,7 @@ from types import SimpleNamespace
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import estimate_words, measure_clip, undetermined_dr0
-from d2turb.defaults import DEFAULT_FUSION, FUSION_WITHOUT_DEBLUR
+from d2turb.defaults import DEFAULT_FUSION, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
 from d2turb.restore.clip_source import clip_frames
 from d2turb.restore.files import RestoreOptions
@@ -79,7 +79,15 @@ def _measured_dr0(head: list, params: dict) -> dict:
 
 
 def clip_deblur(
-    choice: str, src: Path, *, dr0=None, params=None, device="cpu", tile=512, overlap=64, fusion=DEFAULT_FUSION
+    choice: str,
+    src: Path,
+    *,
+    dr0=None,
+    params=None,
+    device="cpu",
+    tile=DEFAULT_TILE_PX,
+    overlap=DEFAULT_OVERLAP_PX,
+    fusion=DEFAULT_FUSION,
 ):
     """The deblur step of a clip: (None, a PhysicsDeblur, a BlindDeblur or a model's restore; its description; a
     record of the value used and where it came from, for the output folder's restore.json).

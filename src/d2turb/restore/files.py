@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
 from d2turb.io import (
@@ -92,8 +93,8 @@ class RestoreOptions(JobOptions):
         compare: also write NAME_compare.png (input | restored, labelled) and for a video or clip NAME_compare.mp4.
     """
 
-    tile: int = 512
-    overlap: int = 64
+    tile: int = DEFAULT_TILE_PX
+    overlap: int = DEFAULT_OVERLAP_PX
     save_intermediate: bool = False
     compare: bool = False
 

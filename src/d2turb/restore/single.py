@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
 from d2turb.deprecation import AliasDict
 from d2turb.device import resolve_device
 from d2turb.errors import D2TurbError
@@ -135,7 +136,14 @@ class Restorer:
         torch.Size([3, 40, 56])
     """
 
-    def __init__(self, weights=None, device: str = "cpu", tile: int = 512, overlap: int = 64, progress: bool = False):
+    def __init__(
+        self,
+        weights=None,
+        device: str = "cpu",
+        tile: int = DEFAULT_TILE_PX,
+        overlap: int = DEFAULT_OVERLAP_PX,
+        progress: bool = False,
+    ):
         if not isinstance(tile, int) or tile < 16:
             raise D2TurbError(f"tile size must be an integer >= 16, got {tile}")
         if not isinstance(overlap, int) or overlap < 0 or overlap > tile // 2:
