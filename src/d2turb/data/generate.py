@@ -176,34 +176,128 @@ def _write_sample(root: Path, sid: str, sample: dict, meta: dict, shard: Path, l
         append_line(shard, meta)
 
 
-def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
-    device = resolve_device(cfg.device, info.local_rank)
-    done = set(collect_records(root))
+def _chunk_indices(cfg: DatasetConfig, chunk: int) -> range:
+    """The sample indices of chunk ``chunk``."""
+    return range(chunk * cfg.batch, min((chunk + 1) * cfg.batch, cfg.pairs))
+
+
+def _my_chunks(cfg: DatasetConfig, info: DistributedEnv, done: set) -> tuple[list[int], int]:
+    """This rank's chunks that still hold a sample to make, and how many such samples they hold."""
     n_chunks = (cfg.pairs + cfg.batch - 1) // cfg.batch
     my_chunks = [
         c
         for c in range(info.rank, n_chunks, info.world)
-        if any(sample_id(i) not in done for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs)))
+        if any(sample_id(i) not in done for i in _chunk_indices(cfg, c))
     ]
-    todo = sum(
-        1
-        for c in my_chunks
-        for i in range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
-        if sample_id(i) not in done
-    )
+    todo = sum(1 for c in my_chunks for i in _chunk_indices(cfg, c) if sample_id(i) not in done)
+    return my_chunks, todo
+
+
+def _open_shard(root: Path, info: DistributedEnv) -> Path:
+    """This rank's meta shard (a partial last line from a killed run cut off) and the sample folders."""
     shard = shard_dir(root) / f"rank-{info.rank}.jsonl"
     shard.parent.mkdir(parents=True, exist_ok=True)
     truncate_partial_line(shard)
     for kind in FILES:
         (root / kind).mkdir(parents=True, exist_ok=True)
+    return shard
+
+
+def _sample_meta(cfg: DatasetConfig, plan, source: str, box, image, chunk: int, params_full: dict, g: int) -> dict:
+    """The meta line of one sample (before what its simulation draws: the camera, the field clip)."""
+    x0, y0, x1, y1 = box
+    return {
+        "id": plan.id,
+        "index": plan.index,
+        "split": cfg.split,
+        "source": source,
+        "crop": [x0, y0, x1, y1],
+        "source_size": [int(image.shape[-1]), int(image.shape[-2])],
+        "dr0": plan.dr0,
+        "bin": plan.bin,
+        "seed": cfg.seed,
+        "chunk": chunk,
+        "sim_seed": chunk_seed(cfg.seed, chunk),
+        "depth": cfg.depth,
+        "params": params_full,
+        "geometry": g,
+    }
+
+
+def _read_chunk(
+    cfg, chunk, g, plans, sources, cache, object_cache, params_full, phase
+) -> tuple[list, list, list, list]:
+    """The chunk's clean crops, depth crops, meta lines and (field profile) scenes, one per plan."""
+    clean, depth, metas, scenes = [], [], [], []
+    for plan in plans:
+        if plan.source not in cache.cache:
+            phase("reading source images" + ("" if cfg.depth == "none" else f" + depth ({cfg.depth})"))
+        k, image, dmap = cache.get(plan.source)
+        if cfg.profile == "field":
+            scene = prepare_scene(plan, cfg, image, dmap, object_cache, len(sources), k)
+            scenes.append(scene)
+            box = scene["window"]
+            clean.append(None)
+            depth.append(None if scene["depth"] is None else torch.from_numpy(scene["depth"][:1]))
+        else:
+            box = x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
+            clean.append(image[:, y0:y1, x0:x1])
+            depth.append(None if dmap is None else dmap[:, y0:y1, x0:x1])
+        metas.append(_sample_meta(cfg, plan, str(sources[k]), box, image, chunk, params_full, g))
+    return clean, depth, metas, scenes
+
+
+def _chunk_samples(cfg, chunk, sim, plans, inputs, dr0, generator, device, done):
+    """Simulate one chunk; yield (plan, sample, meta) for each of its samples not yet done."""
+    clean, depth, metas, scenes = inputs
+    if cfg.profile == "field":  # each clip's own frames, camera and ground truth per frame
+        field_samples = simulate_field_chunk(sim, scenes, dr0, generator, cfg.frames, cfg.sequence, device)
+        for plan, meta, scene, sample, d in zip(plans, metas, scenes, field_samples, depth):
+            if plan.id in done:
+                continue
+            sample["depth"] = d if d is not None else torch.ones(1, cfg.patch, cfg.patch)
+            yield plan, sample, meta | {"field": scene["draw"]}
+        return
+    clean_t = torch.stack(clean).to(device)
+    depth_t = None if depth[0] is None else torch.stack(depth).to(device)
+    if cfg.frames > 1:  # sequences: frames stacked vertically, bwd_flow_px (B, N, 2, H, W)
+        turb, tilt, bwd_flow_px = simulate_sequence_chunk(
+            sim, clean_t, depth_t, dr0, generator, cfg.frames, cfg.sequence
+        )
+    else:
+        res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
+        turb, tilt, bwd_flow_px = res.turb, res.tilt, invert_flow(res.fwd_flow_px).float()
+    if not torch.isfinite(bwd_flow_px).all() or not torch.isfinite(turb).all():
+        raise D2TurbError(f"simulator produced NaN/inf for chunk {chunk} (samples {plans[0].id}..{plans[-1].id})")
+    turb, tilt, bwd_flow_px = turb.float().cpu(), tilt.float().cpu(), bwd_flow_px.cpu()
+    for b, (plan, meta) in enumerate(zip(plans, metas)):
+        if plan.id in done:
+            continue
+        frames_b = turb[b]
+        if cfg.camera:
+            frames_b, drawn = camera_degrade(frames_b, cfg.camera, cfg.seed, plan.index, cfg.patch)
+            meta = meta | {"camera": drawn}
+        sample = {
+            "turb": frames_b,
+            "tilt": tilt[b],
+            "gt": clean[b],
+            "bwd_flow_px": bwd_flow_px[b],
+            "depth": depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
+        }
+        yield plan, sample, meta
+
+
+def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
+    device = resolve_device(cfg.device, info.local_rank)
+    done = set(collect_records(root))
+    my_chunks, todo = _my_chunks(cfg, info, done)
+    shard = _open_shard(root, info)
     sims: dict[int, Simulator] = {}
-    field_profile = cfg.profile == "field"
-    if field_profile:  # the frame's window with the border the camera's shake brings into view
+    window, object_cache = cfg.patch, None
+    if cfg.profile == "field":  # the frame's window with the border the camera's shake brings into view
         window = cfg.patch + 2 * window_margin(cfg.patch)
         object_cache = SourceCache(sources, window, None)
-    cache = SourceCache(
-        sources, window if field_profile else cfg.patch, make_depth_fn(cfg.depth, device, cfg.depth_is_disparity)
-    )
+    cache = SourceCache(sources, window, make_depth_fn(cfg.depth, device, cfg.depth_is_disparity))
     bar = None
     if progress and info.rank == 0:
         from tqdm import tqdm
@@ -218,91 +312,19 @@ def _generate_rank(cfg, info, root, sources, bank, progress) -> dict:
     shard_lock = threading.Lock()
     with torch.inference_mode(), BackgroundWriter(max_pending=2 * cfg.batch, compute_device=device) as writer:
         for c in my_chunks:
-            indices = range(c * cfg.batch, min((c + 1) * cfg.batch, cfg.pairs))
-            plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources)) for i in indices]
+            plans = [plan_sample(i, cfg.seed, cfg.split, cfg.bins, len(sources)) for i in _chunk_indices(cfg, c)]
             g = chunk_geometry(cfg.seed, c, len(bank))
             if g not in sims:
                 phase("setting up the simulator")
                 sims[g] = Simulator(bank[g], device=str(device))
             sim, params_full = sims[g], params_record(bank[g])
-            clean, depth, metas, scenes = [], [], [], []
-            for plan in plans:
-                if plan.source not in cache.cache:
-                    phase("reading source images" + ("" if cfg.depth == "none" else f" + depth ({cfg.depth})"))
-                k, image, dmap = cache.get(plan.source)
-                if field_profile:
-                    scene = prepare_scene(plan, cfg, image, dmap, object_cache, len(sources), k)
-                    scenes.append(scene)
-                    x0, y0, x1, y1 = scene["window"]
-                    clean.append(None)
-                    depth.append(None if scene["depth"] is None else torch.from_numpy(scene["depth"][:1]))
-                else:
-                    x0, y0, x1, y1 = crop_box(plan, image.shape[-2], image.shape[-1], cfg.patch)
-                    clean.append(image[:, y0:y1, x0:x1])
-                    depth.append(None if dmap is None else dmap[:, y0:y1, x0:x1])
-                metas.append(
-                    {
-                        "id": plan.id,
-                        "index": plan.index,
-                        "split": cfg.split,
-                        "source": str(sources[k]),
-                        "crop": [x0, y0, x1, y1],
-                        "source_size": [int(image.shape[-1]), int(image.shape[-2])],
-                        "dr0": plan.dr0,
-                        "bin": plan.bin,
-                        "seed": cfg.seed,
-                        "chunk": c,
-                        "sim_seed": chunk_seed(cfg.seed, c),
-                        "depth": cfg.depth,
-                        "params": params_full,
-                        "geometry": g,
-                    }
-                )
+            inputs = _read_chunk(cfg, c, g, plans, sources, cache, object_cache, params_full, phase)
             dr0 = torch.tensor([p.dr0 for p in plans], dtype=torch.float32, device=device)
             generator = torch.Generator(device=device).manual_seed(chunk_seed(cfg.seed, c))
             phase(f"simulating {len(plans)} pairs (PSFs and tilt for the whole batch at once)")
             writer.before_compute()
-            if field_profile:  # each clip's own frames, camera and ground truth per frame
-                field_samples = simulate_field_chunk(sim, scenes, dr0, generator, cfg.frames, cfg.sequence, device)
-                new = 0
-                for plan, meta, scene, sample, d in zip(plans, metas, scenes, field_samples, depth):
-                    if plan.id in done:
-                        continue
-                    meta = meta | {"field": scene["draw"]}
-                    sample["depth"] = d if d is not None else torch.ones(1, cfg.patch, cfg.patch)
-                    writer.submit(_write_sample, root, plan.id, sample, meta, shard, shard_lock, cfg.png_level)
-                    new += 1
-                written += new
-                if bar is not None:
-                    bar.update(new)
-                continue
-            clean_t = torch.stack(clean).to(device)
-            depth_t = None if depth[0] is None else torch.stack(depth).to(device)
-            if cfg.frames > 1:  # sequences: frames stacked vertically, flow (B, N, 2, H, W)
-                turb, tilt, flow = simulate_sequence_chunk(
-                    sim, clean_t, depth_t, dr0, generator, cfg.frames, cfg.sequence
-                )
-            else:
-                res = sim(clean_t, depth=depth_t, dr0=dr0, generator=generator)
-                turb, tilt, flow = res.turb, res.tilt, invert_flow(res.fwd_flow_px).float()
-            if not torch.isfinite(flow).all() or not torch.isfinite(turb).all():
-                raise D2TurbError(f"simulator produced NaN/inf for chunk {c} (samples {plans[0].id}..{plans[-1].id})")
-            turb, tilt, flow = turb.float().cpu(), tilt.float().cpu(), flow.cpu()
             new = 0
-            for b, (plan, meta) in enumerate(zip(plans, metas)):
-                if plan.id in done:
-                    continue
-                frames_b = turb[b]
-                if cfg.camera:
-                    frames_b, drawn = camera_degrade(frames_b, cfg.camera, cfg.seed, plan.index, cfg.patch)
-                    meta = meta | {"camera": drawn}
-                sample = {
-                    "turb": frames_b,
-                    "tilt": tilt[b],
-                    "gt": clean[b],
-                    "bwd_flow_px": flow[b],
-                    "depth": depth[b] if depth[b] is not None else torch.ones(1, cfg.patch, cfg.patch),
-                }
+            for plan, sample, meta in _chunk_samples(cfg, c, sim, plans, inputs, dr0, generator, device, done):
                 writer.submit(_write_sample, root, plan.id, sample, meta, shard, shard_lock, cfg.png_level)
                 new += 1
             written += new

@@ -258,27 +258,13 @@ def simulate_video(
     source, n_frames, kind = _input_frames(src, frames)
     sim = Simulator(params, device=device)
     gen = torch.Generator().manual_seed(seed)
-    mp4_path = None
-    if mp4:
-        if can_write_mp4():
-            mp4_path = out / "turb.mp4"
-        else:
-            print(f"note: no mp4 written; {VIDEO_HINT}")
+    mp4_path = _mp4_path(out, mp4)
 
     def depth_of(frame):
         d = depth_for_image(depth, src if kind == "image" else None, frame, disparity, device)
         return None if d is None else d[None]
 
-    h, w = source.shape[-2:] if kind == "image" else (None, None)
-    depth_text = "none" if depth == "none" else f"{depth}, " + ("once" if kind == "image" else "per frame")
-    print(
-        f"{src.name}: simulating {n_frames} frames"
-        + (f" of {w}x{h}" if h else "")
-        + f" at D/r0 = {params.dr0:.3g} (depth: {depth_text}); each frame is written to {out / 'turb'} as it is "
-        "done, the bar's time estimate follows the first one",
-        file=sys.stderr,
-        flush=True,
-    )
+    _announce_clip(src, out, source, n_frames, kind, depth, params.dr0)
     if kind == "image":
         image, depth_maps = source[None], depth_of(source)
     else:  # a moving input: depth (if any) per frame
@@ -293,23 +279,8 @@ def simulate_video(
         depth=depth_maps,
         generator=gen,
     )
-    written, size, mean_mod = 0, None, []
-    with contextlib.ExitStack() as stack:
-        writer = None if mp4_path is None else stack.enter_context(Mp4Writer(mp4_path, fps))
-        for i, res in enumerate(tqdm(seq, total=n_frames, unit="frame", desc=src.name)):
-            write_image(out / "turb" / f"{i:06d}.png", res.turb[0])
-            if save_tilt:
-                write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
-            if save_flow:
-                fwd = res.fwd_flow_px[0].detach().cpu().numpy().astype(np.float32)
-                write_npy(out / "fwd_flow_px" / f"{i:06d}.npy", fwd)
-            if writer is not None:
-                writer.write(to_uint8(res.turb[0]))
-            size = tuple(res.turb.shape[-2:])
-            mean_mod.append(float(res.modulation.mean()))
-            written += 1
-        if written == 0:
-            raise D2TurbError(f"{src}: no frames to simulate")
+    frames_done = _write_clip_frames(seq, out, src, n_frames, save_tilt, save_flow, mp4_path, fps)
+    written, size = frames_done["written"], frames_done["size"]
     kept = {"turb": True, "tilt": save_tilt, "fwd_flow_px": save_flow, "mp4": mp4_path is not None}
     try:
         remove_stale_frames(out, written, kept)
@@ -317,7 +288,6 @@ def simulate_video(
         raise D2TurbError(f"cannot remove the frames of an earlier run in {out}: {exc.strerror or exc}") from exc
     p = sim.params
     meta = p.to_dict()
-    ifov_l = p.ifov_rad * p.path_length_m  # m per px at the object
     meta.update(
         input=str(src),
         input_kind=kind,
@@ -326,22 +296,14 @@ def simulate_video(
         wind_m_s=wind,
         wind_dir_deg=wind_dir,
         boil=boil,
-        layers=[
-            {
-                "z_frac": float(z),
-                "wind_m_s": float(v),
-                "s_per_frame": float(v / fps / (p.aperture_m * (1 - z))),
-                "px_per_frame": float(v / fps / (ifov_l * z)),
-            }
-            for z, v in zip(t, speeds)
-        ],
+        layers=_layer_motion(p, t, speeds, fps),
         dr0=float(p.dr0),
         bin=dr0_bin(p.dr0),
         seed=seed,
         depth=depth,
         height=size[0],
         width=size[1],
-        mean_modulation=float(np.mean(mean_mod)),
+        mean_modulation=float(np.mean(frames_done["mean_modulation"])),
         mp4=mp4_path.name if mp4_path is not None else None,
     )
     write_json(out / "meta.json", meta)
@@ -355,3 +317,65 @@ def simulate_video(
         f"meta.json) -> {out}" + (f" ({mp4_path.name})" if mp4_path else "")
     )
     return 0
+
+
+def _mp4_path(out: Path, mp4: bool) -> Path | None:
+    """out/turb.mp4 when asked for and PyAV can write it (else a note says why not)."""
+    if not mp4:
+        return None
+    if can_write_mp4():
+        return out / "turb.mp4"
+    print(f"note: no mp4 written; {VIDEO_HINT}")
+    return None
+
+
+def _announce_clip(src: Path, out: Path, source, n_frames, kind: str, depth: str, dr0: float) -> None:
+    """One line on stderr before the first (slow) frame: what is simulated and where it goes."""
+    h, w = source.shape[-2:] if kind == "image" else (None, None)
+    depth_text = "none" if depth == "none" else f"{depth}, " + ("once" if kind == "image" else "per frame")
+    print(
+        f"{src.name}: simulating {n_frames} frames"
+        + (f" of {w}x{h}" if h else "")
+        + f" at D/r0 = {dr0:.3g} (depth: {depth_text}); each frame is written to {out / 'turb'} as it is "
+        "done, the bar's time estimate follows the first one",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _write_clip_frames(seq, out: Path, src: Path, n_frames, save_tilt, save_flow, mp4_path, fps) -> dict:
+    """Each frame of ``seq`` (SimResults) to out/turb/, tilt/, fwd_flow_px/ and the mp4 as it comes; returns the
+    number written, the frame size (H, W) and each frame's mean depth modulation. No frame at all is an error."""
+    written, size, mean_mod = 0, None, []
+    with contextlib.ExitStack() as stack:
+        writer = None if mp4_path is None else stack.enter_context(Mp4Writer(mp4_path, fps))
+        for i, res in enumerate(tqdm(seq, total=n_frames, unit="frame", desc=src.name)):
+            write_image(out / "turb" / f"{i:06d}.png", res.turb[0])
+            if save_tilt:
+                write_image(out / "tilt" / f"{i:06d}.png", res.tilt[0])
+            if save_flow:
+                fwd_flow_px = res.fwd_flow_px[0].detach().cpu().numpy().astype(np.float32)
+                write_npy(out / "fwd_flow_px" / f"{i:06d}.npy", fwd_flow_px)
+            if writer is not None:
+                writer.write(to_uint8(res.turb[0]))
+            size = tuple(res.turb.shape[-2:])
+            mean_mod.append(float(res.modulation.mean()))
+            written += 1
+        if written == 0:
+            raise D2TurbError(f"{src}: no frames to simulate")
+    return {"written": written, "size": size, "mean_modulation": mean_mod}
+
+
+def _layer_motion(p: TurbulenceParams, z_frac, speeds, fps: float) -> list[dict]:
+    """Per layer of the path: its place z/L, wind speed, and the wind's shift per frame in beam widths (s) and in
+    px at the object's scale (meta.json's ``layers``)."""
+    ifov_l = p.ifov_rad * p.path_length_m  # m per px at the object
+    return [
+        {
+            "z_frac": float(z),
+            "wind_m_s": float(v),
+            "s_per_frame": float(v / fps / (p.aperture_m * (1 - z))),
+            "px_per_frame": float(v / fps / (ifov_l * z)),
+        }
+        for z, v in zip(z_frac, speeds)
+    ]
