@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from d2turb.clip.fusion import fusion_class
+from d2turb.defaults import NYQUIST_LAMBDA_OVER_D_PX
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
@@ -180,7 +181,7 @@ class PhysicsDeblur:
     def __init__(
         self,
         dr0: float,
-        lambda_over_d_px: float = 2.0,
+        lambda_over_d_px: float = NYQUIST_LAMBDA_OVER_D_PX,
         balance: float | None = None,
         modulation: float = 1.0,
         alpha: float = 1.0,

@@ -15,6 +15,7 @@ import torch
 
 from d2turb.clip.pipeline import ClipRestorer
 from d2turb.clip.registration import DenseFlow, global_shift_px, to_hwc
+from d2turb.defaults import NYQUIST_LAMBDA_OVER_D_PX
 from d2turb.errors import D2TurbError
 from d2turb.sim.params import MAX_DR0
 from d2turb.sim.tilt import dr0_from_tilt_variance
@@ -213,7 +214,9 @@ def registration_tilt_variance(frames: Iterable, temporal: int = REGISTRATION_WI
     return total / max(count, 1)
 
 
-def registration_dr0(frames: Iterable, lambda_over_d_px: float = 2.0, preset: str = "fast") -> float:
+def registration_dr0(
+    frames: Iterable, lambda_over_d_px: float = NYQUIST_LAMBDA_OVER_D_PX, preset: str = "fast"
+) -> float:
     """D/r0 from the clip's own registration, for a clip that ``d2turb measure`` cannot measure: the tilt variance
     is the registered flows' variance over ``OBSERVED_TILT_SHARE`` (calibrated on the simulated validation clips at a
     window of ``REGISTRATION_WINDOW`` frames; a rough estimate: 0.10–0.15 there, unknown on real footage), inverted by
