@@ -74,6 +74,67 @@ def iter_video(path: str | os.PathLike) -> Iterator[tuple[int, torch.Tensor]]:
         raise D2TurbError(f"{path}: cannot read video ({_first_line(exc)}); {VIDEO_HINT}") from exc
 
 
+_GREY_PIX_FMTS = ("gray", "ya", "y400", "monow", "monob")
+
+
+def _pix_format(stream) -> tuple[int, int]:
+    """(channels, bits) of a decoded video stream's pixels: 1 for grey formats, 16 for more than 8 bits a sample."""
+    name = stream.codec_context.pix_fmt or ""
+    try:
+        import av
+
+        depth = max(c.bits for c in av.VideoFormat(name).components) if name else 8
+    except Exception:  # noqa: BLE001 - a format PyAV does not describe: 8 bits
+        depth = 8
+    return (1 if name.startswith(_GREY_PIX_FMTS) else 3), (16 if depth > 8 else 8)
+
+
+class VideoSource:
+    """A video decoded by PyAV with its pixels as stored: (H,W) grey or (H,W,3) RGB, uint8, or uint16 where the
+    stream holds more than 8 bits a sample. ``source``: a file, or anything FFmpeg opens (``-`` for standard input,
+    a URL, a capture device); ``channels``, ``bits``, ``fps`` and ``frames`` (0 where the container does not say)
+    are known once it is open.
+
+    Raises:
+        D2TurbError: PyAV missing, or the source cannot be opened (one line naming it).
+    """
+
+    def __init__(self, source: str | os.PathLike, options: dict | None = None, input_format: str | None = None):
+        try:
+            import av
+        except ImportError as exc:
+            raise D2TurbError(f"{source}: reading video needs PyAV; {VIDEO_HINT}") from exc
+        self.source = str(source)
+        target = "pipe:0" if self.source == "-" else self.source
+        try:
+            self._container = av.open(target, "r", format=input_format, options=options or {})
+            self._stream = self._container.streams.video[0]
+        except (av.FFmpegError, OSError, IndexError, ValueError) as exc:
+            raise D2TurbError(f"{self.source}: cannot open video ({_first_line(exc)})") from exc
+        self._stream.thread_type = "AUTO"
+        self.channels, self.bits = _pix_format(self._stream)
+        rate = self._stream.average_rate or self._stream.guessed_rate
+        self.fps = float(rate) if rate else DEFAULT_FPS
+        self.frames = int(self._stream.frames or 0)
+        self._format = {(1, 8): "gray", (1, 16): "gray16le", (3, 8): "rgb24", (3, 16): "rgb48le"}[
+            (self.channels, self.bits)
+        ]
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        """The frames in order, decoded one at a time; a stream that stops decoding raises D2TurbError there."""
+        try:
+            for frame in self._container.decode(self._stream):
+                yield frame.to_ndarray(format=self._format)
+        except Exception as exc:  # noqa: BLE001 - any decoder failure ends the clip there, in one line
+            raise D2TurbError(f"{self.source}: cannot read video ({_first_line(exc)})") from exc
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._container.close()
+
+
 def video_size(path: str | os.PathLike) -> tuple[int, int, int]:
     """(frames, width, height) of a video from its container, without decoding it; frames is 0 where the container
     does not store it (mkv, webm: count by decoding).
@@ -206,6 +267,8 @@ class Mp4Writer:
         if isinstance(frame, SharedUint8):
             frame = frame()
         arr = to_uint8(frame) if isinstance(frame, torch.Tensor) else np.asarray(frame, dtype=np.uint8)
+        if arr.ndim == 2 or arr.shape[2] == 1:  # grey: the encoder takes RGB
+            arr = np.repeat(arr.reshape(arr.shape[0], arr.shape[1], 1), 3, axis=2)
         h, w = arr.shape[:2]
         return np.ascontiguousarray(np.pad(arr, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
 

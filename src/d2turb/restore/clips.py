@@ -15,13 +15,14 @@ from d2turb.clip import ClipRestorer
 from d2turb.clip.blind import BlindDeblur
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
-from d2turb.io import BackgroundWriter, SharedUint8, check_output_dir, list_images, write_image, write_json, write_npy
+from d2turb.io import BackgroundWriter, SharedUint8, check_output_dir, write_image, write_json, write_npy
+from d2turb.io.formats import RGB8, to_restorer, to_stored
 from d2turb.ops.splat import invert_flow
 from d2turb.restore.clip_build import ClipOptions, clip_restorer
-from d2turb.restore.clip_source import check_frame_sizes, clip_frames
+from d2turb.restore.clip_source import check_frame_sizes, open_clip
 from d2turb.restore.compare import output_name, side_by_side
-from d2turb.restore.files import no_empty_out, save_compare, video_frame_count
-from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4, is_video, video_fps
+from d2turb.restore.files import no_empty_out, save_compare
+from d2turb.video import VIDEO_HINT, Mp4Writer, can_write_mp4
 
 
 def _kept(frames, store: dict):
@@ -29,6 +30,13 @@ def _kept(frames, store: dict):
     for i, frame in enumerate(frames):
         store[i] = frame
         yield frame
+
+
+def _panel(image) -> np.ndarray:
+    """A restorer's input or output frame as an 8-bit RGB panel of side_by_side: (H,W,3) uint8."""
+    if isinstance(image, np.ndarray) and image.dtype == np.uint8:
+        return image if image.ndim == 3 and image.shape[2] == 3 else np.repeat(image.reshape(*image.shape[:2], 1), 3, 2)
+    return to_stored(image, RGB8)
 
 
 def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = None, **kwargs) -> int:
@@ -42,7 +50,7 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
     NAME_compare.mp4 (input | restored side by side, video extra) and NAME_compare.png (the middle frame).
 
     Args:
-        src: a video file or a folder of frames.
+        src: a video file (also SER, FITS) or a folder of frames; the outputs keep its pixels (16 bits, grey).
         options: :class:`ClipOptions` (None: the defaults); ``kwargs``: its fields by name, in place of those
             (``dr0=2.0, compare=True``).
 
@@ -57,17 +65,18 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise D2TurbError(f"fps must be positive, got {fps}", param="fps")
     ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)  # bad settings first, in one line
-    files = list_images(src) if src.is_dir() else []
-    check_frame_sizes(src, files)
+    errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
+    clip = open_clip(src, errors)
+    check_frame_sizes(src, clip.files)
     device = resolve_device(o.device)
     limit_malloc_arenas()  # before the threads of the stream start
     restorer, deblur_name, record = clip_restorer(src, temporal, dataclasses.replace(o, device=device))
-    out_dir = check_output_dir(out, inputs=files or [src])
-    errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
-    names, frames = clip_frames(src, errors, as_stored=True)
-    fps = video_fps(src) if is_video(src) else (fps or 30.0)
-    total = video_frame_count(src) if is_video(src) else len(files)  # the bar's total (unreadable frames aside)
-    name = src.stem if is_video(src) else src.resolve().name
+    out_dir = check_output_dir(out, inputs=clip.files or [src])
+    names, fmt = clip.names, clip.fmt
+    frames = (to_restorer(frame, fmt) for frame in clip.frames)
+    fps = clip.fps or fps or 30.0
+    total = clip.total  # the bar's total (unreadable frames aside)
+    name = clip.name
     mp4 = out_dir / output_name(name, "restored", "mp4")
     compare = o.compare
     side = out_dir / output_name(name, "compare", "mp4") if compare else None
@@ -78,8 +87,10 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
     if compare:
         frames = _kept(frames, inputs)
     pick, last = (total or 0) // 2, None  # NAME_compare.png: the middle frame (the last one, if fewer were read)
+    pixels = "" if fmt == RGB8 else f", {fmt.describe()} frames written as such (mp4: 8-bit RGB)"
     print(
-        f"restoring {src} over windows of {temporal} frames, fusion: {fusion}, deblur: {deblur_name}", file=sys.stderr
+        f"restoring {src} over windows of {temporal} frames, fusion: {fusion}, deblur: {deblur_name}{pixels}",
+        file=sys.stderr,
     )
     count = 0
     with no_empty_out(out_dir), contextlib.ExitStack() as stack:
@@ -90,15 +101,17 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
         for frame in tqdm(restorer.restore(frames), desc=src.name, unit="frame", total=total or None):
             stem = names[frame.index]
             restored = SharedUint8(frame.restored)  # converted once, for the PNG and the mp4
-            writer.submit(write_image, out_dir / output_name(stem, "restored", "png"), restored, png_level)
+            stored = restored if fmt == RGB8 else to_stored(frame.restored, fmt)  # 16 bits, grey: as the input
+            writer.submit(write_image, out_dir / output_name(stem, "restored", "png"), stored, png_level)
             if compare:
-                before = inputs.pop(frame.index)
+                before = _panel(inputs.pop(frame.index))
                 if frame.index <= pick:
-                    last = (before, frame.restored)
+                    last = (before, _panel(frame.restored))
                 if side_video is not None:
-                    side_video.write(side_by_side([before, frame.restored]))
+                    side_video.write(side_by_side([before, _panel(frame.restored)]))
             if o.save_intermediate:
-                writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), frame.fused, png_level)
+                fused = frame.fused if fmt == RGB8 else to_stored(frame.fused, fmt)
+                writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), fused, png_level)
             if o.save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
                 fwd = invert_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
                 writer.submit(write_npy, out_dir / "fwd_flow_px" / f"{frame.index:06d}.npy", fwd)
@@ -116,7 +129,13 @@ def restore_clip_files(src, out, temporal: int, options: ClipOptions | None = No
                 file=sys.stderr,
             )
     if count:  # a run that restored nothing leaves no folder (no_empty_out), so no restore.json either
-        settings = {"temporal": temporal, "passes": passes, "preset": preset, "fusion": fusion}
+        settings = {
+            "temporal": temporal,
+            "passes": passes,
+            "preset": preset,
+            "fusion": fusion,
+            "pixels": fmt.describe(),
+        }
         write_json(out_dir / "restore.json", {"input": str(src), "frames": count, **settings, "deblur": record})
     print(f"restored {count} frame(s) of {src.name} into {out_dir}" + (f" ({mp4.name})" if mp4 else ""))
     if compare:

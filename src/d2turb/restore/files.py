@@ -15,6 +15,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from d2turb.defaults import DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX
@@ -29,6 +30,8 @@ from d2turb.io import (
     write_image,
     write_npy,
 )
+from d2turb.io.fits import is_fits, read_fits_image
+from d2turb.io.formats import RGB8, PixelFormat, array_format, image_format, read_stored, to_restorer, to_stored
 from d2turb.io.jobs import JobOptions  # the options of every file job
 from d2turb.restore.compare import output_name, side_by_side
 from d2turb.restore.single import Restorer
@@ -48,12 +51,33 @@ def split_inputs(inputs: list) -> tuple[list[Path], list[Path]]:
     return images, videos
 
 
-def _save(out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int) -> None:
-    write_image(out_dir / output_name(stem, "restored", "png"), details["restored"], png_level)
+def read_input(path: Path) -> tuple:
+    """An input image as the model restores it, (3,H,W) float32 in [0,1], and the :class:`PixelFormat` its outputs
+    are written in (16-bit and grey inputs give 16-bit and grey outputs; a FITS file: its image)."""
+    if path.suffix.lower() == ".ser":
+        raise D2TurbError(f"{path}: a SER video is restored as a clip: give --temporal N")
+    if is_fits(path):
+        arr = read_fits_image(path)
+    else:
+        fmt = image_format(path)
+        if fmt is None or fmt == RGB8:
+            return read_image(path), RGB8
+        arr = read_stored(path)
+    rgb = to_restorer(arr, PixelFormat(3, 16))  # float32 (H,W,3)
+    return torch.from_numpy(rgb.transpose(2, 0, 1).copy()), array_format(arr)
+
+
+def _save(
+    out_dir: Path, stem: str, details: dict, save_flow: bool, save_intermediate: bool, png_level: int, fmt=RGB8
+) -> None:
+    def stored(image):
+        return image if fmt == RGB8 else to_stored(image, fmt)
+
+    write_image(out_dir / output_name(stem, "restored", "png"), stored(details["restored"]), png_level)
     if save_flow:
         write_npy(out_dir / output_name(stem, "bwd_flow_px", "npy"), details["bwd_flow_px"].numpy().astype(np.float32))
     if save_intermediate:
-        write_image(out_dir / output_name(stem, "deblurred", "png"), details["deblurred"], png_level)
+        write_image(out_dir / output_name(stem, "deblurred", "png"), stored(details["deblurred"]), png_level)
 
 
 def save_compare(out_dir: Path, name: str, before, after, png_level: int) -> None:
@@ -127,13 +151,13 @@ def restore_files(inputs: list, out, weights=None, options: RestoreOptions | Non
     count = 0
 
     def restored(path: Path) -> tuple:
-        image = read_image(path)
+        image, fmt = read_input(path)
         job.before_compute()
-        return image, restorer.restore_with_details(image)
+        return image, restorer.restore_with_details(image), fmt
 
     with no_empty_out(out_dir), job:
-        for path, (image, details) in job.each(images, restored, named=True, desc="restore", unit="img"):
-            job.submit(_save, out_dir, path.stem, details, *saved)
+        for path, (image, details, fmt) in job.each(images, restored, named=True, desc="restore", unit="img"):
+            job.submit(_save, out_dir, path.stem, details, *saved, fmt)
             if compare:
                 job.submit(save_compare, out_dir, path.stem, image, details["restored"], png_level)
             count += 1
