@@ -95,3 +95,18 @@ def test_a_deblur_that_changes_the_shape_is_named_in_one_line():
         list(ClipRestorer(temporal=4, deblur=cropping).restore(_clip(5, n=5)))
     with pytest.raises(D2TurbError, match="deblur must be"):
         ClipRestorer(deblur="sharpen")
+
+
+@pytest.mark.parametrize("fusion", CLIP_FUSIONS)
+def test_a_grey_clip_stays_grey_and_matches_the_colour_path(fusion):
+    """A monochrome clip ((H,W,1) or (H,W) frames) comes out (1,H,W), and equal, to within a grey level, to each
+    channel of the same clip given as colour with R = G = B (the colour path registers on the same luma)."""
+    grey = [f.mean(axis=2).round().astype(np.uint8) for f in _clip(6, n=8, size=64)]
+    colour = [np.repeat(g[..., None], 3, axis=2) for g in grey]
+    deblur = PhysicsDeblur.for_fusion(2.0, 2.0, fusion)
+    mono = list(ClipRestorer(temporal=5, fusion=fusion, deblur=deblur).restore(grey))
+    rgb = list(ClipRestorer(temporal=5, fusion=fusion, deblur=deblur).restore(colour))
+    for m, c in zip(mono, rgb, strict=True):
+        assert m.restored.shape == (1, 64, 64) and c.restored.shape == (3, 64, 64)
+        for ch in range(3):
+            assert float((m.restored[0] - c.restored[ch]).abs().max()) <= 1 / 255 + 1e-6

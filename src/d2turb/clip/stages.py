@@ -107,8 +107,10 @@ def fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
     moving object). On frames of ≥ 1 MP the box average is taken at half resolution (the box and the dilation span
     15 px: the decision is smooth at that scale) and the robust scale from every 4th residual."""
     diff = cv2.absdiff(as_float(warped), fused)  # OpenCV: a quarter of numpy's time at 1080p
-    r = diff[..., 0] if diff.ndim == 2 or diff.shape[2] == 1 else cv2.transform(diff, _CHANNEL_MEAN[diff.shape[2]])
-    r = r.reshape(diff.shape[:2])
+    if diff.ndim == 2 or diff.shape[2] == 1:  # one channel (OpenCV drops a single channel's axis)
+        r = diff.reshape(diff.shape[:2])
+    else:
+        r = cv2.transform(diff, _CHANNEL_MEAN[diff.shape[2]]).reshape(diff.shape[:2])
     h, w = r.shape
     half = h * w >= 1 << 20
     box = _FALLBACK_BOX // 2 + 1 if half else _FALLBACK_BOX
