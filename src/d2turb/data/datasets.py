@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import Sample, bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
+from d2turb.data.layout import Sample, bin_index, file_path, load_flow, open_split, read_meta, record_entries
 from d2turb.data.sources import make_depth_fn, resize_up
 from d2turb.errors import D2TurbError
 from d2turb.io import expand_inputs, read_image
@@ -84,12 +84,7 @@ class PairDataset(Dataset):
         vflip: bool = False,
         skip_invalid: bool = False,
     ):
-        self.root = Path(root)
-        if split is not None and (self.root / split / "dataset.json").is_file():
-            self.root = self.root / split  # a parent folder holding train/ and test/
-        config = read_config(self.root)
-        if split is not None and config.get("split") != split:
-            raise D2TurbError(f"{self.root}: dataset split is {config.get('split')!r}, not {split!r}")
+        self.root, config = open_split(root, split)
         if int(config.get("frames", 1)) > 1:
             raise D2TurbError(f"{self.root}: holds sequences (make-dataset --frames); use d2turb.data.SequenceDataset")
         self.invalid: list[str] = []  # with skip_invalid: one message per meta line that is not a valid record
@@ -107,17 +102,14 @@ class PairDataset(Dataset):
         skips bad samples, as evaluate does, skips it)."""
         rec = self.records[index]
         sid = rec["id"]
-        flow = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid)))
+        bwd_flow_px = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid)))
         sample = Sample(
             {
                 "turb": read_image(file_path(self.root, "turb", sid)),
                 "tilt": read_image(file_path(self.root, "tilt", sid)),
                 "gt": read_image(file_path(self.root, "gt", sid)),
-                "bwd_flow_px": flow,
-                "depth": read_depth_png(file_path(self.root, "depth", sid)),
-                "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
-                "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
-                "id": sid,
+                "bwd_flow_px": bwd_flow_px,
+                **record_entries(self.root, rec),
             }
         )
         h, w = sample["gt"].shape[-2:]

@@ -201,6 +201,30 @@ def read_config(root: Path) -> dict:
         raise D2TurbError(f"{path}: not a valid dataset config: {exc}") from exc
 
 
+def open_split(root, split: str | None) -> tuple[Path, dict]:
+    """The dataset folder (``root``, or ``root/<split>`` when that holds a dataset) and its checked ``dataset.json``;
+    a ``split`` the data was not made as is a ``D2TurbError``."""
+    root = Path(root)
+    if split is not None and (root / split / CONFIG_NAME).is_file():
+        root = root / split  # a parent folder holding train/ and test/
+    config = read_config(root)
+    if split is not None and config.get("split") != split:
+        raise D2TurbError(f"{root}: dataset split is {config.get('split')!r}, not {split!r}")
+    return root, config
+
+
+def record_entries(root: Path, rec: dict) -> dict:
+    """The entries of a sample besides its images and flow, as the datasets give them: depth (1, H, W) in [0, 1],
+    dr0 float32 scalar, bin int64 scalar (index into the bin names), id str."""
+    sid = rec["id"]
+    return {
+        "depth": read_depth_png(file_path(root, "depth", sid)),
+        "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
+        "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
+        "id": sid,
+    }
+
+
 def parse_meta_lines(data: bytes) -> list[dict]:
     """Complete, valid records of a meta file (:func:`check_record`); a trailing partial line (killed writer)
     and invalid lines are dropped (the generator's resume state: a dropped sample is made again)."""

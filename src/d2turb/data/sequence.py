@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from d2turb.data.layout import Sample, bin_index, file_path, load_flow, read_config, read_depth_png, read_meta
+from d2turb.data.layout import Sample, file_path, load_flow, open_split, read_meta, record_entries
 from d2turb.errors import D2TurbError
 from d2turb.io import read_image
 from d2turb.ops.splat import invert_flow
@@ -70,12 +70,7 @@ class SequenceDataset(Dataset):
     """
 
     def __init__(self, root: str | Path, split: str | None = None, frames: int | None = None):
-        self.root = Path(root)
-        if split is not None and (self.root / split / "dataset.json").is_file():
-            self.root = self.root / split
-        config = read_config(self.root)
-        if split is not None and config.get("split") != split:
-            raise D2TurbError(f"{self.root}: dataset split is {config.get('split')!r}, not {split!r}")
+        self.root, config = open_split(root, split)
         self.frames = int(config.get("frames", 1))
         if self.frames < 2:
             raise D2TurbError(f"{self.root}: not a sequence dataset (made without --frames); use PairDataset")
@@ -94,7 +89,7 @@ class SequenceDataset(Dataset):
         sid, n, p = rec["id"], self.frames, self.patch
         f0 = int(torch.randint(0, n - self.window + 1, ())) if self.window < n else 0
         sl = slice(f0, f0 + self.window)
-        flow = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid))[sl].astype(np.float32))
+        bwd_flow_px = torch.from_numpy(load_flow(file_path(self.root, "bwd_flow_px", sid))[sl].astype(np.float32))
         gt = read_image(file_path(self.root, "gt", sid))
         extra = {}
         if self.field:
@@ -106,11 +101,8 @@ class SequenceDataset(Dataset):
                 "turb": read_image(file_path(self.root, "turb", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
                 "tilt": read_image(file_path(self.root, "tilt", sid)).view(3, n, p, p).transpose(0, 1)[sl].contiguous(),
                 "gt": gt,
-                "bwd_flow_px": flow,
-                "depth": read_depth_png(file_path(self.root, "depth", sid)),
-                "dr0": torch.tensor(float(rec["dr0"]), dtype=torch.float32),
-                "bin": torch.tensor(bin_index(rec["bin"]), dtype=torch.int64),
-                "id": sid,
+                "bwd_flow_px": bwd_flow_px,
+                **record_entries(self.root, rec),
             }
         )
 

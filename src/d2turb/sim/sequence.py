@@ -22,7 +22,8 @@ c ← √(1−X)·c·e^{−iφ} + √X·c_new (AR(1) in the spectral coefficient
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -31,6 +32,9 @@ from d2turb.errors import D2TurbError
 from d2turb.ops.checks import check_shape
 from d2turb.sim.fields import PlaneWaveGrid
 from d2turb.sim.tilt import layer_tilt_radial_cdf, path_nodes
+
+if TYPE_CHECKING:  # the simulator's module imports this one
+    from d2turb.sim.simulator import SimResult
 
 # ring edges in cycles per unit s: sparse below 0.01 (25 % of the power, nearly uniform over an image),
 # dense where the structure visible in a frame lives
@@ -280,19 +284,38 @@ def simulate_sequence(
     dr0=None,
     generator: torch.Generator | None = None,
     n_layers: int = 12,
-):
-    """Iterator of per-frame :class:`~d2turb.sim.SimResult` (see ``Simulator.sequence``); arguments are
-    checked at once, frames are computed on demand."""
+) -> Iterator[SimResult]:
+    """Physically correlated frames: frozen-flow layers moved by the wind; also ``Simulator.sequence`` (the same
+    function, ``sim`` its simulator). Arguments are checked at once, frames are computed on demand.
+
+    Args:
+        sim: the :class:`~d2turb.sim.Simulator`.
+        image: (B, C, H, W) or (C, H, W) still scene, or an iterable of such frames (a moving input).
+        frames: number of frames (default: as many as the iterable gives).
+        fps: frames per second. wind: m/s, one value, several (from the aperture to the object,
+            interpolated) or a function of z/L. wind_dir: drift direction in degrees (0 = +x, 90 = +y).
+        boil: fraction of each layer's variance refreshed per frame (0 = pure frozen flow, 1 = independent).
+        depth: as for a single frame: a tensor for all frames, an iterable (one per frame), or a
+            function of the (C, H, W) frame returning its depth.
+        dr0, generator: as for a single frame; D/r0 is constant along the sequence.
+        n_layers: layers of the path (:class:`FrozenFlow`).
+    Returns:
+        an iterator of :class:`~d2turb.sim.SimResult`, one per frame, computed on demand (constant memory).
+    """
     check_sequence_args(frames, fps, wind_dir, boil)
     wind_speeds(wind, np.linspace(0, 1, 3))
     get_image, moving = _frames(image)
     get_depth, _ = _frames(depth)
     if not moving and frames is None:
         raise D2TurbError("frames is required for a still image")
-    return _run(sim, get_image, get_depth, frames, fps, wind, wind_dir, boil, dr0, generator, n_layers)
+
+    def new_fields(batch: int, height: int, width: int) -> FrozenFlow:
+        return FrozenFlow(sim, batch, height, width, fps, wind, wind_dir, boil, generator, n_layers=n_layers)
+
+    return _run(sim, get_image, get_depth, frames, dr0, generator, new_fields)
 
 
-def _run(sim, get_image, get_depth, frames, fps, wind, wind_dir, boil, dr0, generator, n_layers):
+def _run(sim, get_image, get_depth, frames, dr0, generator, new_fields):
     state = None
     t = 0
     while frames is None or t < frames:
@@ -309,7 +332,7 @@ def _run(sim, get_image, get_depth, frames, fps, wind, wind_dir, boil, dr0, gene
             img = img[None]
         if state is None:
             b, _, h, w = img.shape
-            state = FrozenFlow(sim, b, h, w, fps, wind, wind_dir, boil, generator, n_layers=n_layers)
+            state = new_fields(b, h, w)
         else:
             state.advance(generator)
         yield sim(img, depth=dep, dr0=dr0, generator=generator, fields=state)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -253,33 +252,9 @@ class Simulator:
             blur=blurred,
         )
 
-    def sequence(
-        self,
-        image,
-        frames: int | None = None,
-        fps: float = 30.0,
-        wind=1.0,
-        wind_dir: float = 0.0,
-        boil: float = 0.0,
-        depth=None,
-        dr0=None,
-        generator: torch.Generator | None = None,
-    ) -> Iterator[SimResult]:
-        """Physically correlated frames: frozen-flow layers moved by the wind (``d2turb.sim.sequence``).
-
-        Args:
-            image: (B, C, H, W) or (C, H, W) still scene, or an iterable of such frames (a moving input).
-            frames: number of frames (default: as many as the iterable gives).
-            fps: frames per second. wind: m/s, one value, several (from the aperture to the object,
-                interpolated) or a function of z/L. wind_dir: drift direction in degrees (0 = +x, 90 = +y).
-            boil: fraction of each layer's variance refreshed per frame (0 = pure frozen flow, 1 = independent).
-            depth: as for a single frame: a tensor for all frames, an iterable (one per frame), or a
-                function of the (C, H, W) frame returning its depth.
-            dr0, generator: as for a single frame; D/r0 is constant along the sequence.
-        Returns:
-            an iterator of :class:`SimResult`, one per frame, computed on demand (constant memory).
-        """
-        return simulate_sequence(self, image, frames, fps, wind, wind_dir, boil, depth, dr0, generator)
+    # sim.sequence(image, frames, fps, wind, wind_dir, boil, depth, dr0, generator): physically correlated frames,
+    # frozen-flow layers moved by the wind; one definition, d2turb.sim.sequence.simulate_sequence (self is its sim)
+    sequence = simulate_sequence
 
     def _check_depth(self, depth, b, h, w):
         if depth is None:
