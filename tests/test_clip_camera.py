@@ -162,3 +162,19 @@ def test_the_tone_guard_limits_overshoots_to_the_headroom_and_leaves_the_range_a
     assert out[0, 0, 9] == pytest.approx(0.05, abs=1e-6)
     assert out[0, 0, 2] == pytest.approx(0.9, abs=1e-6)
     assert out[0, 0, 7] == pytest.approx(0.4, abs=1e-6)
+
+
+def test_the_tone_guard_moves_no_pixel_into_the_shadows_or_highlights():
+    """However hard a deblur over- or undershoots, a pixel outside the bands within TONE_KNEE of black and white stays
+    outside them, and one inside moves no deeper: the near-black and near-white pixels after the guard are those of
+    the fused frame (a random frame with dark and bright regions, a deblur that amplifies its detail 4x)."""
+    from d2turb.clip.deblur import TONE_KNEE
+
+    rng = np.random.default_rng(3)
+    base = np.repeat(np.linspace(0.0, 1.0, 64, dtype=np.float32)[None, :], 48, axis=0)
+    fused = torch.from_numpy(np.clip(base + 0.05 * rng.standard_normal((3, 48, 64)), 0, 1).astype(np.float32))
+    mean = torch.nn.functional.avg_pool2d(fused[None], 5, 1, 2, count_include_pad=False)[0]
+    out = tone_guard(fused, (mean + 4 * (fused - mean)).clamp(-1, 2))
+    low, high = fused < TONE_KNEE, fused > 1 - TONE_KNEE
+    assert bool((out[~low] >= TONE_KNEE - 1e-6).all()) and bool((out[~high] <= 1 - TONE_KNEE + 1e-6).all())
+    assert bool((out[low] >= fused[low] - 1e-6).all()) and bool((out[high] <= fused[high] + 1e-6).all())

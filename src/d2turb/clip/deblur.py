@@ -30,7 +30,8 @@ PRIORS = {"gradient": BALANCE_AT_2, "laplacian": LAPLACIAN_BALANCE_AT_2}  # each
 TONE_WINDOW_PX = 5
 TONE_HEADROOM = 0.5
 # ... and within TONE_KNEE of black or white (the fused pixel's own value) the deblur's change fades linearly to none
-# there: deep shadows and highlights hold noise and clipping, not detail (the test3 clip's black area, issue 49)
+# there, and no pixel is moved into that band from outside it: deep shadows and highlights hold noise and clipping,
+# not detail (the test3 clip's black area, the airport clip's fuselage; issue 49)
 TONE_KNEE = 12 / 255
 
 
@@ -255,7 +256,9 @@ def tone_guard(
     ``[lo − headroom·lo, hi + headroom·(1 − hi)]``. Inside the local range nothing changes, so edges keep the
     steepness the deblur gave them; a dark region next to a bright one is not pushed to black, nor a bright one to
     white (the lunar clip's crushed shadows and bright rims, issue 49), while a halo's part within the headroom stays.
-    Within ``knee`` of black or white (the fused pixel's value) the change fades to none at black or white.
+    Within ``knee`` of black or white (the fused pixel's value) the change fades to none at black or white, and no
+    pixel is moved into those bands from outside, nor deeper into them: what is near-black or near-white after the
+    deblur was so before it (the real clips: shadows and highlights within 0.1 point of the input's, issue 49).
 
     Args:
         fused: the frame the deblur was given, float in [0, 1].
@@ -277,8 +280,11 @@ def tone_guard(
     src = np.ascontiguousarray(fused.detach().cpu().float().permute(1, 2, 0).numpy())
     lo = cv2.erode(src, kernel, borderType=cv2.BORDER_REPLICATE).reshape(src.shape)  # local min (a flat structuring
     hi = cv2.dilate(src, kernel, borderType=cv2.BORDER_REPLICATE).reshape(src.shape)  # element: separable in OpenCV)
-    floor = torch.from_numpy(lo * np.float32(1 - headroom)).permute(2, 0, 1)
-    ceiling = torch.from_numpy(hi + np.float32(headroom) * (1 - hi)).permute(2, 0, 1)
+    floor, ceiling = lo * np.float32(1 - headroom), hi + np.float32(headroom) * (1 - hi)
+    if knee > 0:  # not into the shadows' and highlights' bands, nor deeper into them
+        np.minimum(ceiling, np.maximum(src, np.float32(1 - knee)), out=ceiling)
+        np.maximum(floor, np.minimum(src, np.float32(knee)), out=floor)
+    floor, ceiling = torch.from_numpy(floor).permute(2, 0, 1), torch.from_numpy(ceiling).permute(2, 0, 1)
     out = deblurred.detach().cpu().float()
     out = torch.minimum(torch.maximum(out, floor), ceiling)
     if knee > 0:
