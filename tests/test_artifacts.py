@@ -167,3 +167,14 @@ def test_tail_and_noise_maps_find_their_regions():
     noise = artifacts.noise_map(noisy, reference=flat, share=1.0) - artifacts.noise_map(flat, share=1.0)
     y, x = artifacts.worst_window(noise, 64)
     assert abs(y - 128) <= 8 and abs(x - 64) <= 8
+
+
+def test_edge_sharpness_reads_a_frame_moved_as_a_whole_as_sharp_as_in_place():
+    """A restored frame of a shaken clip sits a few px off its input frame as a whole: read against that frame, it is
+    as sharp as the same frame in place (the edges found after the global move), and a blurred one still less sharp."""
+    img = _natural(256).astype(np.float32) / 255
+    moved = np.roll(img, (7, -9), axis=(0, 1))
+    here = artifacts.edge_sharpness(img, reference=img)
+    assert artifacts.edge_sharpness(moved, reference=img) == pytest.approx(here, rel=0.03)
+    blurred = np.roll(cv2.GaussianBlur(img, (0, 0), 1.5), (7, -9), axis=(0, 1))
+    assert artifacts.edge_sharpness(blurred, reference=img) < 0.8 * here

@@ -222,7 +222,10 @@ def _peak_gradient(y: np.ndarray) -> np.ndarray:
 
 def edge_sharpness(image, reference=None, share: float = EDGE_SHARE) -> float:
     """Edge sharpness: the mean over ``reference``'s strongest edges (:func:`strong_edges`) of ``image``'s largest
-    luma gradient within ``EDGE_REACH_PX`` px (so that an edge moved a pixel or two by turbulence is still found).
+    luma gradient within ``EDGE_REACH_PX`` px (so that an edge moved a pixel or two by turbulence is still found),
+    ``image`` first moved onto ``reference`` by their global translation rounded to whole pixels (a restored frame of
+    a shaken clip sits at its window's pose, up to ~10 px from the hand-shaken input frame's; a whole-pixel move
+    copies values, it blurs nothing), the edges the move uncovers left out.
     An ideal step of height A blurred by a Gaussian of σ px peaks at A / (σ √(2π)) per px: the figure falls as 1/σ.
 
     Args:
@@ -233,9 +236,22 @@ def edge_sharpness(image, reference=None, share: float = EDGE_SHARE) -> float:
         Mean peak gradient, luma (full range 1) per px; NaN when the reference has no edge.
     """
     mask = strong_edges(image if reference is None else reference, share)
+    y = luma(image)
+    if reference is not None:
+        r = luma(reference)
+        dx, dy = (round(v) for v in global_shift_px(_u8(r), _u8(y)))
+        b = max(abs(dx), abs(dy)) + EDGE_REACH_PX
+        if (dx or dy) and 2 * b < min(y.shape):  # y(x + (dx, dy)) ≈ reference(x); integer: an exact copy
+            m = np.float32([[1, 0, dx], [0, 1, dy]])
+            flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+            moved = cv2.warpAffine(y, m, y.shape[::-1], flags=flags, borderMode=cv2.BORDER_REPLICATE)
+            inner = (slice(b, -b), slice(b, -b))
+            if np.abs(moved - r)[inner].mean() < np.abs(y - r)[inner].mean():  # a true match, not a correlation's alias
+                y, mask = moved, mask.copy()
+                mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = False, False, False, False
     if not mask.any():
         return math.nan
-    return float(_peak_gradient(luma(image))[mask].mean())
+    return float(_peak_gradient(y)[mask].mean())
 
 
 def sharpness_loss_map(image, reference, share: float = EDGE_SHARE) -> np.ndarray:
