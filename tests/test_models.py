@@ -125,9 +125,9 @@ def test_forward_odd_size(case_id):
         assert out["bwd_flow_px"] is None and out["restored"] is out["deblurred"]
     else:
         assert out["bwd_flow_px"].shape == (2, 2, 67, 93)
-        for old in ("pixel_flow", "flow"):  # deprecated names: still read, warning
-            with pytest.warns(DeprecationWarning, match="bwd_flow_px"):
-                assert out[old] is out["bwd_flow_px"]
+        with pytest.warns(DeprecationWarning, match="bwd_flow_px"):  # the deprecated name: still read, warning
+            assert out["flow"] is out["bwd_flow_px"]
+        assert "pixel_flow" not in out  # the authors' name: an alias no more
         expected, inside = _bilinear_oracle(out["deblurred"], out["bwd_flow_px"])
         assert out["bwd_flow_px"].abs().amax() > 0.5 and inside.float().mean() > 0.1
         assert torch.allclose(out["restored"].double()[inside], expected[inside], atol=1e-5)
@@ -436,7 +436,7 @@ def test_whole_pipeline_runs_padded_to_32(size, mode):
 def test_model_output_one_key_per_tensor_old_names_warn_once():
     flow = torch.zeros(1, 2, 4, 4)
     out = model_output(torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4), flow)
-    assert set(out) == KEYS and len(dict(out)) == 4 and "flow" in out and "pixel_flow" in out and "other" not in out
+    assert set(out) == KEYS and len(dict(out)) == 4 and "flow" in out and "pixel_flow" not in out
     with pytest.warns(DeprecationWarning, match=r"model output\['flow'\] is deprecated"):
         assert out.get("flow") is flow
     with warnings.catch_warnings():

@@ -58,11 +58,11 @@ def _check_sample(
         except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
             problems.append(f"{sid}: {kind} does not decode ({exc.__class__.__name__})")
     try:
-        flow = np.load(file_path(root, "bwd_flow_px", sid), allow_pickle=False)
+        bwd_flow_px = np.load(file_path(root, "bwd_flow_px", sid), allow_pickle=False)
         shape = (2, patch, patch) if frames == 1 else (frames, 2, patch, patch)
-        if flow.shape != shape or flow.dtype != np.float16:
-            problems.append(f"{sid}: bwd_flow_px is {flow.dtype} {flow.shape}, expected float16 {shape}")
-        elif not np.isfinite(flow).all():
+        if bwd_flow_px.shape != shape or bwd_flow_px.dtype != np.float16:
+            problems.append(f"{sid}: bwd_flow_px is {bwd_flow_px.dtype} {bwd_flow_px.shape}, expected float16 {shape}")
+        elif not np.isfinite(bwd_flow_px).all():
             problems.append(f"{sid}: bwd_flow_px contains NaN or infinite values")
     except (OSError, ValueError, EOFError) as exc:
         problems.append(f"{sid}: bwd_flow_px does not load ({exc.__class__.__name__})")

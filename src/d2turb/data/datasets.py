@@ -28,8 +28,8 @@ def _with_flow(sample: dict, out: dict, change) -> dict:
     plain dict of an earlier version may hold it as ``flow``)."""
     stored = [k for k in FLOW_KEYS if dict.get(sample, k) is not None]
     if stored:
-        flow = change(dict.__getitem__(sample, stored[0]))
-        out.update({k: flow for k in stored})
+        bwd_flow_px = change(dict.__getitem__(sample, stored[0]))
+        out.update({k: bwd_flow_px for k in stored})
     return out
 
 
@@ -47,10 +47,10 @@ def flip_sample(sample: dict, horizontal: bool = True) -> dict:
         if key in out and out[key] is not None:
             out[key] = out[key].flip(dim)
 
-    def flip(flow):
-        flow = flow.flip(dim)
-        flow[..., comp, :, :] = -flow[..., comp, :, :]
-        return flow
+    def flip(bwd_flow_px):
+        bwd_flow_px = bwd_flow_px.flip(dim)
+        bwd_flow_px[..., comp, :, :] = -bwd_flow_px[..., comp, :, :]
+        return bwd_flow_px
 
     return _with_flow(sample, out, flip)
 
@@ -61,7 +61,7 @@ def crop_sample(sample: dict, y0: int, x0: int, size: int) -> dict:
     for key in ("turb", "tilt", "gt", "depth"):
         if key in out and out[key] is not None:
             out[key] = out[key][..., y0 : y0 + size, x0 : x0 + size]
-    return _with_flow(sample, out, lambda flow: flow[..., y0 : y0 + size, x0 : x0 + size])
+    return _with_flow(sample, out, lambda bwd_flow_px: bwd_flow_px[..., y0 : y0 + size, x0 : x0 + size])
 
 
 class PairDataset(Dataset):
@@ -252,13 +252,13 @@ class OnTheFlySynthesis:
         )
         with torch.no_grad():
             res = self.simulators[g](gt, depth=depth, dr0=dr0.to(self.device), generator=self.generator)
-            flow = invert_flow(res.fwd_flow_px)
+            bwd_flow_px = invert_flow(res.fwd_flow_px)
         return Sample(
             {
                 "turb": res.turb,
                 "tilt": res.tilt,
                 "gt": gt,
-                "bwd_flow_px": flow,
+                "bwd_flow_px": bwd_flow_px,
                 "depth": depth if depth is not None else torch.ones_like(gt[:, :1]),
                 "dr0": dr0.to(self.device),
                 "bin": torch.tensor([bin_index(dr0_bin(float(v))) for v in dr0], device=self.device),

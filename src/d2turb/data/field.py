@@ -333,12 +333,13 @@ def simulate_field_chunk(sim, scenes: list[dict], dr0: torch.Tensor, generator, 
 
     images = (frame_stack(t) for t in range(frames))
     depths = (torch.stack([d[t] for d in depth]).to(device) for t in range(frames)) if with_depth else None
-    turb, tilt, flow = [], [], []
+    turb, tilt, bwd_flow_px = [], [], []
     for res in sim.sequence(images, frames=frames, depth=depths, dr0=dr0, generator=generator, **settings):
         turb.append(res.turb.float().cpu())
         tilt.append(res.tilt.float().cpu())
-        flow.append(invert_flow(res.fwd_flow_px).float().cpu())
-    turb_t, tilt_t, flow_t = torch.stack(turb, 1), torch.stack(tilt, 1), torch.stack(flow, 1)  # (B, N, ...)
+        bwd_flow_px.append(invert_flow(res.fwd_flow_px).float().cpu())
+    turb_t, tilt_t = torch.stack(turb, 1), torch.stack(tilt, 1)  # (B, N, ...)
+    bwd_flow_px_t = torch.stack(bwd_flow_px, 1)
     out = []
     for b, scene in enumerate(scenes):
         cam, fps = scene["draw"]["camera"], float(settings.get("fps", 30.0))
@@ -351,7 +352,9 @@ def simulate_field_chunk(sim, scenes: list[dict], dr0: torch.Tensor, generator, 
         def strip(u8):
             return torch.from_numpy(np.ascontiguousarray(u8.reshape(-1, *u8.shape[2:]))).permute(2, 0, 1).float() / 255
 
-        out.append({"turb": strip(coded_u8), "tilt": strip(tilt_u8), "gt": strip(gt_u8), "bwd_flow_px": flow_t[b]})
+        out.append(
+            {"turb": strip(coded_u8), "tilt": strip(tilt_u8), "gt": strip(gt_u8), "bwd_flow_px": bwd_flow_px_t[b]}
+        )
     return out
 
 

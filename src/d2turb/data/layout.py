@@ -172,18 +172,19 @@ def check_record(rec) -> dict:
 
 
 def load_flow(path: Path) -> np.ndarray:
-    """A flow ``.npy`` of a dataset as float32 (no pickles); a file that does not load, or holds no finite float
-    array, is a ``D2TurbError`` naming it."""
+    """A dataset's backward flow ``.npy`` (``bwd_flow_px/<id>.npy``) as float32 (no pickles); a file that does not
+    load, or holds no finite float array, is a ``D2TurbError`` naming it."""
     try:
-        flow = np.load(path, allow_pickle=False)
+        bwd_flow_px = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
         raise D2TurbError(f"{path}: cannot read flow ({exc.__class__.__name__}: {exc})") from exc
-    if not isinstance(flow, np.ndarray) or flow.dtype.kind != "f":
-        raise D2TurbError(f"{path}: flow must be a float array, got {getattr(flow, 'dtype', type(flow).__name__)}")
-    flow = flow.astype(np.float32)
-    if not np.isfinite(flow).all():
+    if not isinstance(bwd_flow_px, np.ndarray) or bwd_flow_px.dtype.kind != "f":
+        got = getattr(bwd_flow_px, "dtype", type(bwd_flow_px).__name__)
+        raise D2TurbError(f"{path}: flow must be a float array, got {got}")
+    bwd_flow_px = bwd_flow_px.astype(np.float32)
+    if not np.isfinite(bwd_flow_px).all():
         raise D2TurbError(f"{path}: flow contains NaN or infinite values")
-    return flow
+    return bwd_flow_px
 
 
 def read_config(root: Path) -> dict:

@@ -48,14 +48,14 @@ def sequence_settings(frames: int, sequence: dict) -> dict:
 
 
 def simulate_sequence_chunk(sim, clean, depth, dr0, generator, frames: int, settings: dict):
-    """One chunk of sequence samples: (turb (B,3,N·H,W), tilt (B,3,N·H,W), flow (B,N,2,H,W)) on the CPU.
-    ``flow`` is the backward flow of each frame, as for pairs."""
-    turb, tilt, flow = [], [], []
+    """One chunk of sequence samples: (turb (B,3,N·H,W), tilt (B,3,N·H,W), bwd_flow_px (B,N,2,H,W)) on the CPU:
+    the backward flow of each frame, as for pairs."""
+    turb, tilt, bwd_flow_px = [], [], []
     for res in sim.sequence(clean, frames=frames, depth=depth, dr0=dr0, generator=generator, **settings):
         turb.append(res.turb.float().cpu())
         tilt.append(res.tilt.float().cpu())
-        flow.append(invert_flow(res.fwd_flow_px).float().cpu())
-    return torch.cat(turb, -2), torch.cat(tilt, -2), torch.stack(flow, 1)
+        bwd_flow_px.append(invert_flow(res.fwd_flow_px).float().cpu())
+    return torch.cat(turb, -2), torch.cat(tilt, -2), torch.stack(bwd_flow_px, 1)
 
 
 class SequenceDataset(Dataset):

@@ -57,12 +57,12 @@ def batches(items, batch: int):
     yield from pending.values()
 
 
-def _write_outputs(out: Path, name: str, turb, tilt, flow, meta: dict, png_level: int) -> None:
+def _write_outputs(out: Path, name: str, turb, tilt, fwd_flow_px, meta: dict, png_level: int) -> None:
     write_image(out / f"{name}_turb.png", turb, png_level)
     if tilt is not None:
         write_image(out / f"{name}_tilt.png", tilt, png_level)
-    if flow is not None:
-        write_npy(out / f"{name}_fwd_flow_px.npy", flow.numpy().astype("float32"))
+    if fwd_flow_px is not None:
+        write_npy(out / f"{name}_fwd_flow_px.npy", fwd_flow_px.numpy().astype("float32"))
     write_json(out / f"{name}_meta.json", meta)
 
 
@@ -142,7 +142,7 @@ def simulate_files(
             res = sim(images, depth=depths, dr0=dr0, generator=gen)
             turb = res.turb.float().cpu()
             tilt = res.tilt.float().cpu() if o.save_tilt else None
-            flow = res.fwd_flow_px.float().cpu() if o.save_flow else None
+            fwd_flow_px = res.fwd_flow_px.float().cpu() if o.save_flow else None
             modulation = res.modulation.flatten(1).mean(1).tolist()
             for b, (path, value, image, _) in enumerate(group):
                 meta = dict(
@@ -164,7 +164,7 @@ def simulate_files(
                     path.stem,
                     turb[b],
                     None if tilt is None else tilt[b],
-                    None if flow is None else flow[b],
+                    None if fwd_flow_px is None else fwd_flow_px[b],
                     meta,
                     o.png_level,
                 )

@@ -18,7 +18,7 @@ from d2turb.ops.warp import warp
 class D2Turb(nn.Module):
     """D²Turb. forward(image (B,3,H,W)) -> :class:`~d2turb.models.output.ModelOutput`: {"deblurred": Î_tilt,
     "restored": Î_clean, "bwd_flow_px": V̂ (B,2,H,W) in pixels, x then y, "guide": F_guide} (and the deprecated
-    names "flow", "pixel_flow" of V̂ still read, with a DeprecationWarning).
+    name "flow" of V̂ still read, with a DeprecationWarning).
 
     Defaults = the paper configuration, exactly the authors' model (31,823,767 parameters): ``restormer`` backbone
     (LayerNorm with bias, 26,126,644), the authors' rectifier (``rectifier="authors"``) and ASPI

@@ -2,8 +2,8 @@
 
 Flows are named by direction: ``bwd_flow_px`` is the backward flow V̂ of the tilt rectifier, in pixels, x then y:
 ``restored = warp(deblurred, bwd_flow_px)`` (Eq. 9), supervised by the datasets' ``bwd_flow_px`` (Eq. 12). One key per
-tensor: the deprecated names ``flow`` and ``pixel_flow`` (the authors' name) are not stored but still read, with a
-``DeprecationWarning`` once (:class:`ModelOutputDict`)."""
+tensor: the deprecated name ``flow`` is not stored but still read, with a ``DeprecationWarning`` once
+(:class:`ModelOutputDict`)."""
 
 from __future__ import annotations
 
@@ -32,9 +32,9 @@ class ModelOutput(_ModelOutputKeys, total=False):
 
 
 class ModelOutputDict(AliasDict):
-    """The dict a model returns: one key per tensor; the deprecated ``flow`` / ``pixel_flow`` read ``bwd_flow_px``."""
+    """The dict a model returns: one key per tensor; the deprecated ``flow`` reads ``bwd_flow_px``."""
 
-    aliases = {"flow": "bwd_flow_px", "pixel_flow": "bwd_flow_px"}
+    aliases = {"flow": "bwd_flow_px"}
     what = "model output"
 
 
@@ -44,7 +44,7 @@ def model_output(
     bwd_flow_px: torch.Tensor | None = None,
     guide: torch.Tensor | None = None,
 ) -> ModelOutput:
-    """A :class:`ModelOutput` (a :class:`ModelOutputDict`: ``flow`` / ``pixel_flow`` read ``bwd_flow_px``, warning).
+    """A :class:`ModelOutput` (a :class:`ModelOutputDict`: ``flow`` reads ``bwd_flow_px``, warning).
 
     Shape:
         deblurred, restored: (B, 3, H, W); bwd_flow_px: (B, 2, H, W) in px, x then y, or None; guide: (B, C, H, W).

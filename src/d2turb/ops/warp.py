@@ -38,8 +38,9 @@ def sample_at(
 def warp(image: torch.Tensor, flow: torch.Tensor, padding_mode: str = "border", mode: str = "bilinear") -> torch.Tensor:
     """Sample ``image`` at ``x + flow(x)``: out(x) = image(x + flow(x)).
 
-    image (B, C, H, W); flow (B, 2, H, W) in pixels, channel 0 = x, channel 1 = y.
-    Differentiable with respect to both image and flow.
+    image (B, C, H, W); flow (B, 2, H, W) in pixels, channel 0 = x, channel 1 = y, of either direction: a forward
+    flow applies the tilt (``tilt = warp(clean, fwd_flow_px)``), a backward flow undoes it
+    (``warp(tilt, bwd_flow_px) ≈ clean``). Differentiable with respect to both image and flow.
     """
     check_shape(image, "B C H W", "warp: image")
     check_shape(flow, "B 2 H W", "warp: flow")

@@ -209,7 +209,7 @@ class Simulator:
 
         unit = None if fields is None else fields.tilt(b, h, w)
         a_tilt = self.tilt_fields(b, h, w, dr0, generator, unit)  # (B, 2, H, W)
-        flow0 = a_tilt * self.px_per_a2  # Δ0 in pixels, x then y
+        fwd_flow0_px = a_tilt * self.px_per_a2  # Δ0 in pixels, x then y
 
         # exact PSFs on a coarse grid of nodes spanning the image corners
         gh, gw = max(2, math.ceil((h - 1) / p.psf_grid_px) + 1), max(2, math.ceil((w - 1) / p.psf_grid_px) + 1)
@@ -239,14 +239,14 @@ class Simulator:
 
         blurred_k = blur_with_basis(image, basis, wts)
         blurred = modulation * blurred_k + (1 - modulation) * image  # Eq. 4
-        flow = (modulation * flow0).to(image.dtype)  # Eq. 5
-        turb = warp(blurred, flow).clamp(0, 1)  # Eq. 6
-        tilt = warp(image, flow)  # Eq. 7
+        fwd_flow_px = (modulation * fwd_flow0_px).to(image.dtype)  # Eq. 5
+        turb = warp(blurred, fwd_flow_px).clamp(0, 1)  # Eq. 6
+        tilt = warp(image, fwd_flow_px)  # Eq. 7
         return SimResult(
             turb=turb,
             tilt=tilt,
             clean=image,
-            fwd_flow_px=flow,
+            fwd_flow_px=fwd_flow_px,
             modulation=modulation,
             dr0=dr0.float().to(self.device),
             blur=blurred,
