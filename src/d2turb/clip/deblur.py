@@ -276,19 +276,29 @@ def tone_guard(
     if fused.shape != deblurred.shape or fused.dim() != 3:
         raise D2TurbError(f"tone_guard needs two (C,H,W) frames of one shape, got {tuple(fused.shape)}, "
                           f"{tuple(deblurred.shape)}")  # fmt: skip
+    # per channel plane, in place in numpy (the same float32 operations as torch's, in its order: bit-identical; a third
+    # of the time at 1080p: no (C,H,W) <-> (H,W,C) copies, no temporaries of the whole frame)
     kernel = np.ones((window, window), np.uint8)
-    src = np.ascontiguousarray(fused.detach().cpu().float().permute(1, 2, 0).numpy())
-    lo = cv2.erode(src, kernel, borderType=cv2.BORDER_REPLICATE).reshape(src.shape)  # local min (a flat structuring
-    hi = cv2.dilate(src, kernel, borderType=cv2.BORDER_REPLICATE).reshape(src.shape)  # element: separable in OpenCV)
-    floor, ceiling = lo * np.float32(1 - headroom), hi + np.float32(headroom) * (1 - hi)
-    if knee > 0:  # not into the shadows' and highlights' bands, nor deeper into them
-        np.minimum(ceiling, np.maximum(src, np.float32(1 - knee)), out=ceiling)
-        np.maximum(floor, np.minimum(src, np.float32(knee)), out=floor)
-    floor, ceiling = torch.from_numpy(floor).permute(2, 0, 1), torch.from_numpy(ceiling).permute(2, 0, 1)
-    out = deblurred.detach().cpu().float()
-    out = torch.minimum(torch.maximum(out, floor), ceiling)
-    if knee > 0:
-        f = fused.detach().cpu().float()
-        weight = (torch.minimum(f, 1 - f) / knee).clamp(0, 1)
-        out = f + (out - f) * weight
-    return out.clamp(0, 1)
+    f = np.ascontiguousarray(fused.detach().cpu().float().numpy())
+    out = np.array(deblurred.detach().cpu().float().numpy(), dtype=np.float32, order="C", copy=True)
+    for fc, oc in zip(f, out):
+        lo = cv2.erode(fc, kernel, borderType=cv2.BORDER_REPLICATE)  # local min (a flat structuring element:
+        hi = cv2.dilate(fc, kernel, borderType=cv2.BORDER_REPLICATE)  # separable in OpenCV)
+        floor = lo * np.float32(1 - headroom)
+        ceiling = 1 - hi
+        ceiling *= np.float32(headroom)
+        ceiling += hi
+        if knee > 0:  # not into the shadows' and highlights' bands, nor deeper into them
+            np.minimum(ceiling, np.maximum(fc, np.float32(1 - knee)), out=ceiling)
+            np.maximum(floor, np.minimum(fc, np.float32(knee)), out=floor)
+        np.maximum(oc, floor, out=oc)
+        np.minimum(oc, ceiling, out=oc)
+        if knee > 0:  # fused + (out − fused)·weight
+            weight = np.minimum(fc, 1 - fc)
+            weight /= np.float32(knee)
+            np.clip(weight, 0, 1, out=weight)
+            oc -= fc
+            oc *= weight
+            oc += fc
+        np.clip(oc, 0, 1, out=oc)
+    return torch.from_numpy(out)
