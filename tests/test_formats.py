@@ -19,11 +19,6 @@ from d2turb.io.formats import PixelFormat, image_format, read_stored, to_restore
 from d2turb.io.ser import iter_ser, read_ser_header
 
 SRC = Path(__file__).resolve().parents[1] / "src"
-# the clip room handles (H,W,1) frames once clip/stages.py's fallback_share keeps a 2-D absdiff (cv2 drops the
-# single channel, and diff[..., 0] then takes column 0): issue 52, reported to the clip room's owner
-MONO_CLIP = pytest.mark.xfail(
-    reason="clip room: stages.fallback_share reshapes cv2.absdiff's (H,W) result of (H,W,1) frames", strict=False
-)
 
 
 def _scene(h=40, w=48, seed=0) -> np.ndarray:
@@ -184,7 +179,6 @@ def test_16_bit_grey_image_restored_by_a_model_stays_16_bit_grey(tmp_path):
     assert out.dtype == np.uint16 and np.array_equal(out, values)
 
 
-@MONO_CLIP
 def test_grey_clip_stays_grey_and_equals_the_grey_of_its_rgb_restoration(tmp_path):
     """A grey clip comes out grey (H,W), and as its RGB copy (grey in every channel) comes out: the restoration
     does the same to each channel (the oracle: the same clip as RGB)."""
@@ -219,7 +213,6 @@ def test_ser_rgb_clip_restores_into_named_frames_and_an_mp4(tmp_path):
     assert np.abs(imagecodecs.imread(out / "moon_000002_restored.png").astype(int) - scene).max() <= 1
 
 
-@MONO_CLIP
 def test_fits_cube_clip_restores_into_16_bit_grey_frames(tmp_path):
     fits = pytest.importorskip("astropy.io.fits")
     values = np.rint(_scene() * 65535).astype(np.uint16)

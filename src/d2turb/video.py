@@ -9,6 +9,10 @@ import collections
 import concurrent.futures
 import contextlib
 import os
+import re
+import signal
+import stat
+import threading
 from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
@@ -19,7 +23,7 @@ import torch
 from d2turb.errors import D2TurbError
 from d2turb.io import SharedUint8, atomic_path, to_uint8
 
-VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif"}
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif", ".y4m"}
 VIDEO_HINT = "install the video extra: pip install 'd2turb[video]' (from a checkout: pip install -e '.[video]')"
 DEFAULT_FPS = 30.0  # when a container does not say
 
@@ -89,6 +93,34 @@ def _pix_format(stream) -> tuple[int, int]:
     return (1 if name.startswith(_GREY_PIX_FMTS) else 3), (16 if depth > 8 else 8)
 
 
+_SIGINT = threading.Event()
+
+
+@contextlib.contextmanager
+def sigint_noted():
+    """Within: Ctrl-C (SIGINT) also sets a flag that :class:`VideoSource` checks after each frame and at the stream's
+    end. A SIGINT that came while PyAV waited for a pipe's data was lost (measured: the run went on to the end of the
+    stream and exited 0); the flag makes it stop at the next frame instead. Main thread only (elsewhere a no-op)."""
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous == signal.SIG_IGN:
+        yield
+        return
+
+    def noted(signum, frame):
+        _SIGINT.set()
+        if callable(previous):
+            previous(signum, frame)  # Python's default handler raises KeyboardInterrupt
+        raise KeyboardInterrupt
+
+    _SIGINT.clear()
+    signal.signal(signal.SIGINT, noted)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _SIGINT.clear()
+
+
 class VideoSource:
     """A video decoded by PyAV with its pixels as stored: (H,W) grey or (H,W,3) RGB, uint8, or uint16 where the
     stream holds more than 8 bits a sample. ``source``: a file, or anything FFmpeg opens (``-`` for standard input,
@@ -105,7 +137,9 @@ class VideoSource:
         except ImportError as exc:
             raise D2TurbError(f"{source}: reading video needs PyAV; {VIDEO_HINT}") from exc
         self.source = str(source)
-        target = "pipe:0" if self.source == "-" else self.source
+        target = "pipe:0" if self.source == "-" else self.source  # FFmpeg's pipe: frames as they come, not in blocks
+        if input_format is None and self.source.startswith("/dev/video"):
+            input_format = "video4linux2"
         try:
             self._container = av.open(target, "r", format=input_format, options=options or {})
             self._stream = self._container.streams.video[0]
@@ -124,15 +158,41 @@ class VideoSource:
         """The frames in order, decoded one at a time; a stream that stops decoding raises D2TurbError there."""
         try:
             for frame in self._container.decode(self._stream):
+                if _SIGINT.is_set():
+                    raise KeyboardInterrupt
                 yield frame.to_ndarray(format=self._format)
         except Exception as exc:  # noqa: BLE001 - any decoder failure ends the clip there, in one line
             raise D2TurbError(f"{self.source}: cannot read video ({_first_line(exc)})") from exc
         finally:
             self.close()
+        if _SIGINT.is_set():
+            raise KeyboardInterrupt
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self._container.close()
+
+
+def is_stream(source: str | os.PathLike) -> bool:
+    """True for what is read once, as it comes: ``-`` (standard input), a named pipe, a URL (``rtsp://``,
+    ``http://``, ``tcp://`` ...: anything FFmpeg opens) or a capture device (``/dev/video0``)."""
+    text = os.fspath(source)
+    if text == "-" or re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", text) is not None or text.startswith("/dev/video"):
+        return True
+    try:
+        return stat.S_ISFIFO(os.stat(text).st_mode)  # a named pipe another process writes into
+    except OSError:
+        return False
+
+
+def stream_name(source: str | os.PathLike) -> str:
+    """NAME of a stream's outputs: ``stdin`` for ``-``, else the last part of its path (``rtsp://cam/live`` →
+    ``live``, ``/dev/video0`` → ``video0``), ``stream`` when that is empty."""
+    text = os.fspath(source)
+    if text == "-":
+        return "stdin"
+    tail = re.sub(r"^[A-Za-z][A-Za-z0-9+.-]*://[^/]*", "", text).split("?")[0].rstrip("/").rsplit("/", 1)[-1]
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(tail).stem) or "stream"
 
 
 def video_size(path: str | os.PathLike) -> tuple[int, int, int]:
@@ -315,6 +375,45 @@ class Mp4Writer:
         else:
             self.abort()
         return False
+
+
+class Y4mWriter:
+    """Frames to a YUV4MPEG2 stream (``-``: standard output, for ``| ffplay -`` or ``| ffmpeg -i - ...``) as they
+    come: 8-bit RGB as yuv444p (BT.601, limited range: swscale's default), 16-bit RGB as yuv444p16, grey as mono or
+    mono16. Frames: (H,W) or (H,W,3) uint8 or uint16 arrays, of the ``channels`` and ``bits`` given."""
+
+    _OUT = {(1, 8): "gray", (1, 16): "gray16le", (3, 8): "yuv444p", (3, 16): "yuv444p16le"}
+    _IN = {(1, 8): "gray", (1, 16): "gray16le", (3, 8): "rgb24", (3, 16): "rgb48le"}
+
+    def __init__(self, target: str | os.PathLike, fps: float, channels: int = 3, bits: int = 8):
+        try:
+            import av
+        except ImportError as exc:
+            raise D2TurbError(f"writing y4m needs PyAV; {VIDEO_HINT}") from exc
+        self._av, self._key = av, (channels, bits)
+        name = "pipe:1" if os.fspath(target) == "-" else os.fspath(target)
+        self._container = av.open(name, "w", format="yuv4mpegpipe")
+        self._stream = self._container.add_stream("rawvideo", rate=Fraction(fps).limit_denominator(65535))
+        self._stream.pix_fmt = self._OUT[self._key]
+        self.frames = 0
+
+    def write(self, frame: np.ndarray) -> None:
+        arr = np.ascontiguousarray(frame)
+        if self.frames == 0:
+            self._stream.height, self._stream.width = arr.shape[:2]
+        video = self._av.VideoFrame.from_ndarray(arr, self._IN[self._key])
+        if self._IN[self._key] != self._OUT[self._key]:
+            video = video.reformat(format=self._OUT[self._key], threads=1)
+        video.pts = self.frames
+        for packet in self._stream.encode(video):
+            self._container.mux(packet)
+        self.frames += 1
+
+    def close(self) -> None:
+        with contextlib.suppress(BrokenPipeError):
+            for packet in self._stream.encode(None):
+                self._container.mux(packet)
+            self._container.close()
 
 
 VIDEO_CODECS = {"h264": "libx264", "h265": "libx265"}

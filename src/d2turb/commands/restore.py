@@ -30,7 +30,14 @@ def register(sub):
         "N frames, fusion, deblurring (docs/clips.md). Unreadable inputs are reported (one error line each) and "
         "skipped; the exit status is then 1.",
     )
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="image files, folders of images, or a video file")
+    p.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="INPUT",
+        help="image files (16-bit and grey kept: docs/cli.md), folders of images, a video file; with --temporal also "
+        "a SER video, a FITS cube, or a stream read as it comes: - (standard input, e.g. y4m), a URL "
+        "(rtsp://, http://, ...) or a capture device (/dev/video0)",
+    )
     p.add_argument(
         "--weights",
         default=None,
@@ -92,7 +99,19 @@ def register(sub):
         f"--deblur none, else {DEFAULT_FUSION} (its blur is the one the deblur models)",
     )
     clip.add_argument("--fps", type=float, default=None, help="frame rate of the mp4 of a folder clip (default 30)")
-    p.add_argument("--out", required=True, help="output folder")
+    clip.add_argument(
+        "--max-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="restore at most the clip's first N frames (a stream: stop after N); Ctrl-C stops a clip with the "
+        "frames so far written and the mp4 finalised",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder; with --temporal also - : the restored frames as a y4m stream on standard output",
+    )
     p.add_argument("--tile", type=int, default=DEFAULT_TILE_PX, help=f"tile size in pixels (default {DEFAULT_TILE_PX})")
     p.add_argument(
         "--overlap",
@@ -126,6 +145,10 @@ def register(sub):
 def run(args) -> int:
     if args.temporal is not None:
         return run_clips(args)
+    from d2turb.video import is_stream
+
+    if args.max_frames is not None or args.out == "-" or any(is_stream(i) for i in args.inputs):
+        raise D2TurbError("a stream (-, a URL, a device), --max-frames and --out - are for clips: give --temporal N")
     # lazy: see d2turb.commands
     from d2turb.restore.files import RestoreOptions, restore_files
 
@@ -149,4 +172,5 @@ def run_clips(args) -> int:
         n = len(args.inputs)
         raise D2TurbError(f"--temporal restores one clip per run (a video or a folder of frames), not {n}")
     params = _optics(args) if args.deblur in ("physics", "auto") else {}
-    return restore_clip_files(args.inputs[0], args.out, args.temporal, ClipOptions.from_args(args, params=params))
+    options = ClipOptions.from_args(args, params=params)
+    return restore_clip_files(args.inputs[0], args.out, args.temporal, options, max_frames=args.max_frames)

@@ -20,7 +20,7 @@ from d2turb.io import named_error as _named  # an input's error, naming it
 from d2turb.io.fits import is_fits, iter_fits
 from d2turb.io.formats import PixelFormat, array_format, image_format, read_stored, to_restorer
 from d2turb.io.ser import iter_ser, read_ser_header
-from d2turb.video import VideoSource, is_video
+from d2turb.video import VideoSource, is_stream, is_video, stream_name
 
 SER_SUFFIX = ".ser"
 
@@ -55,15 +55,21 @@ def _numbered(src_name: str, frames, names: list[str], errors, label) -> Iterato
 
 
 def open_clip(src, errors) -> Clip:
-    """Open the clip ``src`` (a path; see the module) for reading; ``errors.record`` gets each unreadable frame.
+    """Open the clip ``src`` for reading: a path (see the module), or a stream (``-``, a URL, a capture device:
+    :func:`~d2turb.video.is_stream`) decoded as it comes; ``errors.record`` gets each unreadable frame.
 
     Raises:
         D2TurbError: no such input, not a clip, an empty folder, a SER or FITS file that cannot be read.
     """
+    names: list[str] = []
+    if is_stream(src):  # read once, as it comes
+        video = VideoSource(src)
+        name = stream_name(src)
+        frames = _numbered(name, video, names, errors, src)
+        return Clip(name, PixelFormat(video.channels, video.bits), frames, names, video.fps, video.frames or None)
     src = Path(src)
     if not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
-    names: list[str] = []
     if src.is_file() and src.suffix.lower() == SER_SUFFIX:
         header = read_ser_header(src)
         fmt = PixelFormat(header.channels, 8 if header.depth <= 8 else 16)
