@@ -222,3 +222,28 @@ def test_fits_cube_clip_restores_into_16_bit_grey_frames(tmp_path):
     out = imagecodecs.imread(tmp_path / "out" / "sun_000002_restored.png")
     assert out.dtype == np.uint16 and out.shape == values.shape
     assert np.abs(out.astype(int) - values).mean() < 16 and len(np.unique(out % 257)) > 200  # see the RGB clip
+
+
+@pytest.mark.parametrize(("pix_fmt", "dtype"), [("gray16le", np.uint16), ("gray", np.uint8)])
+def test_grey_and_16_bit_video_frames_keep_their_samples(tmp_path, pix_fmt, dtype):
+    """A lossless grey video (FFV1, written by PyAV) decodes to (H,W) frames of its own depth, every sample kept."""
+    av = pytest.importorskip("av")
+    from d2turb.video import VideoSource
+
+    top = np.iinfo(dtype).max
+    frames = [np.rint(_scene(seed=s) * top).astype(dtype) for s in range(3)]
+    with av.open(str(tmp_path / "g.mkv"), "w") as container:
+        stream = container.add_stream("ffv1", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 48, 40, pix_fmt
+        for i, frame in enumerate(frames):
+            video = av.VideoFrame.from_ndarray(frame, pix_fmt)
+            video.pts = i
+            for packet in stream.encode(video):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
+    source = VideoSource(tmp_path / "g.mkv")
+    assert (source.channels, source.bits) == (1, 16 if dtype == np.uint16 else 8)
+    got = list(source)
+    assert all(g.dtype == dtype and g.shape == (40, 48) for g in got)
+    assert all(np.array_equal(g, f) for g, f in zip(got, frames))
