@@ -145,7 +145,7 @@ def register(sub):
 def run(args) -> int:
     if args.temporal is not None:
         return run_clips(args)
-    from d2turb.video import is_stream
+    from d2turb.video import is_stream  # lazy: see d2turb.commands
 
     if args.max_frames is not None or args.out == "-" or any(is_stream(i) for i in args.inputs):
         raise D2TurbError("a stream (-, a URL, a device), --max-frames and --out - are for clips: give --temporal N")
