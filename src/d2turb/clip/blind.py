@@ -97,6 +97,7 @@ class BlindDeblur:
         self.shape, self.shrink, self.prior = shape, float(shrink), fusion_prior(fusion)
         self.net = load_blur_net(weights) if shape == "learned" and weights is not None else None  # None: shipped
         self.bwd_flow_px = None  # a registered frame's flow of the first window (observe), read by the learned shape
+        self.moving = None  # ... and its moving-object share (the flow there is the objects' own)
         self.deblur = None
         self.record: dict | None = None
         self.note = ""
@@ -105,7 +106,7 @@ class BlindDeblur:
         """Called by ``ClipRestorer`` with each output :class:`ClipFrame` before its deblur: keeps the first frame's
         registered flow (the learned estimate reads its spread)."""
         if self.bwd_flow_px is None:
-            self.bwd_flow_px = frame.bwd_flow_px
+            self.bwd_flow_px, self.moving = frame.bwd_flow_px, frame.fallback
 
     def decide(self, fused: torch.Tensor) -> None:
         est = estimate_blur(fused)
@@ -167,14 +168,14 @@ class BlindDeblur:
         if est.tiles < MIN_TILES:  # too few strong edges: nothing shows the blur, the texture may be noise
             self._no_deblur(rec, f"no deblurring: the blur estimate is not reliable ({est.reason})")
             return
-        if self.bwd_flow_px is not None:  # tilt_spread: ln(rms about the frame's mean + 0.05 px), the network's input
-            rms = math.exp(tilt_spread(self.bwd_flow_px)) - TILT_SPREAD_FLOOR_PX
+        if self.bwd_flow_px is not None:  # tilt_spread: ln(rms about its rigid motion + 0.05 px), the network's input
+            rms = math.exp(tilt_spread(self.bwd_flow_px, self.moving)) - TILT_SPREAD_FLOOR_PX
             rec["tilt_rms_px"] = rms
             if rms < STILL_TILT_RMS_PX:
                 rec["reason"] = f"the frames hardly move ({rms:.2f} px rms): no turbulence, nothing to deblur"
                 self.record = rec
                 return
-        b = estimate_blur_params(fused, self.bwd_flow_px, self.net)
+        b = estimate_blur_params(fused, self.bwd_flow_px, self.net, self.moving)
         rec["learned"] = b.as_dict()
         rec["source"] = "estimated from the fused frame and the registered motion (learned, clip.blur_net)"
         mtf = b.modulation * float(turbulence_otf(torch.tensor([0.25 * b.lambda_over_d_px]), b.dr0)) + 1 - b.modulation
