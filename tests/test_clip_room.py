@@ -110,3 +110,58 @@ def test_a_grey_clip_stays_grey_and_matches_the_colour_path(fusion):
         assert m.restored.shape == (1, 64, 64) and c.restored.shape == (3, 64, 64)
         for ch in range(3):
             assert float((m.restored[0] - c.restored[ch]).abs().max()) <= 1 / 255 + 1e-6
+
+
+def test_the_tilt_spread_leaves_out_the_camera_roll_and_moving_objects():
+    """A known field: a smooth random tilt of known rms, plus a camera roll of 0.5° and a shift (rigid), plus a patch
+    moving 9 px (its fallback share 1): the spread read is the tilt's own rms (a 2 % tolerance: the rigid fit also
+    takes the tilt's own small rotation); without the roll and the patch it is the rms about the mean, as trained."""
+    import math
+
+    import cv2
+
+    from d2turb.clip.blur_net import TILT_SPREAD_FLOOR_PX, tilt_spread
+
+    rng = np.random.default_rng(7)
+    h, w = 192, 256
+    tilt = np.stack([cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 12) for _ in range(2)])
+    tilt -= tilt.mean((1, 2), keepdims=True)
+    tilt *= 1.2 / np.sqrt((tilt**2).sum(0).mean())  # 1.2 px rms
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    theta = math.radians(0.5)
+    rigid = np.stack([3.0 - theta * (y - (h - 1) / 2), -2.0 + theta * (x - (w - 1) / 2)])
+    moving = np.zeros((h, w), np.float32)
+    moving[40:80, 60:120] = 1
+    flow = tilt + rigid + 9 * moving[None]
+
+    def read(f, m=None):
+        return math.exp(tilt_spread(f, m)) - TILT_SPREAD_FLOOR_PX
+
+    assert read(flow, moving) == pytest.approx(1.2, rel=0.02)
+    assert read(tilt) == pytest.approx(float(np.sqrt((tilt**2).sum(0).mean())), rel=0.02)
+    assert read(flow) > 1.5  # the roll and the patch, left in, inflate it
+
+
+def test_the_frame_standing_in_for_the_fusion_is_not_deblurred():
+    """Where the single frame stands in for the fusion (a square crossing the scene: fallback share 1) the output is
+    the fused frame itself; where the fusion is used (share 0) it is the deblur's; in between, their blend."""
+    rng = np.random.default_rng(9)
+    base = np.clip(0.5 + 0.1 * rng.standard_normal((64, 96, 3)), 0, 1).astype(np.float32)
+    frames = []
+    for i in range(8):
+        f = base.copy()
+        f[20:40, 8 + 10 * i : 28 + 10 * i] = [0.9, 0.1, 0.1]
+        frames.append(f)
+
+    def halve(fused):  # a "deblur" that changes every pixel
+        return fused * 0.5
+
+    outs = list(ClipRestorer(temporal=8, deblur=halve, tone_guard=False, stabilise=False).restore(frames))
+    for o in outs:
+        share = o.fallback[None]
+        assert float(share.max()) > 0.99 and float(share.min()) == 0.0  # the square is found, the rest is fused
+        expected = o.fused * 0.5 + (o.fused - o.fused * 0.5) * share
+        assert torch.allclose(o.restored, expected, atol=1e-6)
+        moving, still = share[0] > 0.99, share[0] == 0
+        assert torch.allclose(o.restored[:, moving], o.fused[:, moving], atol=0.005)
+        assert torch.equal(o.restored[:, still], o.fused[:, still] * 0.5)

@@ -139,11 +139,27 @@ class ClipRestorer:
             yield submit(lambda frame=frame: self._deblurred(frame))
 
     def _deblurred(self, frame: ClipFrame) -> ClipFrame:
-        """The frame with its deblurred fusion, the deblur's over- and undershoots limited by the tones left
-        (``tone_guard``)."""
-        out = check_deblur(self.deblur, frame.fused)
-        frame.restored = tone_guard(frame.fused, out) if self.tone_guard and out is not frame.fused else out
+        frame.restored = deblurred(self.deblur, frame, self.tone_guard)
         return frame
+
+
+def deblurred(deblur: ClipDeblur, frame: ClipFrame, guard: bool = True) -> torch.Tensor:
+    """The deblur stage of the clip room, for one fused frame (``ClipRestorer`` and ``evaluate --clips`` both run it):
+    ``deblur(frame.fused)`` checked at the boundary, its over- and undershoots limited by the tones left
+    (``tone_guard``, with ``guard``), and not applied where the frame itself stands in for the fusion
+    (``frame.fallback``: moving objects, uncovered borders): a single frame's codec blocks and noise are what a deblur
+    sharpens (dost_street_clip's crossing car left blotches and block outlines on the road). A deblur's ``observe``
+    is the caller's to call first.
+
+    Shape:
+        frame.fused: (C, H, W); frame.fallback: (H, W); output: (C, H, W) float32.
+    """
+    out = check_deblur(deblur, frame.fused)
+    if guard and out is not frame.fused:
+        out = tone_guard(frame.fused, out)
+    if out is not frame.fused and bool(frame.fallback.any()):
+        out = out + (frame.fused - out) * frame.fallback
+    return out
 
 
 def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:
@@ -153,6 +169,7 @@ def restore_clip(frames: Iterable, **kwargs) -> Iterator[ClipFrame]:
 
 __all__ = [
     "ClipRestorer",
+    "deblurred",
     "ClipFrame",
     "FUSIONS",
     "restore_clip",

@@ -24,6 +24,7 @@ from skimage.registration import phase_cross_correlation
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.pipeline import deblurred
 from d2turb.data.sequence import SequenceDataset
 from d2turb.defaults import DEFAULT_FUSION, MEASURED_TEMPORAL
 from d2turb.errors import D2TurbError
@@ -130,7 +131,7 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
         for name, fn in deblurs.items():
             if hasattr(fn, "observe"):  # as ClipRestorer does for its own deblur (the blind one reads the flow)
                 fn.observe(o)
-            images[f"fused + {name}"] = fn(o.fused)
+            images[f"fused + {name}"] = deblurred(fn, o)  # the restorer's deblur stage: tone guard, fallback kept
         for row, img in images.items():
             img = img.clamp(0, 1)
             moved, ref, _ = remove_global_offset(img, gt)
