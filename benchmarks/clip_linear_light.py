@@ -21,6 +21,7 @@ fused frame it is given, frame 0, after ``observe`` of frame 0's registered flow
          of 12/255 linear (0.24 encoded)
     b4   b2 with ``tone_guard_srgb_bands``: the guard's range and headroom in linear light, its near-black and
          near-white bands (12/255) on the encoded values, as today's
+    b5   b4 with the blind decision on the sRGB frame (as a's), its filter and b4's guard in linear light
     b1   the blind decision on the sRGB frame (as a), its chosen filter applied in linear light, tone guard in sRGB
     c    the whole clip in linear light: registration, mean fusion, BlindDeblur and tone guard on linear frames,
          the output encoded
@@ -303,6 +304,16 @@ def _linear_b4(deblur, fused: torch.Tensor) -> torch.Tensor:
     return fused if out is lin else encode(tone_guard_srgb_bands(lin, out))
 
 
+def _decided_srgb_b5(deblur: BlindDeblur, fused: torch.Tensor) -> torch.Tensor:
+    """b5: the blind decision on the sRGB frame (as a's), its filter and b4's guard in linear light."""
+    if deblur.record is None:
+        deblur.decide(fused)
+    if deblur.deblur is None:
+        return fused
+    lin = decode(fused)
+    return encode(tone_guard_srgb_bands(lin, deblur.deblur(lin)))
+
+
 def _guard_d4(deblur, fused_linear: torch.Tensor) -> torch.Tensor:
     out = deblur(fused_linear)
     return encode(fused_linear if out is fused_linear else tone_guard_srgb_bands(fused_linear, out))
@@ -330,6 +341,7 @@ def variant_frames(c: dict, physics=None) -> tuple[dict[str, list[torch.Tensor]]
         "d3": _blind(hyb["flow0"]),
         "d4": _blind(hyb["flow0"]),
         "b4": _blind(s["flow0"]),
+        "b5": _blind(s["flow0"]),
         "b3": _blind(s["flow0"]),
     }
     out = {
@@ -343,6 +355,7 @@ def variant_frames(c: dict, physics=None) -> tuple[dict[str, list[torch.Tensor]]
         "b2": [guarded_in_linear(deb["b2"], f, linear_deblur=True) for f in fs],
         "b3": [guarded_in_linear(deb["b3"], f, linear_deblur=True, knee=KNEE_LINEAR_OF_SRGB) for f in fs],
         "b4": [_linear_b4(deb["b4"], f) for f in fs],
+        "b5": [_decided_srgb_b5(deb["b5"], f) for f in fs],
         "b1": [guarded(deb["b1"], f) for f in fs],
         "c": [encode(guarded(deb["c"], f)) for f in fl],
         "c0": [encode(guarded(deb["c0"], f, guard=False)) for f in fl],
@@ -446,6 +459,8 @@ PAIRS = (
     ("d4", "a"),
     ("b2", "b3"),
     ("b4", "b2"),
+    ("b5", "a"),
+    ("b5", "b4"),
     ("d4", "b4"),
     ("d", "a"),
     ("c", "a"),
