@@ -102,6 +102,8 @@ class BlindDeblur:
         self.record: dict | None = None
         self.note = ""
 
+    linear_light = True  # the clip room gives it the fused frame in linear light (clip.deblur.ClipDeblur)
+
     def observe(self, frame) -> None:
         """Called by ``ClipRestorer`` with each output :class:`ClipFrame` before its deblur: keeps the first frame's
         registered flow (the learned estimate reads its spread)."""

@@ -14,6 +14,7 @@ import torch
 from d2turb.clip.fusion import fusion_class
 from d2turb.defaults import NYQUIST_LAMBDA_OVER_D_PX
 from d2turb.errors import D2TurbError
+from d2turb.sim.camera import linear_to_srgb, srgb_to_linear
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
 from d2turb.sim.params import MAX_DR0
 
@@ -50,8 +51,9 @@ class ClipDeblur(Protocol):
     """What the clip room asks of a deblur: a call from a fused frame, (C,H,W) float32 in [0, 1], to its deblurred
     version of the same shape (:func:`check_deblur`). One with an ``observe(frame)`` method is first given each
     :class:`~d2turb.clip.frames.ClipFrame` (its flow and pose, before its deblur): the blind deblur
-    (:class:`~d2turb.clip.blind.BlindDeblur`) decides from them. :class:`PhysicsDeblur`, the blind deblur and a model's
-    ``restore`` are ones."""
+    (:class:`~d2turb.clip.blind.BlindDeblur`) decides from them. One with ``linear_light = True`` (a physical model of
+    the blur: :class:`PhysicsDeblur`, the blind deblur) is given the frame decoded to linear light
+    (:func:`deblur_in_linear_light`); a model's ``restore`` (trained on encoded values) the frame as it is."""
 
     def __call__(self, fused: torch.Tensor) -> torch.Tensor: ...
 
@@ -206,6 +208,8 @@ class PhysicsDeblur:
         self.boost_only, self.prior = bool(boost_only), _checked(prior)
         self._gain: dict[tuple[int, int], torch.Tensor] = {}  # per image size
 
+    linear_light = True  # the clip room deblurs with it in linear light (ClipDeblur)
+
     @classmethod
     def for_fusion(cls, dr0: float, lambda_over_d_px: float, fusion: str = "mean", **kwargs) -> PhysicsDeblur:
         """The physics deblur of a frame fused by ``fusion`` on a path of ``dr0``: the OTF at :func:`deblur_dr0`, the
@@ -250,6 +254,7 @@ def tone_guard(
     window: int = TONE_WINDOW_PX,
     headroom: float = TONE_HEADROOM,
     knee: float = TONE_KNEE,
+    encoded: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The deblurred frame with its over- and undershoots limited by the tones left: where it leaves the fused frame's
     local range [lo, hi] (min and max over a ``window`` square, per channel), it keeps its own value within
@@ -266,6 +271,8 @@ def tone_guard(
         window: side of the square (px) of the local range.
         headroom: share of the distance from the local range to black (or white) an overshoot may take.
         knee: tones this close to black or white have the deblur's change scaled by their distance / ``knee``.
+        encoded: for frames in linear light, the fused frame as displayed (sRGB-encoded): the knee's bands and fade
+            are then on those values (the edges of the bands decoded to linear light), as a viewer sees shadows.
 
     Returns:
         float32 (C, H, W) in [0, 1].
@@ -279,9 +286,13 @@ def tone_guard(
     # per channel plane, in place in numpy (the same float32 operations as torch's, in its order: bit-identical; a third
     # of the time at 1080p: no (C,H,W) <-> (H,W,C) copies, no temporaries of the whole frame)
     kernel = np.ones((window, window), np.uint8)
+    dark, bright = np.float32(knee), np.float32(1 - knee)  # the bands' edges, in the frames' values
+    if encoded is not None:
+        dark, bright = (np.float32(srgb_to_linear(torch.tensor(v, dtype=torch.float64))) for v in (knee, 1 - knee))
     f = np.ascontiguousarray(fused.detach().cpu().float().numpy())
+    shown = f if encoded is None else np.ascontiguousarray(encoded.detach().cpu().float().numpy())
     out = np.array(deblurred.detach().cpu().float().numpy(), dtype=np.float32, order="C", copy=True)
-    for fc, oc in zip(f, out):
+    for fc, oc, ec in zip(f, out, shown):
         lo = cv2.erode(fc, kernel, borderType=cv2.BORDER_REPLICATE)  # local min (a flat structuring element:
         hi = cv2.dilate(fc, kernel, borderType=cv2.BORDER_REPLICATE)  # separable in OpenCV)
         floor = lo * np.float32(1 - headroom)
@@ -289,12 +300,12 @@ def tone_guard(
         ceiling *= np.float32(headroom)
         ceiling += hi
         if knee > 0:  # not into the shadows' and highlights' bands, nor deeper into them
-            np.minimum(ceiling, np.maximum(fc, np.float32(1 - knee)), out=ceiling)
-            np.maximum(floor, np.minimum(fc, np.float32(knee)), out=floor)
+            np.minimum(ceiling, np.maximum(fc, bright), out=ceiling)
+            np.maximum(floor, np.minimum(fc, dark), out=floor)
         np.maximum(oc, floor, out=oc)
         np.minimum(oc, ceiling, out=oc)
         if knee > 0:  # fused + (out − fused)·weight
-            weight = np.minimum(fc, 1 - fc)
+            weight = np.minimum(ec, 1 - ec)
             weight /= np.float32(knee)
             np.clip(weight, 0, 1, out=weight)
             oc -= fc
@@ -302,3 +313,30 @@ def tone_guard(
             oc += fc
         np.clip(oc, 0, 1, out=oc)
     return torch.from_numpy(out)
+
+
+def deblur_in_linear_light(deblur, fused: torch.Tensor, guard: bool = True) -> torch.Tensor:
+    """``deblur`` of a fused frame whose values are sRGB-encoded (what cameras and files hold), run where light is
+    blurred, in linear light: decoded (IEC 61966-2-1), deblurred, the tone guard there with its bands where a viewer
+    sees them (``encoded``), encoded again. On the 24 field validation clips +0.36 ± 0.09 dB over the deblur of the
+    encoded values (+0.42 ± 0.06 in the moving objects' boxes), the near-black and near-white shares unchanged
+    (docs/clips_linear_light.md); fusing in linear light too lost. A deblur that decides on the frame first (the blind
+    deblur's ``decide``) decides on the encoded frame, as a viewer sees it (variant b5: +0.10 ± 0.05 dB over deciding
+    on the decoded one; +0.45 ± 0.09 over the encoded deblur on 24 clips).
+
+    Returns:
+        The restored frame, sRGB-encoded, or ``fused`` itself where the deblur returned its input (nothing done).
+
+    Shape:
+        fused: (C, H, W) in [0, 1]; output: the same.
+    """
+    decide = getattr(deblur, "decide", None)
+    if decide is not None and getattr(deblur, "record", None) is None:
+        decide(fused)
+    linear = srgb_to_linear(fused.clamp(0, 1))
+    out = check_deblur(deblur, linear)
+    if out is linear:
+        return fused
+    if guard:
+        out = tone_guard(linear, out, encoded=fused)
+    return linear_to_srgb(out).clamp(0, 1)

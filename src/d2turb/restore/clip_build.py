@@ -31,6 +31,7 @@ class ClipOptions(RestoreOptions):
         fusion: fusion of the registered frames; None: the sharpest with ``deblur="none"``, the mean before a deblur
             (:attr:`fusion_used`).
         fps: frame rate of a folder clip's mp4 (None: 30).
+        linear_light: deblur in linear light (:class:`~d2turb.clip.ClipRestorer`'s ``linear_light``).
     """
 
     deblur: str = "auto"
@@ -40,6 +41,7 @@ class ClipOptions(RestoreOptions):
     preset: str = "fast"
     fusion: str | None = None
     fps: float | None = None
+    linear_light: bool = False
 
     @property
     def fusion_used(self) -> str:
@@ -168,4 +170,5 @@ def clip_restorer(
         o.deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
     )
     deblur = "none" if deblur is None else deblur
-    return ClipRestorer(temporal=temporal, passes=o.passes, fusion=fusion, preset=o.preset, deblur=deblur), name, record
+    settings = {"passes": o.passes, "fusion": fusion, "preset": o.preset, "linear_light": o.linear_light}
+    return ClipRestorer(temporal=temporal, deblur=deblur, **settings), name, record
