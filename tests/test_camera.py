@@ -1,4 +1,4 @@
-"""The camera model of the field clips (d2turb.sim.camera, d2turb.video.encode_decode, d2turb.data.field's JPEG),
+"""The camera model of the field clips (d2turb.sim.camera, d2turb.video_codec.encode_decode, d2turb.data.field's JPEG),
 against independent oracles: IEC 61966-2-1 written from the standard and skimage's sRGB → XYZ, the Poisson–Gaussian
 variance formula, skimage's unsharp mask, and sane codec PSNRs."""
 
@@ -109,7 +109,7 @@ def _psnr(a, b):
 @pytest.mark.parametrize("codec", ["h264", "h265"])
 def test_video_codec_round_trip_psnr_is_sane(codec):
     pytest.importorskip("av")
-    from d2turb.video import encode_decode
+    from d2turb.video_codec import encode_decode
 
     clip = _natural_clip()
     low = encode_decode(clip, codec, int(0.1 * 128 * 128 * 30))
@@ -130,7 +130,7 @@ def test_jpeg_round_trip_psnr_is_sane():
 
 def test_video_codec_takes_small_and_odd_frames():
     pytest.importorskip("av")
-    from d2turb.video import encode_decode
+    from d2turb.video_codec import encode_decode
 
     rng = np.random.default_rng(4)
     for h, w in ((128, 128), (36, 36), (29, 31), (44, 36)):  # x265 corrupted the heap on 36² after 128², unpadded
@@ -142,7 +142,7 @@ def test_video_codec_takes_small_and_odd_frames():
 @pytest.mark.parametrize("codec", ["h264", "h265"])
 def test_video_codec_round_trip_is_repeatable(codec):
     pytest.importorskip("av")
-    from d2turb.video import encode_decode
+    from d2turb.video_codec import encode_decode
 
     clip = np.ascontiguousarray(_natural_clip(frames=16, size=198)[..., :190, :])  # sizes off the 16-px grid
     first = encode_decode(clip, codec, int(0.3 * 198 * 190 * 30))

@@ -45,7 +45,44 @@ def register(sub):
         "~/.cache/d2turb/weights and the package resources, or 'input' (identity baseline); default: the "
         "recommended shipped model (d2turb models lists it)",
     )
-    clip = p.add_argument_group("clips (--temporal)")
+    _add_clip_args(p.add_argument_group("clips (--temporal)"))
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder; with --temporal also - : the restored frames as a y4m stream on standard output",
+    )
+    p.add_argument("--tile", type=int, default=DEFAULT_TILE_PX, help=f"tile size in pixels (default {DEFAULT_TILE_PX})")
+    p.add_argument(
+        "--overlap",
+        type=int,
+        default=DEFAULT_OVERLAP_PX,
+        help=f"pixels shared by neighbouring tiles (default {DEFAULT_OVERLAP_PX})",
+    )
+    add_device_arg(p)
+    p.add_argument(
+        "--save-flow",
+        action="store_true",
+        help="also write NAME_bwd_flow_px.npy, float32 (2, H, W), x then y, px: the backward flow V̂, "
+        "warp(deblurred, V̂) ≈ restored (clips: fwd_flow_px/NNNNNN.npy, the forward displacement Δ of each frame "
+        "from the restored one, frame(x) ≈ restored(x + Δ(x)), as simulate-video --save-flow)",
+    )
+    p.add_argument("--save-intermediate", action="store_true", help="also write NAME_deblurred.png (Î_tilt)")
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="also write NAME_compare.png (input | restored, labelled; a clip's or video's middle frame) and for a "
+        "clip or video NAME_compare.mp4 (side by side, video extra)",
+    )
+    add_png_level_arg(p)
+    add_max_pixels_arg(p)
+    add_fail_fast_arg(p)
+    # clips: torch runs only the deblur's FFTs, beside OpenCV's and the writers' threads (a spinning team slows them)
+    wait_passively(p, when=lambda args: args.temporal is not None)
+    p.set_defaults(func=run)
+
+
+def _add_clip_args(clip) -> None:
+    """The options of ``restore --temporal N`` (a clip restored across frames)."""
     clip.add_argument(
         "--temporal",
         type=int,
@@ -114,39 +151,6 @@ def register(sub):
         help="restore at most the clip's first N frames (a stream: stop after N); Ctrl-C stops a clip with the "
         "frames so far written and the mp4 finalised",
     )
-    p.add_argument(
-        "--out",
-        required=True,
-        help="output folder; with --temporal also - : the restored frames as a y4m stream on standard output",
-    )
-    p.add_argument("--tile", type=int, default=DEFAULT_TILE_PX, help=f"tile size in pixels (default {DEFAULT_TILE_PX})")
-    p.add_argument(
-        "--overlap",
-        type=int,
-        default=DEFAULT_OVERLAP_PX,
-        help=f"pixels shared by neighbouring tiles (default {DEFAULT_OVERLAP_PX})",
-    )
-    add_device_arg(p)
-    p.add_argument(
-        "--save-flow",
-        action="store_true",
-        help="also write NAME_bwd_flow_px.npy, float32 (2, H, W), x then y, px: the backward flow V̂, "
-        "warp(deblurred, V̂) ≈ restored (clips: fwd_flow_px/NNNNNN.npy, the forward displacement Δ of each frame "
-        "from the restored one, frame(x) ≈ restored(x + Δ(x)), as simulate-video --save-flow)",
-    )
-    p.add_argument("--save-intermediate", action="store_true", help="also write NAME_deblurred.png (Î_tilt)")
-    p.add_argument(
-        "--compare",
-        action="store_true",
-        help="also write NAME_compare.png (input | restored, labelled; a clip's or video's middle frame) and for a "
-        "clip or video NAME_compare.mp4 (side by side, video extra)",
-    )
-    add_png_level_arg(p)
-    add_max_pixels_arg(p)
-    add_fail_fast_arg(p)
-    # clips: torch runs only the deblur's FFTs, beside OpenCV's and the writers' threads (a spinning team slows them)
-    wait_passively(p, when=lambda args: args.temporal is not None)
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:

@@ -294,7 +294,7 @@ def camera_pipeline(linear: torch.Tensor, cam: dict, noise_seed: int, fps: float
 def coded(frames_u8: np.ndarray, cam: dict, fps: float) -> np.ndarray:
     """The codec of ``cam`` (``jpeg`` at ``jpeg_quality``, ``h264``/``h265`` at ``bitrate_bps``) on (N, H, W, 3)
     uint8 frames."""
-    from d2turb.video import encode_decode  # PyAV is the video extra: needed only when a clip is encoded
+    from d2turb.video_codec import encode_decode  # PyAV is the video extra: needed only when a clip is encoded
 
     if cam["codec"] == "jpeg":
         return jpeg_round_trip(frames_u8, cam["jpeg_quality"])

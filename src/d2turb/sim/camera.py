@@ -4,7 +4,7 @@ Order of a camera (what ``make-dataset --profile field`` applies, d2turb.data.fi
 radiance → lens blur beyond diffraction (:func:`optics_blur`: defocus disk ⊗ Gaussian lens MTF) → exposure and
 sensor noise in linear light (:func:`poisson_gaussian_noise`) → highlight clipping at saturation → tone curve
 (:func:`linear_to_srgb`, IEC 61966-2-1) → in-camera sharpening (:func:`unsharp_mask`) on the encoded values →
-resize → codec (d2turb.video.encode_decode, JPEG).
+resize → codec (d2turb.video_codec.encode_decode, JPEG).
 """
 
 from __future__ import annotations
