@@ -167,7 +167,7 @@ def deblurred(deblur: ClipDeblur, frame: ClipFrame, guard: bool = True, linear_l
         if guard and out is not frame.fused:
             out = tone_guard(frame.fused, out)
     if out is not frame.fused and bool(frame.fallback.any()):
-        out = out + (frame.fused - out) * frame.fallback
+        out = torch.lerp(out, frame.fused, frame.fallback)  # out + share·(fused − out), in one pass
     return out
 
 

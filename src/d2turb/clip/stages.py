@@ -98,7 +98,8 @@ def finish(index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool,
     fused = np.clip(fused, 0, 1, out=fused)
     fused_t = torch.from_numpy(fused).permute(2, 0, 1)
     camera = None if pose is None else tuple(float(v) for v in pose.frame_shift)
-    return ClipFrame(index, fused_t, fused_t, bwd_flow_px, torch.from_numpy(blend), camera_px=camera)
+    share = torch.from_numpy(blend.astype(np.float32, copy=False))  # float64 where the pose's border ramp made it
+    return ClipFrame(index, fused_t, fused_t, bwd_flow_px, share, camera_px=camera)
 
 
 def fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
