@@ -94,7 +94,7 @@ def finish(index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool,
         step = np.subtract(image_of(raw[part]), fused[part])
         step *= blend[part, :, None]
         fused[part] += step
-    # (3,H,W) as a view of the (H,W,3) array; a deblur gets a contiguous copy (schedule.deblurred)
+    # (3,H,W) as a view of the (H,W,3) array; a deblur gets a contiguous copy (ClipRestorer._deblur_jobs)
     fused = np.clip(fused, 0, 1, out=fused)
     fused_t = torch.from_numpy(fused).permute(2, 0, 1)
     camera = None if pose is None else tuple(float(v) for v in pose.frame_shift)
