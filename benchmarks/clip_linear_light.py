@@ -46,8 +46,8 @@ scored frames (boxes: over every box of every scored frame); per bin the mean ov
 each variant's paired difference to ``a`` (mean ± standard error over the bin's clips), and the paired differences
 of ``PAIRS`` per bin and over all clips; the near-black / near-white shares of the real-clips report.
 
-    OMP_NUM_THREADS=1 nice -n 10 python benchmarks/clip_linear_light.py /work/scratch/field/val_field24 \\
-        --cache /work/scratch/E/cache24 --out benchmarks/results/clip_linear_light_val_field24.json
+    OMP_NUM_THREADS=1 nice -n 10 python benchmarks/clip_linear_light.py val_field24 \\
+        --cache scratch/cache24 --out benchmarks/results/clip_linear_light_val_field24.json
 
 (run on a snapshot of a commit's src, ``PYTHONPATH=<snapshot>/src ... --code-commit <sha>``, while clip/ changes)
 """

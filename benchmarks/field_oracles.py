@@ -32,7 +32,7 @@ The JSON holds per clip each row's means, the deblur records and the fallback's 
 background; per bin each row's gain over the input (mean ± s.e. over the clips) and the ``causes`` (``CAUSES``).
 ``--table {psnr,bg,box,causes,trail} JSON`` prints them as markdown.
 
-    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python benchmarks/field_oracles.py /work/scratch/field/val_field \
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python benchmarks/field_oracles.py val_field \
         --out benchmarks/results/field_oracles.json
 
 docs/clips_field_oracles.md reads the output.
