@@ -15,7 +15,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from d2turb.errors import D2TurbError
 from d2turb.io.png import decode_plain_png, float_array, imagecodecs
-from d2turb.io.read import FLOAT_TOLERANCE, _limits, _missing_reason, open_image
+from d2turb.io.read import _limits, _missing_reason, check_unit_float, open_image
 
 _GREY_MODES = {"1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "I;16N", "F"}
 _WIDE_MODES = {"I", "I;16", "I;16B", "I;16L", "I;16N", "F"}  # more than 8 bits a sample (or float)
@@ -103,14 +103,7 @@ _ORIENT = {  # EXIF orientation → the numpy view that Pillow's exif_transpose 
 
 def _float_checked(arr: np.ndarray, path: Path) -> np.ndarray:
     arr = arr.astype(np.float32)
-    if not np.isfinite(arr).all():
-        raise D2TurbError(f"{path}: image contains NaN or infinite values")
-    lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
-    if lo < -FLOAT_TOLERANCE or hi > 1 + FLOAT_TOLERANCE:
-        raise D2TurbError(
-            f"{path}: floating-point pixels span {lo:g} to {hi:g}, outside [0, 1]; rescale the image to [0, 1] "
-            "(or save it as 8- or 16-bit)"
-        )
+    check_unit_float(arr, path)
     return np.clip(arr, 0, 1)
 
 

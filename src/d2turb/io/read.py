@@ -109,6 +109,18 @@ def check_unique_stems(paths: Iterable[str | os.PathLike]) -> None:
 FLOAT_TOLERANCE = 1e-3  # float pixels this far outside [0, 1] (rounding of an earlier computation) are clipped
 
 
+def check_unit_float(arr: np.ndarray, path) -> None:
+    """One ``error:`` line for floating-point pixels that are not finite or lie beyond ``FLOAT_TOLERANCE`` of [0, 1]."""
+    if not np.isfinite(arr).all():
+        raise D2TurbError(f"{path}: image contains NaN or infinite values")
+    lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
+    if lo < -FLOAT_TOLERANCE or hi > 1 + FLOAT_TOLERANCE:
+        raise D2TurbError(
+            f"{path}: floating-point pixels span {lo:g} to {hi:g}, outside [0, 1]; rescale the image to [0, 1] "
+            "(or save it as 8- or 16-bit)"
+        )
+
+
 def _to_float_array(img: Image.Image, path: Path | str = "image") -> np.ndarray:
     """PIL image of any mode → float32 HxWx3 RGB in [0, 1] (alpha dropped, grey replicated).
 
@@ -128,14 +140,7 @@ def _to_float_array(img: Image.Image, path: Path | str = "image") -> np.ndarray:
         arr = (arr / scale)[..., None].repeat(3, axis=2)
     elif mode == "F":
         arr = np.asarray(img, dtype=np.float64)
-        if not np.isfinite(arr).all():
-            raise D2TurbError(f"{path}: image contains NaN or infinite values")
-        lo, hi = float(arr.min(initial=0)), float(arr.max(initial=0))
-        if lo < -FLOAT_TOLERANCE or hi > 1 + FLOAT_TOLERANCE:
-            raise D2TurbError(
-                f"{path}: floating-point pixels span {lo:g} to {hi:g}, outside [0, 1]; rescale the image to [0, 1] "
-                "(or save it as 8- or 16-bit)"
-            )
+        check_unit_float(arr, path)
         arr = arr[..., None].repeat(3, axis=2)
     else:
         if mode not in ("RGB", "L"):
