@@ -55,11 +55,9 @@ def dfp2s_kernel_size(dr0: float, size: int) -> int:
     return ks + 1 - ks % 2
 
 
-def make_dfp2s(folder: Path, size: int, batch: int, dr0: float):
-    sys.path.insert(0, str(folder))
-    from utils.simulator import Simulator as DFP2S  # noqa: PLC0415  (third-party code, imported from its path)
-
-    layers = 10
+def dfp2s_params(size: int, batch: int, dr0: float, temp_corr: float = 0.0, layers: int = 10) -> tuple[dict, float]:
+    """DF-P2S's simulator settings for our optics at D/r0 ``dr0`` (a constant Cn² over ``layers`` layers), and that
+    Cn²."""
     k = 2 * math.pi / WAVELENGTH
     lm = sum(((i + 1) / (layers + 1)) ** (5 / 3) for i in range(layers))
     cn2 = (D / dr0) ** (-5 / 3) / (0.423 * k * k * RANGE / layers * lm)  # inverts DF-P2S's r0 formula (turb.py)
@@ -74,10 +72,18 @@ def make_dfp2s(folder: Path, size: int, batch: int, dr0: float):
         D=D,
         anti_aliasing_range=width,
         Cn2=torch.full((layers,), cn2),
-        temp_corr=0.0,
+        temp_corr=temp_corr,
         num_zern=36,
         kernel_size=dfp2s_kernel_size(dr0, size),
     )
+    return params, cn2
+
+
+def make_dfp2s(folder: Path, size: int, batch: int, dr0: float):
+    sys.path.insert(0, str(folder))
+    from utils.simulator import Simulator as DFP2S  # noqa: PLC0415  (third-party code, imported from its path)
+
+    params, _ = dfp2s_params(size, batch, dr0)
     sim = DFP2S(str(folder / "utils"), params)
     return sim, float(sim.Dr0), params["kernel_size"]
 

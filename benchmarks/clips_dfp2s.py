@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_dfp2s import RANGE, WAVELENGTH, D, dfp2s_folder, dfp2s_kernel_size  # noqa: E402
+from bench_dfp2s import RANGE, WAVELENGTH, D, dfp2s_folder, dfp2s_params  # noqa: E402
 
 from d2turb.data.layout import write_depth_png  # noqa: E402
 from d2turb.data.sequence import SequenceDataset  # noqa: E402
@@ -64,24 +64,7 @@ def make_sim(folder: Path, size: int, dr0: float, temp_corr: float):
         sys.path.insert(0, str(folder))
     from utils.simulator import Simulator as DFP2S  # noqa: PLC0415  (third-party code, imported from its path)
 
-    k = 2 * math.pi / WAVELENGTH
-    lm = sum(((i + 1) / (LAYERS + 1)) ** (5 / 3) for i in range(LAYERS))
-    cn2 = (D / dr0) ** (-5 / 3) / (0.423 * k * k * RANGE / LAYERS * lm)  # inverts DF-P2S's r0 formula (turb.py)
-    width = size * WAVELENGTH / (2 * D) * RANGE
-    params = dict(
-        img_shape=(size, size),
-        batch_size=1,
-        L=RANGE,
-        f=0.3,
-        wvl=WAVELENGTH,
-        width=width,
-        D=D,
-        anti_aliasing_range=width,
-        Cn2=torch.full((LAYERS,), cn2),
-        temp_corr=temp_corr,
-        num_zern=36,
-        kernel_size=dfp2s_kernel_size(dr0, size),
-    )
+    params, cn2 = dfp2s_params(size, 1, dr0, temp_corr, LAYERS)
     sim = DFP2S(str(folder / "utils"), params, Batch_unrelated=1)
     return sim, {"cn2": cn2, "kernel_size": params["kernel_size"], "dfp2s_dr0": float(sim.Dr0)}
 
