@@ -93,7 +93,7 @@ def _restore_clip_files(src, out, temporal: int, options, max_frames, **kwargs) 
             "--out - writes only the restored frames (y4m on standard output): --compare, "
             "--save-intermediate and --save-flow need an output folder"
         )
-    ClipRestorer(temporal=temporal, passes=passes, fusion=fusion, preset=preset)  # bad settings first, in one line
+    ClipRestorer.check_settings(temporal, passes, fusion, preset)  # bad settings first, in one line
     errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
     clip = open_clip(src, errors)
     check_frame_sizes(Path(src), clip.files)
