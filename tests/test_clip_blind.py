@@ -247,7 +247,8 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
     from d2turb.cli import main
     from d2turb.clip import registration
     from d2turb.clip import strength as measure
-    from d2turb.restore import clip_build, clip_source
+    from d2turb.io import folder
+    from d2turb.restore import clip_build
 
     calls = {"flow": 0, "read": 0}
     real_call = registration.DenseFlow.__call__
@@ -256,7 +257,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         calls["flow"] += 1
         return real_call(self, *args, **kwargs)
 
-    real_read = clip_source.read_stored
+    real_read = folder.read_stored
 
     def counting_read(path):
         calls["read"] += 1
@@ -266,7 +267,7 @@ def test_default_restore_registers_each_frame_once_per_round_and_never_measures(
         raise AssertionError("the default path must not run d2turb.clip.strength")
 
     monkeypatch.setattr(registration.DenseFlow, "__call__", counting)
-    monkeypatch.setattr(clip_source, "read_stored", counting_read)
+    monkeypatch.setattr(folder, "read_stored", counting_read)
     monkeypatch.setattr(clip_build, "measure_clip", no_measure)
     monkeypatch.setattr(measure, "measure_clip", no_measure)
     rng = np.random.default_rng(5)

@@ -5,8 +5,6 @@ defaults agree), and the options it reads (:class:`ClipOptions`)."""
 from __future__ import annotations
 
 import dataclasses
-import itertools
-from pathlib import Path
 from types import SimpleNamespace
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur
@@ -14,7 +12,7 @@ from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import estimate_words, measure_clip, undetermined_dr0
 from d2turb.defaults import DEFAULT_FUSION, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
-from d2turb.restore.clip_source import clip_frames
+from d2turb.restore.clip_source import Clip, open_clip, rgb_tensor
 from d2turb.restore.files import RestoreOptions
 from d2turb.restore.single import Restorer
 from d2turb.sim import Optics, TurbulenceParams
@@ -55,10 +53,13 @@ class ClipOptions(RestoreOptions):
 MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when it is not given
 
 
-def _clip_head(src: Path) -> list:
-    """The clip's first MEASURE_FRAMES readable frames (bad frames are reported once, by the restoring pass)."""
-    _, frames = clip_frames(src, SimpleNamespace(record=lambda exc: None))
-    return list(itertools.islice(frames, MEASURE_FRAMES))
+def _clip_head(clip) -> list:
+    """The clip's first MEASURE_FRAMES readable frames: an open :class:`Clip`'s, decoded once (it yields them again to
+    the restorer, which reports its bad frames), or those of a clip at a path (opened for them alone, its bad frames
+    left to the caller's own reading)."""
+    if not isinstance(clip, Clip):
+        clip = open_clip(clip, SimpleNamespace(record=lambda exc: None))
+    return clip.head(MEASURE_FRAMES)
 
 
 def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
@@ -71,10 +72,11 @@ def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
 
 def _measured_dr0(head: list, params: dict) -> dict:
     """``d2turb measure``'s result on the clip's first frames ``head`` (the same estimates and intervals: what
-    ``restore`` calls measured, ``measure`` measures); D2TurbError where measure refuses, or where D/r0 is not
-    determined (the physics deblur needs it), said in measure's terms: the seeing angle without the camera."""
+    ``restore`` calls measured, ``measure`` measures: on the frames as (3,H,W) RGB, one at a time); D2TurbError where
+    measure refuses, or where D/r0 is not determined (the physics deblur needs it), said in measure's terms: the
+    seeing angle without the camera."""
     optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
-    measured = measure_clip(head, optics, bootstrap=50)
+    measured = measure_clip(map(rgb_tensor, head), optics, bootstrap=50)
     if not measured["dr0_determined"]:
         raise D2TurbError(undetermined_dr0(measured))
     return measured
@@ -82,7 +84,7 @@ def _measured_dr0(head: list, params: dict) -> dict:
 
 def clip_deblur(
     choice: str,
-    src: Path,
+    clip,
     *,
     dr0=None,
     params=None,
@@ -96,7 +98,8 @@ def clip_deblur(
 
     Args:
         choice: ``none``; ``physics`` (Wiener with the turbulence OTF at ``dr0``, or at the D/r0 that
-            ``d2turb measure`` finds on the clip's first MEASURE_FRAMES frames: refused where it is not determined);
+            ``d2turb measure`` finds on the first MEASURE_FRAMES frames of ``clip``, an open :class:`Clip` or a path:
+            refused where it is not determined);
             ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blind.BlindDeblur`,
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
@@ -114,7 +117,7 @@ def clip_deblur(
         source, measured = "given (--dr0)", None
         optics = "given" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
         if dr0 is None:
-            head = _clip_head(src)
+            head = _clip_head(clip)
             try:
                 measured = _measured_dr0(head, params)
             except D2TurbError as exc:
@@ -147,13 +150,15 @@ def clip_deblur(
 
 
 def clip_restorer(
-    src, temporal: int, options: ClipOptions | None = None, **kwargs
+    clip, temporal: int, options: ClipOptions | None = None, **kwargs
 ) -> tuple[ClipRestorer, str, dict | None]:
     """The :class:`~d2turb.clip.ClipRestorer` of ``d2turb restore CLIP --temporal N`` with its deblur: the one place
     that builds it (``restore --temporal`` and ``evaluate --real-clips`` both call it, so their defaults agree).
 
     Args:
-        src: the clip (a video file or a folder of frames; read here only when the physics deblur measures D/r0).
+        clip: the clip, read here only when the physics deblur measures D/r0 on its first frames: an open
+            :class:`~d2turb.restore.clip_source.Clip` (those frames decoded once: the clip yields them again to the
+            restorer) or a path (a video file or a folder of frames, opened for them alone).
         temporal: frames per window.
         options: :class:`ClipOptions` (None: restore's defaults; ``kwargs``: its fields by name, in place of those);
             of them this reads deblur, dr0, params, device, tile, overlap (see :func:`clip_deblur`) and passes,
@@ -167,7 +172,7 @@ def clip_restorer(
     fusion = o.fusion_used
     ClipRestorer.check_settings(temporal, o.passes, fusion, o.preset)  # before the physics deblur reads the clip
     deblur, name, record = clip_deblur(
-        o.deblur, Path(src), dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
+        o.deblur, clip, dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
     )
     deblur = "none" if deblur is None else deblur
     settings = {"passes": o.passes, "fusion": fusion, "preset": o.preset, "linear_light": o.linear_light}

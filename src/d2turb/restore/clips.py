@@ -1,14 +1,13 @@
-"""``d2turb restore CLIP --temporal N``: a clip restored across frames into a folder (:func:`restore_clip_files`),
-written frame by frame as the restorer yields them. Output names: :mod:`d2turb.restore.files`."""
+"""``d2turb restore CLIP --temporal N``: a clip restored across frames (:func:`restore_clip_files`), top-down: the
+reader yields the frames (:func:`~d2turb.restore.clip_source.open_clip`), the restorer restores them
+(:func:`~d2turb.restore.clip_build.clip_restorer`), the writer writes each as it comes
+(:mod:`d2turb.restore.clip_out`: a folder, or y4m on standard output)."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import itertools
 import os
 import sys
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -17,28 +16,11 @@ from d2turb.clip import ClipRestorer
 from d2turb.clip.blind import BlindDeblur
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
-from d2turb.io import BackgroundWriter, SharedUint8, check_output_dir, write_image, write_json, write_npy
-from d2turb.io.formats import RGB8, to_restorer, to_stored
-from d2turb.ops.splat import invert_flow
+from d2turb.io.formats import RGB8
 from d2turb.restore.clip_build import ClipOptions, clip_restorer
-from d2turb.restore.clip_source import check_frame_sizes, open_clip
-from d2turb.restore.compare import output_name, side_by_side
-from d2turb.restore.files import no_empty_out, save_compare
-from d2turb.video import VIDEO_HINT, Mp4Writer, Y4mWriter, can_write_mp4, is_stream, sigint_noted
-
-
-def _kept(frames, store: dict):
-    """The frames, each also kept in ``store`` under its index until the caller pops it."""
-    for i, frame in enumerate(frames):
-        store[i] = frame
-        yield frame
-
-
-def _panel(image) -> np.ndarray:
-    """A restorer's input or output frame as an 8-bit RGB panel of side_by_side: (H,W,3) uint8."""
-    if isinstance(image, np.ndarray) and image.dtype == np.uint8:
-        return image if image.ndim == 3 and image.shape[2] == 3 else np.repeat(image.reshape(*image.shape[:2], 1), 3, 2)
-    return to_stored(image, RGB8)
+from d2turb.restore.clip_out import FolderOut, StdoutOut
+from d2turb.restore.clip_source import open_clip
+from d2turb.video import is_stream, sigint_noted
 
 
 def restore_clip_files(
@@ -73,13 +55,54 @@ def restore_clip_files(
 
 def _restore_clip_files(src, out, temporal: int, options, max_frames, **kwargs) -> int:
     o = ClipOptions.of(options, **kwargs)
-    fps, passes, preset, fusion, png_level = o.fps, o.passes, o.preset, o.fusion_used, o.png_level
+    to_stdout = os.fspath(out) == "-"
+    _check_request(src, o, max_frames, to_stdout)  # before a stream is opened: it may wait for its first bytes
+    ClipRestorer.check_settings(temporal, o.passes, o.fusion_used, o.preset)  # bad settings first, in one line
+    errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
+    clip = open_clip(src, errors, max_frames)
+    device = resolve_device(o.device)
+    limit_malloc_arenas()  # before the threads of the stream start
+    restorer, deblur_name, record = clip_restorer(clip, temporal, dataclasses.replace(o, device=device))
+    fps = clip.fps or o.fps or 30.0
+    pixels = "" if clip.fmt == RGB8 else f", {clip.fmt.describe()} frames written as such (mp4: 8-bit RGB)"
+    print(
+        f"restoring {src} over windows of {temporal} frames, fusion: {o.fusion_used}, deblur: {deblur_name}{pixels}",
+        file=sys.stderr,
+    )
+    out = StdoutOut(clip, fps) if to_stdout else FolderOut(out, clip, o, fps, device)
+    count, interrupted = 0, False
+    with out:
+        restoring = restorer.restore(out.inputs(clip.frames))
+        try:
+            for frame in tqdm(restoring, desc=clip.label, unit="frame", total=clip.total or None):
+                out.write(frame)
+                count += 1
+        except KeyboardInterrupt:  # the frames so far stay: the mp4 is finalised as the with block closes
+            interrupted = True
+            restoring.close()  # the restorer's threads stop
+        out.finish()
+    record = _blind_note(restorer) or record
+    if count:  # a run that restored nothing leaves no folder, so no restore.json either
+        settings = {"temporal": temporal, "passes": o.passes, "preset": o.preset, "fusion": o.fusion_used}
+        settings["pixels"] = clip.fmt.describe()
+        if max_frames is not None:
+            settings["max_frames"] = max_frames
+        if interrupted:
+            settings["interrupted"] = True
+        out.record({"input": str(src), "frames": count, **settings, "deblur": record})
+    out.done(count, clip.label, interrupted)
+    if interrupted:
+        raise KeyboardInterrupt
+    return summary("restore", count + len(errors.failed), len(errors.failed))
+
+
+def _check_request(src, o: ClipOptions, max_frames, to_stdout: bool) -> None:
+    """D2TurbError, in one line, for a request refused before anything is read."""
     stream = is_stream(src)
-    src = os.fspath(src) if stream else Path(src)
-    if not stream and not src.exists():
+    if not stream and not os.path.exists(src):
         raise D2TurbError(f"{src}: no such file or directory")
-    if fps is not None and not (np.isfinite(fps) and fps > 0):
-        raise D2TurbError(f"fps must be positive, got {fps}", param="fps")
+    if o.fps is not None and not (np.isfinite(o.fps) and o.fps > 0):
+        raise D2TurbError(f"fps must be positive, got {o.fps}", param="fps")
     if max_frames is not None and max_frames < 1:
         raise D2TurbError(f"--max-frames must be at least 1, got {max_frames}")
     if stream and o.deblur == "physics" and o.dr0 is None:
@@ -87,102 +110,11 @@ def _restore_clip_files(src, out, temporal: int, options, max_frames, **kwargs) 
             f"{src}: a stream is read once, so D/r0 cannot be measured on its first frames first: give --dr0 X "
             "(or leave --deblur at auto: the blind deblur)"
         )
-    to_stdout = os.fspath(out) == "-"
     if to_stdout and (o.compare or o.save_intermediate or o.save_flow):
         raise D2TurbError(
             "--out - writes only the restored frames (y4m on standard output): --compare, "
             "--save-intermediate and --save-flow need an output folder"
         )
-    ClipRestorer.check_settings(temporal, passes, fusion, preset)  # bad settings first, in one line
-    errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
-    clip = open_clip(src, errors)
-    check_frame_sizes(Path(src), clip.files)
-    device = resolve_device(o.device)
-    limit_malloc_arenas()  # before the threads of the stream start
-    restorer, deblur_name, record = clip_restorer(src, temporal, dataclasses.replace(o, device=device))
-    names, fmt = clip.names, clip.fmt
-    read = clip.frames if max_frames is None else itertools.islice(clip.frames, max_frames)
-    frames = (to_restorer(frame, fmt) for frame in read)
-    fps = clip.fps or fps or 30.0
-    total = clip.total if max_frames is None else min(clip.total or max_frames, max_frames)  # the bar's total
-    name = clip.name
-    label = clip.name if stream else src.name
-    pixels = "" if fmt == RGB8 else f", {fmt.describe()} frames written as such (mp4: 8-bit RGB)"
-    print(
-        f"restoring {src} over windows of {temporal} frames, fusion: {fusion}, deblur: {deblur_name}{pixels}",
-        file=sys.stderr,
-    )
-    if to_stdout:
-        count = _restore_to_stdout(restorer.restore(frames), fmt, fps, label, total)
-        _blind_note(restorer)
-        print(f"restored {count} frame(s) of {label} to standard output (y4m)", file=sys.stderr)
-        return summary("restore", count + len(errors.failed), len(errors.failed))
-    out_dir = check_output_dir(out, inputs=clip.files or ([] if stream else [src]))
-    mp4 = out_dir / output_name(name, "restored", "mp4")
-    compare = o.compare
-    side = out_dir / output_name(name, "compare", "mp4") if compare else None
-    if not can_write_mp4():
-        print(f"note: no mp4 written; {VIDEO_HINT}")
-        mp4 = side = None
-    inputs: dict[int, object] = {}  # with compare: the input frames not yet restored (bounded by the lookahead)
-    if compare:
-        frames = _kept(frames, inputs)
-    pick, last = (total or 0) // 2, None  # NAME_compare.png: the middle frame (the last one, if fewer were read)
-    count, interrupted = 0, False
-    with no_empty_out(out_dir), contextlib.ExitStack() as stack:
-        # one writer thread, one frame queued: the PNGs keep pace (~0.1 s a 1080p frame) at 80 MB less peak than 2 + 2
-        writer = stack.enter_context(BackgroundWriter(max_pending=1, compute_device=device, threads=1))
-        video = None if mp4 is None else stack.enter_context(Mp4Writer(mp4, fps))
-        side_video = None if side is None else stack.enter_context(Mp4Writer(side, fps))
-        restoring = restorer.restore(frames)
-        try:
-            for frame in tqdm(restoring, desc=label, unit="frame", total=total or None):
-                stem = names[frame.index]
-                restored = SharedUint8(frame.restored)  # converted once, for the PNG and the mp4
-                stored = restored if fmt == RGB8 else to_stored(frame.restored, fmt)  # 16 bits, grey: as the input
-                writer.submit(write_image, out_dir / output_name(stem, "restored", "png"), stored, png_level)
-                if compare:
-                    before = _panel(inputs.pop(frame.index))
-                    if frame.index <= pick:
-                        last = (before, _panel(frame.restored))
-                    if side_video is not None:
-                        side_video.write(side_by_side([before, _panel(frame.restored)]))
-                if o.save_intermediate:
-                    fused = frame.fused if fmt == RGB8 else to_stored(frame.fused, fmt)
-                    writer.submit(write_image, out_dir / output_name(stem, "fused", "png"), fused, png_level)
-                if o.save_flow:  # forward displacement: frame(x) ≈ restored(x + Δ(x)), the inverse of bwd_flow_px
-                    fwd = invert_flow(frame.bwd_flow_px[None])[0].numpy().astype(np.float32)
-                    writer.submit(write_npy, out_dir / "fwd_flow_px" / f"{frame.index:06d}.npy", fwd)
-                if video is not None:
-                    video.write(restored)
-                count += 1
-        except KeyboardInterrupt:  # the frames so far stay: the mp4 is finalised as the with block closes
-            interrupted = True
-            restoring.close()  # the restorer's threads stop
-        if last is not None:
-            writer.submit(save_compare, out_dir, name, *last, png_level)
-    record = _blind_note(restorer) or record
-    if count:  # a run that restored nothing leaves no folder (no_empty_out), so no restore.json either
-        settings = {
-            "temporal": temporal,
-            "passes": passes,
-            "preset": preset,
-            "fusion": fusion,
-            "pixels": fmt.describe(),
-        }
-        if max_frames is not None:
-            settings["max_frames"] = max_frames
-        if interrupted:
-            settings["interrupted"] = True
-        write_json(out_dir / "restore.json", {"input": str(src), "frames": count, **settings, "deblur": record})
-    if interrupted:
-        kept = f"; {mp4.name} finalised with them" if mp4 and count else ""
-        print(f"interrupted after {count} restored frame(s) of {label}, written into {out_dir}{kept}", file=sys.stderr)
-        raise KeyboardInterrupt
-    print(f"restored {count} frame(s) of {label} into {out_dir}" + (f" ({mp4.name})" if mp4 else ""))
-    if compare:
-        print(f"before | after: {out_dir / output_name(name, 'compare', 'png')}" + (f", {side.name}" if side else ""))
-    return summary("restore", count + len(errors.failed), len(errors.failed))
 
 
 def _blind_note(restorer) -> dict | None:
@@ -196,16 +128,3 @@ def _blind_note(restorer) -> dict | None:
             file=sys.stderr,
         )
     return restorer.deblur.record
-
-
-def _restore_to_stdout(restored, fmt, fps: float, label: str, total: int | None) -> int:
-    """The restored frames as a y4m stream on standard output, each as it comes; returns how many."""
-    pipe = Y4mWriter("-", fps, fmt.channels, fmt.bits)
-    count = 0
-    try:
-        for frame in tqdm(restored, desc=label, unit="frame", total=total or None):
-            pipe.write(to_stored(frame.restored, fmt))
-            count += 1
-    finally:
-        pipe.close()
-    return count

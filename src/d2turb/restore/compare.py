@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from d2turb.io import to_uint8
+from d2turb.io import to_uint8, write_image
 
 LABELS = ("input", "restored")
 
@@ -59,3 +59,8 @@ def side_by_side(images: list, labels=LABELS) -> np.ndarray:
         left, _, right, _ = draw.textbbox((0, 0), text, font=font)
         draw.text((x + (w - (right - left)) // 2, size // 5), text, fill=(0, 0, 0), font=font)
     return np.asarray(picture)
+
+
+def save_compare(out_dir, name: str, before, after, png_level: int) -> None:
+    """NAME_compare.png in ``out_dir``: input | restored, labelled (:func:`side_by_side`)."""
+    write_image(out_dir / output_name(name, "compare", "png"), side_by_side([before, after]), png_level)

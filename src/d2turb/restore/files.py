@@ -33,7 +33,7 @@ from d2turb.io import (
 from d2turb.io.fits import is_fits, read_fits_image
 from d2turb.io.formats import RGB8, PixelFormat, array_format, image_format, read_stored, to_restorer, to_stored
 from d2turb.io.jobs import JobOptions  # the options of every file job
-from d2turb.restore.compare import output_name, side_by_side
+from d2turb.restore.compare import output_name, save_compare, side_by_side
 from d2turb.restore.single import Restorer
 from d2turb.video import Mp4Writer, can_write_mp4, is_video, iter_video, video_fps, video_size
 
@@ -78,11 +78,6 @@ def _save(
         write_npy(out_dir / output_name(stem, "bwd_flow_px", "npy"), details["bwd_flow_px"].numpy().astype(np.float32))
     if save_intermediate:
         write_image(out_dir / output_name(stem, "deblurred", "png"), stored(details["deblurred"]), png_level)
-
-
-def save_compare(out_dir: Path, name: str, before, after, png_level: int) -> None:
-    """NAME_compare.png: input | restored, labelled."""
-    write_image(out_dir / output_name(name, "compare", "png"), side_by_side([before, after]), png_level)
 
 
 @contextlib.contextmanager

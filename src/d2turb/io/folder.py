@@ -1,0 +1,82 @@
+"""A folder of frames read as one clip (:class:`FrameFolder`): its image files in order, one size checked from their
+headers before anything is decoded, the :class:`~d2turb.io.formats.PixelFormat` that holds them all, and the frames
+as stored, an unreadable one reported and skipped."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageOps
+
+from d2turb.errors import D2TurbError
+from d2turb.io.formats import PixelFormat, image_format, read_stored
+from d2turb.io.jobs import named_error
+from d2turb.io.read import list_images
+
+
+class FrameFolder:
+    """The frames of ``folder`` (:func:`~d2turb.io.read.list_images`: sorted, hidden files skipped).
+
+    Raises:
+        D2TurbError: no images in the folder; frames of different sizes (:func:`check_frame_sizes`).
+    """
+
+    def __init__(self, folder: str | os.PathLike):
+        self.folder = Path(folder)
+        self.files = list_images(self.folder)
+        if not self.files:
+            raise D2TurbError(f"{self.folder}: no images in the folder")
+        check_frame_sizes(self.folder, self.files)
+        self.fmt = _joined(f for f in map(image_format, self.files) if f is not None)
+
+    def named(self, errors) -> Iterator[tuple[str, np.ndarray]]:
+        """(stem, frame as stored: :func:`~d2turb.io.formats.read_stored`) of each readable frame; ``errors.record``
+        gets each unreadable one (named), which is skipped."""
+        for f in self.files:
+            try:
+                frame = read_stored(f)
+            except D2TurbError as exc:
+                errors.record(named_error(f, exc))
+                continue
+            yield f.stem, frame
+
+
+def _joined(formats) -> PixelFormat:
+    """Grey only if every frame is, 16 bits if any frame is (the default where no header could be read)."""
+    fmt = None
+    for found in formats:
+        fmt = found if fmt is None else fmt.joined(found)
+    return fmt or PixelFormat()
+
+
+def _header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an image as read_image will give it (EXIF rotation applied), from its header only;
+    None when the header cannot be read (the reading pass reports the file)."""
+    try:
+        with Image.open(path) as im:
+            width, height = im.size
+            if im.getexif().get(ImageOps.ExifTags.Base.Orientation) in (5, 6, 7, 8):
+                width, height = height, width
+            return width, height
+    except Exception:  # noqa: BLE001 - any unreadable header: left to read_image, which reports it in one line
+        return None
+
+
+def check_frame_sizes(src: Path, files: list[Path]) -> None:
+    """A folder clip's frames must have one size: checked from the headers before anything is measured or written,
+    so that a mismatch is one error line and leaves nothing behind."""
+    first = None
+    for f in files:
+        size = _header_size(f)
+        if size is None:
+            continue
+        if first is None:
+            first = (f, size)
+        elif size != first[1]:
+            raise D2TurbError(
+                f"{src}: frame {f.name} is {size[0]}x{size[1]}, the first ({first[0].name}) is "
+                f"{first[1][0]}x{first[1][1]}: all frames of a clip must have one size"
+            )
