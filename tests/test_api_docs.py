@@ -48,7 +48,13 @@ def test_api_md_lists_every_public_name_and_its_examples_run(capsys):
     assert namespace["result"]["dr0"] > 0
 
 
-MODULES = ["d2turb.sim.simulator", "d2turb.sim.params", "d2turb.restore.single", "d2turb.clip.deblur"]
+MODULES = [
+    "d2turb.sim.simulator",
+    "d2turb.sim.params",
+    "d2turb.sim.optics",
+    "d2turb.restore.single",
+    "d2turb.clip.deblur",
+]
 
 
 @pytest.mark.parametrize("module", MODULES)

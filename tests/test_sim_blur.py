@@ -7,7 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from d2turb.sim.psf import PupilOptics, blur_with_basis
+from d2turb.sim import Optics
+from d2turb.sim.psf import PupilPSF, blur_with_basis
 from d2turb.sim.zernike import zernike
 
 
@@ -40,7 +41,8 @@ def test_psfs_equal_the_fft_of_the_padded_pupil(wl):
     d, ref_wl, modes, half = 0.1, 525e-9, range(4, 16), 9
     ifov = ref_wl / (2 * d)
     coeffs = np.random.default_rng(0).normal(0, 1.2, size=(5, len(modes)))
-    got = PupilOptics([wl], ref_wl, d, ifov, modes).psfs(torch.from_numpy(coeffs).float(), half)[0]
+    optics = Optics(d, (620e-9, ref_wl, 450e-9), ifov)  # the phase is given at the middle (reference) wavelength
+    got = PupilPSF(optics, modes).psfs(torch.from_numpy(coeffs).float(), half)[optics.wavelengths.index(wl)]
     ref = _fft_psfs(coeffs, wl, ref_wl, d, ifov, modes, half)
     assert got.shape == ref.shape
     # float32 phases and products: absolute error ≈ 1e-7 on PSF values up to ≈ 0.2

@@ -8,8 +8,8 @@ import pytest
 import torch
 from scipy import integrate, interpolate, special
 
-from d2turb.sim import Simulator, TurbulenceParams
-from d2turb.sim.psf import PupilOptics
+from d2turb.sim import Optics, Simulator, TurbulenceParams
+from d2turb.sim.psf import PupilPSF
 from d2turb.sim.tilt import layer_tilt_correlation, tilt_correlation
 from d2turb.sim.zernike import noll_covariance, noll_to_nm, zernike
 
@@ -326,7 +326,7 @@ def test_mean_psf_matches_theoretical_otf(with_tilt):
     truncated-expansion oracle within 0.02)."""
     d, lam, n_modes, dr0 = 0.1, 525e-9, 36, 2.0
     first = 2 if with_tilt else 4
-    optics = PupilOptics([lam], lam, d, lam / (2 * d), range(first, n_modes + 1))
+    optics = PupilPSF(Optics(d, lam, lam / (2 * d)), range(first, n_modes + 1))
     cov = np.asarray(noll_covariance(n_modes))[first - 2 :, first - 2 :] * dr0 ** (5 / 3)
     a = np.random.default_rng(0).multivariate_normal(np.zeros(len(cov)), cov, size=3000)
     psf = optics.psfs(torch.from_numpy(a).float(), 31)[0].double().mean(0)

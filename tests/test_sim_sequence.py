@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from d2turb.errors import D2TurbError
-from d2turb.sim import Simulator, TurbulenceParams
+from d2turb.sim import Optics, Simulator, TurbulenceParams
 from d2turb.sim.fields import PlaneWaveGrid
-from d2turb.sim.psf import PupilOptics
+from d2turb.sim.psf import PupilPSF
 from d2turb.sim.sequence import FrozenFlow, wind_speeds
 from d2turb.sim.zernike import noll_covariance
 
@@ -185,7 +185,7 @@ def test_mean_of_frames_psfs_is_the_long_exposure_otf():
     sim = Simulator(TurbulenceParams(aperture_m=d, wavelength_m=lam, dr0=dr0))
     b, frames, chunk = 200, 15, 50  # sequences drawn `chunk` at a time (one generator): all at once hold 0.3 GB
     gen = torch.Generator().manual_seed(11)
-    optics = PupilOptics([lam], lam, d, lam / (2 * d), range(2, 37))
+    optics = PupilPSF(Optics(d, lam, lam / (2 * d)), range(2, 37))
     dv = torch.full((chunk,), dr0, dtype=torch.float64)
     psf = torch.zeros(63, 63, dtype=torch.float64)
     for _ in range(b // chunk):

@@ -23,7 +23,7 @@ from d2turb.models.hub import (
     weights_search_path,
 )
 from d2turb.models.weights import WEIGHTS_SUFFIX
-from d2turb.sim import MODULATIONS, make_params
+from d2turb.sim import MODULATIONS, Optics, TurbulenceParams
 
 STRENGTHS = ("D/r0", "Cn²")
 DEPTH_SOURCES = ("none", "prior", "upload")
@@ -138,31 +138,22 @@ def sample_image(name: str) -> torch.Tensor:
 class SimValues:
     """The checked values of one Simulate run, in SI units: its ``d2turb simulate`` argument list is written from
     these (:func:`d2turb.app.jobs.simulate_argv`), and :meth:`params` checks them before the command runs.
-    ``depth``: none, prior or the depth file's name in the run folder."""
+    ``depth``: none, prior or the depth file's name in the run folder; ``optics``: the page's optics (its ifov not
+    known where the page leaves it at Nyquist)."""
 
     seed: int
     dr0: float | None
     cn2: float | None
     depth: str
     disparity: bool
-    aperture_m: float
-    wavelength_m: list[float]
-    path_length_m: float
-    ifov_rad: float | None
+    optics: Optics
     modulation: str
     offset_s: float
 
     def params(self):
         """The simulator's :class:`~d2turb.sim.TurbulenceParams` (one-line D2TurbError for impossible values)."""
-        return make_params(
-            self.aperture_m,
-            self.wavelength_m,
-            self.path_length_m,
-            dr0=self.dr0,
-            cn2=self.cn2,
-            ifov_rad=self.ifov_rad,
-            offset_s=self.offset_s,
-            modulation=self.modulation,
+        return TurbulenceParams(
+            optics=self.optics, dr0=self.dr0, cn2=self.cn2, offset_s=self.offset_s, modulation=self.modulation
         )
 
 
@@ -189,12 +180,11 @@ def sim_values(s: SimSettings, depth_name: str | None) -> SimValues:
     wavelengths = parse_wavelengths_nm(s.wavelength_nm)
     path_length = _number("path length", s.path_length_m)
     ifov = None if s.ifov_urad in (None, "", 0, 0.0) else _scaled("pixel IFOV (µrad)", s.ifov_urad, -6)
+    optics = Optics(aperture_m=aperture, wavelength_m=wavelengths, ifov_rad=ifov, path_length_m=path_length)
     if s.modulation not in MODULATIONS:
         raise D2TurbError(f"modulation must be one of {', '.join(MODULATIONS)}, got {s.modulation!r}")
     offset = _number("offset s", s.offset_s, positive=False)
-    return SimValues(
-        int(seed), dr0, cn2, depth, disparity, aperture, wavelengths, path_length, ifov, s.modulation, offset
-    )
+    return SimValues(int(seed), dr0, cn2, depth, disparity, optics, s.modulation, offset)
 
 
 # ---- restore ---------------------------------------------------------------------------------------------------

@@ -43,11 +43,12 @@ def simulate_argv(v: SimValues, input_name: str, out: str = "out") -> list[str]:
     argv = ["simulate", input_name, "--out", out, "--seed", str(v.seed)]
     argv += ["--dr0", fmt_float(v.dr0)] if v.dr0 is not None else ["--cn2", fmt_float(v.cn2)]
     argv += ["--depth", v.depth] + (["--disparity"] if v.disparity else [])
-    argv += ["--aperture", fmt_float(v.aperture_m)]
-    argv += ["--wavelength", *[fmt_float(w) for w in v.wavelength_m]]
-    argv += ["--path-length", fmt_float(v.path_length_m)]
-    if v.ifov_rad is not None:
-        argv += ["--ifov", fmt_float(v.ifov_rad)]
+    o = v.optics
+    argv += ["--aperture", fmt_float(o.aperture_m)]
+    argv += ["--wavelength", *[fmt_float(w) for w in o.wavelengths]]
+    argv += ["--path-length", fmt_float(o.path_length_m)]
+    if o.ifov_known:
+        argv += ["--ifov", fmt_float(o.ifov_rad)]
     argv += ["--modulation", v.modulation, "--offset", fmt_float(v.offset_s), "--save-flow"]
     return argv
 

@@ -1,12 +1,11 @@
 """Physics-validated, depth-aware atmospheric turbulence simulator (paper Eq. 1–7)."""
 
 from d2turb.sim.derived import derived_quantities
+from d2turb.sim.optics import Optics, as_optics
 from d2turb.sim.params import (
     BINS,
     MODULATIONS,
-    Optics,
     TurbulenceParams,
-    as_optics,
     bin_spans,
     cn2_spherical,
     depth_modulation,

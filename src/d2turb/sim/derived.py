@@ -36,7 +36,7 @@ def derived_quantities(params: TurbulenceParams, mean_modulation: float | None =
         "theta0_px": theta0 / params.ifov_rad,
         "tilt_sigma_px": sigma,
         "footprint_px": footprint_px(params),
-        "samples_per_lambda_d": lam / (params.aperture_m * params.ifov_rad),
+        "samples_per_lambda_d": params.lambda_over_d_px,
         "ifov_urad": params.ifov_rad * 1e6,
     }
     if mean_modulation is not None:

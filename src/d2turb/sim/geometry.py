@@ -7,8 +7,9 @@ that barely overlap. With the simulator's default optics (d2turb.defaults; L = 1
 a 256² crop moves almost as one piece and the learnable part of the flow is small.
 
 A :class:`GeometryDistribution` draws L log-uniformly in ``range_m`` and the footprint log-uniformly in
-``footprint_px``; the aperture follows from them at fixed q (D = sqrt(footprint·λ·L/q)), and the depth offset s
-of Eq. 1 is uniform in ``offset_s``. :meth:`GeometryDistribution.bank` stratifies ``size`` geometries over that box
+``footprint_px``; the aperture follows from them at fixed q (D = sqrt(footprint·λ·L/q), :meth:`Optics.from_footprint
+<d2turb.sim.Optics.from_footprint>`), and the depth offset s of Eq. 1 is uniform in ``offset_s``.
+:meth:`GeometryDistribution.bank` stratifies ``size`` geometries over that box
 (a Latin hypercube from a fixed seed), so a training run and the test set made from the same distribution see the
 same geometries; D/r0 is drawn per sample on top of them (the strength bins).
 """
@@ -16,12 +17,13 @@ same geometries; D/r0 is drawn per sample on top of them (the strength bins).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from d2turb.defaults import DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
+from d2turb.sim.optics import Optics
 from d2turb.sim.params import TurbulenceParams
 
 
@@ -66,14 +68,9 @@ class GeometryDistribution:
         for u_range, u_foot, u_s, q in zip(*strata, qs):
             length = _log_uniform(self.range_m, u_range)
             footprint = _log_uniform(self.footprint_px, u_foot)
-            lam = self.wavelength_m
-            aperture = math.sqrt(footprint * lam * length / q)  # footprint = D/(ifov·L) = qD²/(λL)
             out.append(
                 TurbulenceParams(
-                    aperture_m=aperture,
-                    wavelength_m=lam,
-                    path_length_m=length,
-                    ifov_rad=lam / (q * aperture),
+                    optics=Optics.from_footprint(footprint, q, length, self.wavelength_m),
                     offset_s=self.offset_s[0] + float(u_s) * (self.offset_s[1] - self.offset_s[0]),
                 )
             )
@@ -89,8 +86,9 @@ def _log_uniform(span: tuple[float, float], u: float) -> float:
 
 
 def footprint_px(params: TurbulenceParams) -> float:
-    """The aperture's footprint at the target in pixels, D/(ifov·L): the tilt field's correlation scale."""
-    return params.aperture_m / (params.ifov_rad * params.path_length_m)
+    """The aperture's footprint at the target in pixels, D/(ifov·L): the tilt field's correlation scale
+    (:attr:`Optics.footprint_px <d2turb.sim.Optics.footprint_px>` of ``params.optics``)."""
+    return params.optics.footprint_px
 
 
 GEOMETRIES: dict[str, GeometryDistribution | None] = {
@@ -114,12 +112,7 @@ def geometry_bank(name: str, overrides: dict | None = None) -> list[TurbulencePa
         clash = sorted(set(overrides) & {"aperture_m", "wavelength_m", "path_length_m", "ifov_rad", "offset_s"})
         if clash:
             raise D2TurbError(f"geometry {name!r} sets {', '.join(clash)} itself; use geometry 'fixed' to set them")
-        out = []
-        for p in dist.bank():
-            base = asdict(p)
-            if "cn2" in overrides:
-                base["dr0"] = None
-            out.append(TurbulenceParams(**{**base, **overrides}))
-        return out
+        strength = {"dr0": None} if "cn2" in overrides else {}  # the bank's resolved D/r0 would disagree with Cn²
+        return [replace(p, **{**strength, **overrides}) for p in dist.bank()]
     except TypeError as exc:
         raise D2TurbError(f"bad simulator parameter: {exc}") from exc

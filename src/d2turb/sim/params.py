@@ -1,34 +1,23 @@
-"""The imaging optics (:class:`Optics`) and the physical turbulence parameters (SI units) with validation, strength
-bins and depth modulation."""
+"""The physical turbulence parameters (SI units; :class:`TurbulenceParams` holds the imaging :class:`Optics` of
+:mod:`d2turb.sim.optics`) with validation, strength bins and depth modulation."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
+from d2turb.sim.optics import SAMPLING, Optics, as_optics, nyquist_ifov, positive_finite  # noqa: F401 (their old home)
 
 BINS = {"weak": (1.0, 2.25), "medium": (2.25, 3.75), "strong": (3.75, 5.0)}  # D/r0 strength bins (paper Sec. 4.1)
 BINS_RULE = f"weak < {BINS['medium'][0]:g} ≤ medium ≤ {BINS['medium'][1]:g} < strong"  # dr0_bin, for labels
 MODULATIONS = ("uniform", "linear", "linear_offset", "power", "power_offset")
 GEOMETRIES = ("path", "layer")
 MAX_DR0 = 10.0
-SAMPLING = (0.25, 16.0)  # pixel size ifov over the Nyquist pixel λ/(2D): the range the simulator supports
-
-
-def positive_finite(name: str, value) -> float:
-    """``value`` as a float, or one-line ``D2TurbError`` naming ``name`` unless it is finite and > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise D2TurbError(f"{name} must be a number, got {value!r}") from exc
-    if not math.isfinite(v) or v <= 0:
-        raise D2TurbError(f"{name} must be positive and finite, got {value!r}")
-    return v
 
 
 def fried_r0_spherical(cn2: float, path_length_m: float, wavelength_m: float) -> float:
@@ -70,81 +59,24 @@ def isoplanatic_angle(cn2: float, path_length_m: float, wavelength_m: float, wav
     return (2.914 * k * k * cn2 * path_length_m ** (8 / 3) * ISOPLANATIC_WEIGHTS[wave]) ** (-3 / 5)
 
 
-def nyquist_ifov(wavelength_m: float, aperture_m: float) -> float:
-    """The Nyquist pixel angle λ/(2D) (rad): the default ifov everywhere."""
-    return wavelength_m / (2 * aperture_m)
+_OPTICS_ARGS = ("aperture_m", "wavelength_m", "path_length_m", "ifov_rad")  # the flat keywords of the optics
 
 
-@dataclass(frozen=True)
-class Optics:
-    """The imaging optics, one definition for the simulator (:attr:`TurbulenceParams.optics`), ``d2turb measure``,
-    the clip deblur and the page; defaults from :mod:`d2turb.defaults`.
-
-    Args:
-        aperture_m: aperture diameter D (m).
-        wavelength_m: wavelength λ (m); of an RGB simulation, its reference (middle) wavelength.
-        ifov_rad: angular size of a pixel (rad); None: not known, taken as Nyquist λ/(2D) (``ifov_known`` False:
-            the measurement then marginalises λ/(D·ifov)).
-        path_length_m: path length L (m); None: not known (no Cn², θ0; the tilt's correlation scale is fitted).
-        fps: frame rate (optional; only to express a measured wind in m/s).
-
-    Raises:
-        D2TurbError: a value that is not positive and finite, or λ ≥ D (one line, naming it).
-    """
-
-    aperture_m: float = DEFAULT_APERTURE_M
-    wavelength_m: float = DEFAULT_WAVELENGTH_M
-    ifov_rad: float | None = None
-    path_length_m: float | None = None
-    fps: float | None = None
-    ifov_known: bool = field(init=False, default=False)  # ifov_rad was given (else Nyquist, and marginalised)
-
-    def __post_init__(self):
-        object.__setattr__(self, "ifov_known", self.ifov_rad is not None)
-        for name in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m", "fps"):
-            value = getattr(self, name)
-            if value is not None:
-                object.__setattr__(self, name, positive_finite(name, value))
-        if self.wavelength_m >= self.aperture_m:
-            raise D2TurbError(f"wavelength {self.wavelength_m} m is not smaller than the aperture {self.aperture_m} m")
-        if self.ifov_rad is None:
-            object.__setattr__(self, "ifov_rad", nyquist_ifov(self.wavelength_m, self.aperture_m))
-
-    @property
-    def lambda_over_d_px(self) -> float:
-        """λ/(D·ifov): the diffraction angle in pixels (2 = Nyquist sampling)."""
-        return self.wavelength_m / (self.aperture_m * self.ifov_rad)
-
-
-def as_optics(optics) -> Optics:
-    """An :class:`Optics` from itself, None (defaults), a dict of its fields, or a :class:`TurbulenceParams` (its
-    :attr:`~TurbulenceParams.optics`)."""
-    if isinstance(optics, Optics):
-        return optics
-    if optics is None or isinstance(optics, dict):
-        names = [f for f in Optics.__dataclass_fields__ if f != "ifov_known"]
-        unknown = sorted(set(optics or {}) - set(names))
-        if unknown:
-            raise D2TurbError(f"unknown optics {unknown}; choose from {', '.join(names)}")
-        return Optics(**(optics or {}))
-    if isinstance(optics, TurbulenceParams):
-        return optics.optics
-    raise D2TurbError(f"optics must be an Optics, a dict or TurbulenceParams, got {type(optics).__name__}")
-
-
-@dataclass
+@dataclass(init=False)
 class TurbulenceParams:
-    """Imaging and turbulence parameters.
+    """Imaging and turbulence parameters: the :class:`Optics` (:attr:`optics`) and the turbulence on its path.
 
     ``dr0`` (D/r0 at the reference wavelength) or ``cn2`` (m^-2/3, constant along the path) sets the
-    strength; with neither, D/r0 = 3. ``wavelength_m`` is one value or one per RGB channel; the
-    reference wavelength (D/r0, default ifov) is the middle one. ``ifov_rad`` defaults to Nyquist
-    sampling λ_ref/(2D). ``offset_s`` is the baseline offset s of Eq. 1 (default 0.5).
+    strength; with neither, D/r0 = 3. The optics are given as ``optics=Optics(...)`` or by the flat keywords
+    ``aperture_m``, ``wavelength_m``, ``path_length_m``, ``ifov_rad`` (not both), which stay readable and settable
+    as attributes: ``wavelength_m`` is one value or one per RGB channel, the reference wavelength (D/r0, default
+    ifov) the middle one; ``ifov_rad`` defaults to Nyquist sampling λ_ref/(2D), and counts as given
+    (``optics.ifov_known``); ``path_length_m`` to d2turb.defaults'. ``offset_s`` is the baseline offset s of Eq. 1.
 
     Args:
-        aperture_m: aperture diameter D (m).
-        wavelength_m: wavelength (m), one value or three (R, G, B).
-        path_length_m: path length L (m).
+        aperture_m: aperture diameter D (m); default d2turb.defaults'.
+        wavelength_m: wavelength (m), one value or three (R, G, B); default d2turb.defaults'.
+        path_length_m: path length L (m); default d2turb.defaults'.
         dr0: turbulence strength D/r0 at the reference wavelength (give it or ``cn2``).
         cn2: refractive-index structure constant Cn² (m^-2/3), constant along the path.
         ifov_rad: angular size of a pixel (rad); default Nyquist λ_ref/(2D).
@@ -154,6 +86,8 @@ class TurbulenceParams:
         tilt_geometry: "path" (constant Cn² along the path) or "layer" (one thin layer).
         layer_z_frac: the layer's distance from the aperture / L (``tilt_geometry="layer"``).
         psf_grid_px: spacing of the exact-PSF grid (px).
+        optics: the optics as one :class:`Optics` (instead of the four flat keywords); its ifov, if not known, is
+            Nyquist, its path length, if None, the default.
 
     Raises:
         D2TurbError: a value out of its range, or dr0 and cn2 that disagree (one line, naming the parameter).
@@ -163,12 +97,9 @@ class TurbulenceParams:
         5.25e-07
     """
 
-    aperture_m: float = DEFAULT_APERTURE_M
-    wavelength_m: float | tuple = DEFAULT_WAVELENGTH_M
-    path_length_m: float = DEFAULT_PATH_LENGTH_M
+    optics: Optics
     dr0: float | None = None
     cn2: float | None = None
-    ifov_rad: float | None = None
     n_zernike: int = 36
     offset_s: float = 0.5
     modulation: str = "power_offset"
@@ -176,22 +107,46 @@ class TurbulenceParams:
     layer_z_frac: float = 0.5  # layer distance from the aperture / L (tilt_geometry="layer")
     psf_grid_px: int = 16  # spacing of the exact-PSF grid in pixels
 
-    def __post_init__(self):
-        self.aperture_m = positive_finite("aperture_m", self.aperture_m)
-        self.path_length_m = positive_finite("path_length_m", self.path_length_m)
-        wl = self.wavelength_m
-        wl = tuple(wl) if isinstance(wl, (list, tuple)) else (wl,)
-        if len(wl) not in (1, 3):
-            raise D2TurbError(f"wavelength_m must be one value or three (R, G, B), got {len(wl)}")
-        self.wavelength_m = (
-            tuple(positive_finite("wavelength_m", w) for w in wl)
-            if len(wl) == 3
-            else positive_finite("wavelength_m", wl[0])
-        )
-        if max(self.wavelengths) >= self.aperture_m:
-            raise D2TurbError(
-                f"wavelength {max(self.wavelengths)} m is not smaller than the aperture {self.aperture_m} m"
+    def __init__(
+        self,
+        aperture_m: float | None = None,
+        wavelength_m: float | tuple | None = None,
+        path_length_m: float | None = None,
+        dr0: float | None = None,
+        cn2: float | None = None,
+        ifov_rad: float | None = None,
+        n_zernike: int = 36,
+        offset_s: float = 0.5,
+        modulation: str = "power_offset",
+        tilt_geometry: str = "path",
+        layer_z_frac: float = 0.5,
+        psf_grid_px: int = 16,
+        *,
+        optics: Optics | None = None,
+    ):
+        flat = {"aperture_m": aperture_m, "wavelength_m": wavelength_m, "path_length_m": path_length_m}
+        flat = {k: v for k, v in {**flat, "ifov_rad": ifov_rad}.items() if v is not None}
+        if optics is None:
+            defaults = {"aperture_m": DEFAULT_APERTURE_M, "wavelength_m": DEFAULT_WAVELENGTH_M}
+            optics = _simulated_optics(**{**defaults, "path_length_m": DEFAULT_PATH_LENGTH_M, **flat})
+        elif not isinstance(optics, Optics):
+            raise D2TurbError(f"optics must be an Optics, got {type(optics).__name__}")
+        elif flat:
+            given = ", ".join(flat)
+            raise D2TurbError(f"give the optics as optics= or as {', '.join(_OPTICS_ARGS)}, not both ({given})")
+        elif optics.path_length_m is None or not optics.ifov_known:
+            optics = _simulated_optics(
+                optics.aperture_m,
+                optics.wavelengths if optics.channels_m else optics.wavelength_m,
+                optics.path_length_m or DEFAULT_PATH_LENGTH_M,
+                optics.ifov_rad if optics.ifov_known else None,
             )
+        self.optics, self.dr0, self.cn2, self.n_zernike = optics, dr0, cn2, n_zernike
+        self.offset_s, self.modulation, self.tilt_geometry = offset_s, modulation, tilt_geometry
+        self.layer_z_frac, self.psf_grid_px = layer_z_frac, psf_grid_px
+        self._check()
+
+    def _check(self):
         if self.cn2 is not None:
             cn2 = positive_finite("cn2", self.cn2)
             dr0_from_cn2 = self.aperture_m / fried_r0_spherical(cn2, self.path_length_m, self.reference_wavelength)
@@ -203,12 +158,7 @@ class TurbulenceParams:
         self.dr0 = 3.0 if self.dr0 is None else positive_finite("dr0", self.dr0)
         if self.dr0 > MAX_DR0:
             raise D2TurbError(f"D/r0 = {self.dr0:.3g} is beyond the supported range (0, {MAX_DR0:g}]")
-        self.ifov_rad = (
-            nyquist_ifov(self.reference_wavelength, self.aperture_m)
-            if self.ifov_rad is None
-            else positive_finite("ifov_rad", self.ifov_rad)
-        )
-        self._check_sampling()
+        self.optics.check_sampling()
         if not isinstance(self.n_zernike, int) or not 4 <= self.n_zernike <= 120:
             raise D2TurbError(f"n_zernike must be an integer in [4, 120], got {self.n_zernike!r}")
         s = float(self.offset_s)
@@ -224,40 +174,36 @@ class TurbulenceParams:
         if not isinstance(self.psf_grid_px, int) or self.psf_grid_px < 2:
             raise D2TurbError(f"psf_grid_px must be an integer >= 2, got {self.psf_grid_px!r}")
 
-    def _check_sampling(self) -> None:
-        """The pixel must be within SAMPLING × of the Nyquist pixel λ/(2D) at every wavelength: the pupil grid (a
-        box of ~32·ifov·2D/λ samples across, per channel), and the PSF window (~(2.5·D/r0 + 3)·λ/(D·ifov) px),
-        grow with its inverse and with it; outside, the optics would ask for gigabytes to terabytes before any
-        image is touched (``--ifov 1`` asked for a petabyte). Checked here, before anything is allocated."""
-        lo, hi = SAMPLING
-        nyquist = [w / (2 * self.aperture_m) for w in self.wavelengths]
-        ratio = [self.ifov_rad / n for n in nyquist]
-        if min(ratio) < lo or max(ratio) > hi:
-            raise D2TurbError(
-                f"ifov_rad = {self.ifov_rad:.3g} rad is {min(ratio) if min(ratio) < lo else max(ratio):.3g}× "
-                f"the Nyquist pixel λ/(2D); the simulator supports {lo:g}× to {hi:g}×: ifov_rad from "
-                f"{lo * max(nyquist):.3g} to {hi * min(nyquist):.3g} rad for this aperture and wavelength "
-                f"(docs/cli.md, physical parameters)",
-                param="ifov_rad",
-            )
+    # the optics' values under their flat names, readable and settable (a set replaces the optics, checked again)
+    aperture_m = property(lambda self: self.optics.aperture_m, lambda self, v: self._set_optics(aperture_m=v))
+    path_length_m = property(lambda self: self.optics.path_length_m, lambda self, v: self._set_optics(path_length_m=v))
+    ifov_rad = property(lambda self: self.optics.ifov_rad, lambda self, v: self._set_optics(ifov_rad=v))
+
+    @property
+    def wavelength_m(self) -> float | tuple:
+        """The wavelength (m), or the three of an RGB simulation (the flat keyword's value)."""
+        return self.optics.channels_m or self.optics.wavelength_m
+
+    @wavelength_m.setter
+    def wavelength_m(self, value) -> None:
+        self._set_optics(wavelength_m=value)
+
+    def _set_optics(self, **change) -> None:
+        o = self.optics
+        now = {"aperture_m": o.aperture_m, "wavelength_m": self.wavelength_m, "path_length_m": o.path_length_m}
+        self.optics = _simulated_optics(**{**now, "ifov_rad": o.ifov_rad, **change})
 
     @property
     def wavelengths(self) -> tuple:
-        return self.wavelength_m if isinstance(self.wavelength_m, tuple) else (self.wavelength_m,)
+        return self.optics.wavelengths
 
     @property
     def reference_wavelength(self) -> float:
-        wl = self.wavelengths
-        return wl[len(wl) // 2]
+        return self.optics.reference_wavelength
 
     @property
     def r0_m(self) -> float:
         return self.aperture_m / self.dr0
-
-    @property
-    def optics(self) -> Optics:
-        """The :class:`Optics` of these parameters (the reference wavelength; ifov and path length given)."""
-        return Optics(self.aperture_m, self.reference_wavelength, self.ifov_rad, self.path_length_m)
 
     @property
     def lambda_over_d_px(self) -> float:
@@ -265,11 +211,26 @@ class TurbulenceParams:
         return self.optics.lambda_over_d_px
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["wavelength_m"] = list(self.wavelengths) if len(self.wavelengths) == 3 else self.wavelength_m
+        """The flat record of the dataset metadata (dataset.json, meta lines, NAME_meta.json): the keywords (the
+        optics flat, three wavelengths as a list), then r0_m and reference_wavelength_m."""
+        d = {"aperture_m": self.aperture_m, "wavelength_m": self.wavelength_m, "path_length_m": self.path_length_m}
+        d.update(dr0=self.dr0, cn2=self.cn2, ifov_rad=self.ifov_rad)
+        d.update({k: getattr(self, k) for k in ("n_zernike", "offset_s", "modulation", "tilt_geometry")})
+        d.update(layer_z_frac=self.layer_z_frac, psf_grid_px=self.psf_grid_px)
+        if isinstance(d["wavelength_m"], tuple):
+            d["wavelength_m"] = list(d["wavelength_m"])
         d["r0_m"] = self.r0_m
         d["reference_wavelength_m"] = self.reference_wavelength
         return d
+
+
+def _simulated_optics(aperture_m, wavelength_m, path_length_m, ifov_rad=None) -> Optics:
+    """The :class:`Optics` of a simulation: the path length given, the ifov given or Nyquist at the reference
+    wavelength, counted as given (``ifov_known``)."""
+    aperture_m = positive_finite("aperture_m", aperture_m)  # the order of the checks before there was an Optics
+    path_length_m = positive_finite("path_length_m", path_length_m)
+    optics = Optics(aperture_m=aperture_m, wavelength_m=wavelength_m, ifov_rad=ifov_rad, path_length_m=path_length_m)
+    return optics if optics.ifov_known else replace(optics, ifov_rad=optics.ifov_rad)
 
 
 def make_params(
@@ -283,8 +244,8 @@ def make_params(
     offset_s: float = 0.5,
     modulation: str = "power_offset",
 ) -> TurbulenceParams:
-    """The :class:`TurbulenceParams` of the physical options that ``d2turb simulate``, ``simulate-video``, ``demo``
-    and the page's Simulate tab share (their defaults are these).
+    """The :class:`TurbulenceParams` of the physical options that ``d2turb simulate``, ``simulate-video`` and ``demo``
+    share (their defaults are these; the page's Simulate tab gives the same optics as an :class:`Optics`).
 
     Args:
         wavelength_m: one wavelength, or a sequence of one or three (R G B), m.

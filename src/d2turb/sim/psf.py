@@ -11,30 +11,30 @@ import torch
 import torch.nn.functional as F
 
 from d2turb.sim.fields import fast_size
+from d2turb.sim.optics import Optics
 from d2turb.sim.zernike import zernike
 
 
-class PupilOptics:
-    """PSFs |FFT(P·e^{iφ})|², sampled at the detector pixel (ifov), for one or more wavelengths.
+class PupilPSF:
+    """PSFs |FFT(P·e^{iφ})|² of an :class:`~d2turb.sim.Optics`, sampled at its detector pixel (ifov), one per
+    wavelength of ``optics.wavelengths``.
 
-    Phase is an optical path difference: coefficients given in radians at ``ref_wavelength`` scale by
+    Phase is an optical path difference: coefficients given in radians at the reference wavelength scale by
     λ_ref/λ_c per channel. The pupil spans D·n_out·ifov/λ_c FFT samples across, so one PSF sample is
     one pixel; undersampled pixels (ifov > λ/(2D)) are computed on an odd q× finer grid and binned.
+
+    Args:
+        optics: the aperture D, the pixel ifov and the wavelengths (the phase refers to the reference one).
+        modes: the Noll indices of the coefficients :meth:`psfs` takes.
+        device: where the PSFs are computed.
+        min_size: the PSF array's least size in pixels (the window :meth:`psfs` can return grows with it).
     """
 
-    def __init__(
-        self,
-        wavelengths,
-        ref_wavelength: float,
-        aperture_m: float,
-        ifov_rad: float,
-        modes: range,
-        device="cpu",
-        min_size: int = 64,
-    ):
+    def __init__(self, optics: Optics, modes: range, device="cpu", min_size: int = 64):
+        aperture_m, ifov_rad, ref_wavelength = optics.aperture_m, optics.ifov_rad, optics.reference_wavelength
         self.modes, self.device = list(modes), torch.device(device)
         self.channels = []
-        for wl in wavelengths:
+        for wl in optics.wavelengths:
             q = max(1, math.ceil(2 * aperture_m * ifov_rad / wl - 1e-9))
             q += 1 - q % 2  # odd, so a bin is centred on the zero-frequency sample
             n_out = max(min_size, 2 * math.ceil(12 * wl / (aperture_m * ifov_rad)))  # >= 24 pupil samples across

@@ -15,7 +15,7 @@ from d2turb.ops.checks import check_shape
 from d2turb.ops.warp import warp
 from d2turb.sim.fields import ScalarFieldSampler, VectorFieldSampler
 from d2turb.sim.params import MAX_DR0, TurbulenceParams, depth_modulation
-from d2turb.sim.psf import PupilOptics, blur_with_basis, pca_basis
+from d2turb.sim.psf import PupilPSF, blur_with_basis, pca_basis
 from d2turb.sim.sequence import simulate_sequence
 from d2turb.sim.tilt import path_nodes
 from d2turb.sim.zernike import noll_covariance, noll_to_nm
@@ -79,27 +79,19 @@ class Simulator:
         self.high_orders = [noll_to_nm(j)[0] for j in range(4, p.n_zernike + 1)]
         # tilt angle per unit a2 (Noll Z2 = 2ρcosθ): 2λ/(πD) rad, then in pixels
         self.px_per_a2 = 2 * p.reference_wavelength / (math.pi * p.aperture_m) / p.ifov_rad
-        self._optics: dict = {}
-        self.optics = self.optics_for(0)
+        self._pupils: dict = {}
+        self.pupil = self.pupil_for(0)
         self._samplers: dict = {}
 
-    def optics_for(self, half_window: int) -> PupilOptics:
-        """Pupil optics whose PSF array holds a (2·half_window+1)² window (64 px, or more for strong
-        turbulence, which also samples the pupil more finely)."""
+    def pupil_for(self, half_window: int) -> PupilPSF:
+        """The PSFs of the params' optics, in an array that holds a (2·half_window+1)² window (64 px, or more for
+        strong turbulence, which also samples the pupil more finely)."""
         size = max(64, 2 * (half_window + 1))
         size = 1 << (size - 1).bit_length() if size > 64 else size
-        if size not in self._optics:
+        if size not in self._pupils:
             p = self.params
-            self._optics[size] = PupilOptics(
-                p.wavelengths,
-                p.reference_wavelength,
-                p.aperture_m,
-                p.ifov_rad,
-                range(4, p.n_zernike + 1),
-                self.device,
-                min_size=size,
-            )
-        return self._optics[size]
+            self._pupils[size] = PupilPSF(p.optics, range(4, p.n_zernike + 1), self.device, min_size=size)
+        return self._pupils[size]
 
     # ---- random fields -------------------------------------------------------------------------
     def _separation_s(self, r_px: np.ndarray) -> list[tuple[np.ndarray, float]]:
@@ -196,7 +188,7 @@ class Simulator:
         b, c, h, w = image.shape
         if h < 2 or w < 2 or b < 1:
             raise D2TurbError(f"image is too small: {tuple(image.shape)}")
-        n_wl = len(self.optics.channels)
+        n_wl = len(self.pupil.channels)
         if n_wl > 1 and c != n_wl:
             raise D2TurbError(f"image has {c} channels but {n_wl} wavelengths are set")
         image = image.to(self.device)
@@ -223,7 +215,7 @@ class Simulator:
         # window half-width (2.5·D/r0 + 3)·λ/D: ≥ 97 % of the energy of tilt-removed PSFs at D/r0 ≥ 1
         lam_px = max(p.wavelengths) / (p.aperture_m * p.ifov_rad)
         half = max(2, math.ceil((2.5 * float(dr0.max()) + 3) * lam_px))
-        psfs = self.optics_for(half).psfs(coeffs, half)  # (Cw, N, w, w)
+        psfs = self.pupil_for(half).psfs(coeffs, half)  # (Cw, N, w, w)
         bases, weights = [], []
         for ch_psfs in psfs:
             basis, wts = pca_basis(ch_psfs)
