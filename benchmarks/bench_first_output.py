@@ -1,12 +1,16 @@
-"""Time to first output and total time of `d2turb make-dataset` and `d2turb simulate-video` (issue 26, item 6).
+"""Time to first output and total time of `d2turb make-dataset`, `d2turb simulate-video` (issue 26, item 6) and
+`d2turb restore CLIP --temporal 16` (issue 52, acceptance 3).
 
     python3 benchmarks/bench_first_output.py --image PHOTO --clean DIR --src before=OLD/src --src after=NEW/src
         [--env before:OMP_WAIT_POLICY=PASSIVE] [--reps 3] [--commands make-dataset simulate-video] [--nice 5]
+    python3 benchmarks/bench_first_output.py --commands restore --clip CLIP --src before=OLD/src --src after=NEW/src
+        [--restore-args="--deblur none"] [--reps 5] [--nice 0]
 
 Each run is a fresh `python3 -m d2turb ...` process with PYTHONPATH set to one --src tree (OMP_WAIT_POLICY removed
 from the inherited environment, so only --env sets it); the sources alternate within each repetition, so both
 see the same machine load. The first output is the first finished sample file (make-dataset: DATASET/turb/NNNNNNN.png;
-simulate-video: OUT/turb/000000.png), found by polling every 10 ms, timed from the process start (imports included).
+simulate-video: OUT/turb/000000.png; restore: the first OUT/*_restored.png), found by polling every 10 ms, timed from
+the process start (imports included); the total includes restore's mp4.
 CPU time is the child's user + system time. Prints one JSON line per run, then the medians per source.
 """
 
@@ -25,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+NEEDS = {"make-dataset": "clean", "simulate-video": "image", "restore": "clip"}  # command -> the input it needs
+
 
 def command_line(name: str, args, out: Path) -> list[str]:
     if name == "make-dataset":
@@ -32,10 +38,17 @@ def command_line(name: str, args, out: Path) -> list[str]:
             "make-dataset", "--clean", args.clean, "--out", str(out), "--pairs", str(args.pairs), "--patch", "256",
             "--batch", str(args.batch), "--device", "cpu", "--no-progress",
         ]  # fmt: skip
+    if name == "restore":
+        return ["restore", args.clip, "--temporal", str(args.temporal), "--out", str(out), *args.restore_args.split()]
     return ["simulate-video", args.image, "--out", str(out), "--frames", str(args.frames), "--device", "cpu"]
 
 
 def first_output(name: str, out: Path) -> bool:
+    if name == "restore":  # written atomically (write_image), so a name that exists is a whole frame
+        try:
+            return any(p.name.endswith("_restored.png") for p in out.iterdir())
+        except OSError:
+            return False
     folder = out / "turb"
     if name == "simulate-video":
         return (folder / "000000.png").is_file()
@@ -76,15 +89,21 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--src", action="append", required=True, metavar="LABEL=PATH", help="a source tree to run")
     ap.add_argument("--env", action="append", default=[], metavar="LABEL:KEY=VALUE", help="extra env for one label")
-    ap.add_argument("--image", required=True, help="the photo for simulate-video")
-    ap.add_argument("--clean", required=True, help="clean-image folder for make-dataset")
+    ap.add_argument("--image", help="the photo for simulate-video")
+    ap.add_argument("--clean", help="clean-image folder for make-dataset")
+    ap.add_argument("--clip", help="the clip (video or folder of frames) for restore")
+    ap.add_argument("--temporal", type=int, default=16, help="restore's --temporal")
+    ap.add_argument("--restore-args", default="", help="more options of restore, one string")
     ap.add_argument("--pairs", type=int, default=8)
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--nice", type=int, default=5)
-    ap.add_argument("--commands", nargs="+", default=["make-dataset", "simulate-video"])
+    ap.add_argument("--commands", nargs="+", default=["make-dataset", "simulate-video"], choices=list(NEEDS))
     args = ap.parse_args()
+    for name in args.commands:
+        if getattr(args, NEEDS[name]) is None:
+            ap.error(f"{name} needs --{NEEDS[name]}")
     srcs = dict(s.split("=", 1) for s in args.src)
     envs: dict[str, dict] = {label: {} for label in srcs}
     for item in args.env:

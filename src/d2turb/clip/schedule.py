@@ -30,12 +30,14 @@ def worker(name: str, enabled: bool):
 
 def in_order(jobs: Iterable, depth: int = 1) -> Iterator:
     """The results of ``jobs`` (Futures, or values), in order, with ``depth`` more in flight than the one waited for;
-    what is still queued when the caller stops is cancelled."""
+    a result that is ready (a value, a finished Future) is passed on at once, without waiting for the next job to be
+    made (the first output is not held back by the second's registration). What is still queued when the caller
+    stops is cancelled."""
     pending: collections.deque = collections.deque()
     try:
         for job in jobs:
             pending.append(job)
-            if len(pending) > depth:
+            while pending and (len(pending) > depth or _ready(pending[0])):
                 yield _result(pending.popleft())
         while pending:
             yield _result(pending.popleft())
@@ -43,6 +45,10 @@ def in_order(jobs: Iterable, depth: int = 1) -> Iterator:
         for job in pending:
             if isinstance(job, concurrent.futures.Future):
                 job.cancel()
+
+
+def _ready(job) -> bool:
+    return not isinstance(job, concurrent.futures.Future) or job.done()
 
 
 def _result(job):
@@ -54,22 +60,32 @@ def run_in(pool) -> Callable:
     return (lambda call: call()) if pool is None else pool.submit
 
 
-def outputs(state: ClipState, frames: Iterable, fallback: bool, fuse_pool=None, prepare_pool=None) -> Iterator:
+def outputs(
+    state: ClipState, frames: Iterable, fallback: bool, fuse_pool=None, prepare_pool=None, hold_pool=None
+) -> Iterator:
     """Read, register and fuse: the outputs in order (with ``fuse_pool``, Futures of them). Frames are read only
     as far as the windows need, each round runs no further ahead than the next round (or output) needs, and what
-    nothing left reads is released: memory holds about 2·temporal·passes frames whatever the clip's length."""
+    nothing left reads is released: memory holds about 2·temporal·passes frames whatever the clip's length.
+
+    With ``hold_pool`` each frame read is placed on the camera's canvas there (``ClipState.hold``: a dense flow at
+    up to 256 px) while this thread runs the registration rounds that the frames before it allow; the outputs wait
+    for it (the output's pose reads the placements), and so does the release. A round then runs one frame read
+    later than without: a stream's output waits for one more input frame."""
     source = iter(frames)
     passes, done = state.passes, state.done
     prepare = run_in(prepare_pool)
     share = None if prepare_pool is None else prepare_pool.submit
+    placing = None  # the Future of the last frame's hold (with hold_pool)
     while state.emitted < (state.length if state.length is not None else math.inf):
         progressed = False
         if state.length is None:
             item = next(source, None)
             if item is None:
                 state.end()
-            else:
+            elif hold_pool is None:
                 state.hold(item)
+            else:
+                placing = hold_pool.submit(state.hold, item)
             progressed = True
         total = state.length if state.length is not None else done[0]
         for k in range(1, passes + 1):  # round k of frame i needs round k-1 of W(i)
@@ -80,6 +96,9 @@ def outputs(state: ClipState, frames: Iterable, fallback: bool, fuse_pool=None, 
                 register(state, done[k], k, prepare)
                 done[k] += 1
                 progressed = True
+        if placing is not None:  # the rounds above ran beside it (done[0] counts it once placed: each round runs,
+            placing.result()  # in the same order, whichever iteration it falls in)
+            placing = None
         while state.emitted < done[passes] and state.window_ready(state.emitted, passes):
             job = output_job(state, state.emitted, fallback, share)
             yield job() if fuse_pool is None else fuse_pool.submit(job)
