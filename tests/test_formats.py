@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from d2turb.errors import D2TurbError
-from d2turb.io.formats import PixelFormat, image_format, read_stored, to_restorer, to_stored
+from d2turb.io.formats import PixelFormat, image_format, to_restorer, to_stored
+from d2turb.io.read import read_stored
 from d2turb.io.ser import iter_ser, read_ser_header
 
 SRC = Path(__file__).resolve().parents[1] / "src"

@@ -12,34 +12,34 @@ import numpy as np
 from PIL import Image, ImageOps
 
 from d2turb.errors import D2TurbError
-from d2turb.io.formats import PixelFormat, image_format, read_stored
+from d2turb.io.formats import PixelFormat, image_format
 from d2turb.io.jobs import named_error
-from d2turb.io.read import list_images
+from d2turb.io.read import list_images, read_stored
 
 
 class FrameFolder:
-    """The frames of ``folder`` (:func:`~d2turb.io.read.list_images`: sorted, hidden files skipped).
+    """The frames of ``folder`` (:func:`~d2turb.io.read.list_images`: sorted, hidden files skipped): iterated,
+    (stem, frame as stored: :func:`~d2turb.io.read.read_stored`) of each readable one; ``errors.record`` gets each
+    unreadable one (named), which is skipped.
 
     Raises:
         D2TurbError: no images in the folder; frames of different sizes (:func:`check_frame_sizes`).
     """
 
-    def __init__(self, folder: str | os.PathLike):
-        self.folder = Path(folder)
+    def __init__(self, folder: str | os.PathLike, errors):
+        self.folder, self.errors = Path(folder), errors
         self.files = list_images(self.folder)
         if not self.files:
             raise D2TurbError(f"{self.folder}: no images in the folder")
         check_frame_sizes(self.folder, self.files)
         self.fmt = _joined(f for f in map(image_format, self.files) if f is not None)
 
-    def named(self, errors) -> Iterator[tuple[str, np.ndarray]]:
-        """(stem, frame as stored: :func:`~d2turb.io.formats.read_stored`) of each readable frame; ``errors.record``
-        gets each unreadable one (named), which is skipped."""
+    def __iter__(self) -> Iterator[tuple[str, np.ndarray]]:
         for f in self.files:
             try:
                 frame = read_stored(f)
             except D2TurbError as exc:
-                errors.record(named_error(f, exc))
+                self.errors.record(named_error(f, exc))
                 continue
             yield f.stem, frame
 

@@ -1,5 +1,6 @@
 """Reading images: the files and folders named as inputs, robust decoding of odd images (16-bit, float, palette,
-EXIF orientation) with a pixel limit against decompression bombs, and header-only sizes."""
+EXIF orientation) with a pixel limit against decompression bombs, as float RGB (:func:`read_image`) or as stored
+(:func:`read_stored`: 16 bits and grey kept), and header-only sizes."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from d2turb.defaults import DEFAULT_MAX_PIXELS
 from d2turb.errors import D2TurbError
 from d2turb.io.atomic import reason
-from d2turb.io.png import decode_plain_png
+from d2turb.io.formats import PixelFormat, image_format
+from d2turb.io.png import decode_plain_png, imagecodecs
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm"}
 _limits = {"max_pixels": DEFAULT_MAX_PIXELS}
@@ -254,3 +256,73 @@ def _other_image(path: Path, img: Image.Image) -> torch.Tensor:
     if not np.isfinite(arr).all():
         raise D2TurbError(f"{path}: image contains NaN or infinite values")
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
+
+
+_ORIENT = {  # EXIF orientation → the numpy view that Pillow's exif_transpose gives
+    2: lambda a: a[:, ::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: a[::-1],
+    5: lambda a: a.swapaxes(0, 1),
+    6: lambda a: np.rot90(a, -1),
+    7: lambda a: a[::-1, ::-1].swapaxes(0, 1),
+    8: lambda a: np.rot90(a, 1),
+}
+
+
+def _float_checked(arr: np.ndarray, path: Path) -> np.ndarray:
+    arr = arr.astype(np.float32)
+    check_unit_float(arr, path)
+    return np.clip(arr, 0, 1)
+
+
+def read_stored(path: str | os.PathLike) -> np.ndarray:
+    """An image as stored: (H,W) grey or (H,W,3) RGB, uint8 or uint16 (float TIFF: float32 in [0,1]); alpha
+    dropped, palettes expanded, EXIF orientation applied, 32-bit integers of 8-bit values as uint8.
+
+    Raises:
+        D2TurbError: as :func:`~d2turb.io.read_image` (unreadable, over the pixel limit, values out of range).
+    """
+    path = Path(path)
+    pixels = decode_plain_png(path, _limits["max_pixels"])
+    if pixels is not None:
+        return np.ascontiguousarray(pixels)
+    if not path.is_file():
+        raise D2TurbError(_missing_reason(path))
+    img = open_image(path)  # the limit, the orientation, one-line errors
+    if img.mode in ("RGB", "RGBA") and image_format(path) == PixelFormat(3, 16) and imagecodecs is not None:
+        try:
+            arr = imagecodecs.imread(str(path))
+        except Exception as exc:  # noqa: BLE001 - any decoder failure: one line naming the file
+            raise D2TurbError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
+        arr = arr[..., :3]
+        if arr.dtype != np.uint16:
+            arr = arr.astype(np.uint16) if arr.dtype.kind in "ui" else _float_checked(arr, path)
+        with Image.open(path) as raw:
+            orientation = raw.getexif().get(ImageOps.ExifTags.Base.Orientation)
+        arr = _ORIENT.get(orientation, lambda a: a)(arr)
+    else:
+        arr = _pil_stored(img, path)
+    if min(arr.shape[:2]) < 2:
+        raise D2TurbError(f"{path}: image is too small ({arr.shape[1]}x{arr.shape[0]})")
+    return np.ascontiguousarray(arr)
+
+
+def _pil_stored(img: Image.Image, path: Path) -> np.ndarray:
+    mode = img.mode
+    if mode in ("I;16", "I;16B", "I;16L", "I;16N"):
+        return np.asarray(img).astype(np.uint16)
+    if mode == "I":
+        arr = np.asarray(img, dtype=np.int64)
+        lo, hi = int(arr.min(initial=0)), int(arr.max(initial=0))
+        if lo < 0 or hi > 65535:
+            raise D2TurbError(
+                f"{path}: 32-bit integer pixels span {lo} to {hi}, outside 0-65535; save the image as 8- or 16-bit"
+            )
+        return arr.astype(np.uint8 if hi <= 255 else np.uint16)
+    if mode == "F":
+        return _float_checked(np.asarray(img), path)
+    if mode in ("1", "L", "LA"):
+        return np.asarray(img.convert("L"))
+    if mode != "RGB":
+        img = img.convert("RGBA").convert("RGB") if "A" in mode or mode == "P" else img.convert("RGB")
+    return np.asarray(img)

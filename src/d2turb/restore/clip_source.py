@@ -127,7 +127,9 @@ def open_clip(src, errors, max_frames: int | None = None) -> Clip:
     if not stream and not src.exists():
         raise D2TurbError(f"{src}: no such file or directory")
     name, label, inputs = (stream_name(src), stream_name(src), []) if stream else (src.stem, src.name, [src])
-    fps = total = folder = None
+    fps = total = named = None  # named: (frame name, frame as stored) pairs
+    names: list[str] = []
+    report = _Report(errors, names, max_frames)
     if stream or is_video(src):  # a stream is read once, as it comes
         video = VideoSource(src)
         fmt, fps, total, frames = PixelFormat(video.channels, video.bits), video.fps, video.frames or None, video
@@ -140,15 +142,14 @@ def open_clip(src, errors, max_frames: int | None = None) -> Clip:
         first = next(cube)  # one read of the file (the cube is held by astropy either way)
         fmt, frames = array_format(first), itertools.chain([first], cube)
     elif src.is_dir():
-        folder = FrameFolder(src)
-        name, fmt, total, inputs = src.resolve().name, folder.fmt, len(folder.files), folder.files
+        named = FrameFolder(src, report)  # its frames keep their stems
+        name, fmt, total, inputs = src.resolve().name, named.fmt, len(named.files), named.files
     else:
         raise D2TurbError(f"{src}: a clip is a video file (or SER, FITS) or a folder of frames")
     if max_frames is not None:
         total = min(total or max_frames, max_frames)
-    names: list[str] = []
-    report = _Report(errors, names, max_frames)
-    named = _numbered(name, frames, report, src) if folder is None else folder.named(report)
+    if named is None:  # a video's frames are NAME_NNNNNN
+        named = _numbered(name, frames, report, src)
     return Clip(name, label, fmt, _restorer_frames(named, fmt, names), names, fps, total, inputs, max_frames, report)
 
 

@@ -31,8 +31,9 @@ from d2turb.io import (
     write_npy,
 )
 from d2turb.io.fits import is_fits, read_fits_image
-from d2turb.io.formats import RGB8, PixelFormat, array_format, image_format, read_stored, to_restorer, to_stored
+from d2turb.io.formats import RGB8, PixelFormat, array_format, image_format, to_restorer, to_stored
 from d2turb.io.jobs import JobOptions  # the options of every file job
+from d2turb.io.read import read_stored
 from d2turb.restore.compare import output_name, save_compare, side_by_side
 from d2turb.restore.single import Restorer
 from d2turb.video import Mp4Writer, can_write_mp4, is_video, iter_video, video_fps, video_size
