@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import torch
 
@@ -103,6 +104,17 @@ def image_of(raw: np.ndarray) -> np.ndarray:
 def as_float(image: np.ndarray) -> np.ndarray:
     """A held image in [0, 1] as float32 (8-bit ones scaled by 1/255)."""
     return unit_float(image) if image.dtype == np.uint8 else image.astype(np.float32)
+
+
+def channel_mean(image: np.ndarray) -> np.ndarray:
+    """(H,W) float32: the mean over the channels of an (H,W,C) float32 image (``cv2.transform``: a quarter of numpy's
+    time at 1080p); a single channel as it is."""
+    if image.ndim == 2 or image.shape[2] == 1:
+        return image.reshape(image.shape[:2])
+    return cv2.transform(image, _CHANNEL_MEAN[image.shape[2]]).reshape(image.shape[:2])
+
+
+_CHANNEL_MEAN = {c: np.full((1, c), 1 / c, np.float32) for c in (2, 3, 4)}
 
 
 def compact(raw: np.ndarray) -> np.ndarray:

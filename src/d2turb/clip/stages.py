@@ -13,13 +13,21 @@ import cv2
 import numpy as np
 import torch
 
-from d2turb.clip.frames import STORE_DTYPE, ClipFrame, as_float, image_of
+from d2turb.clip.frames import STORE_DTYPE, ClipFrame, as_float, channel_mean, image_of
 from d2turb.clip.registration import global_shift_px, remap, shift_flow, to_gray_u8
 from d2turb.clip.state import ClipState
 
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
-_CHANNEL_MEAN = {c: np.full((1, c), 1 / c, np.float32) for c in (2, 3, 4)}  # cv2.transform: the mean over channels
+_FILL_SIGMA_PX, _FILL_KNOWN, _FILL_MIN_WEIGHT = 32.0, 0.01, 0.05  # object_flow: spread, share of a known flow, and
+# the blurred known weight below which the fill leans on the median
+# spread_share: the window's grey variance, box-averaged, over its median: blend from → to (chosen on the field
+# validation clips, docs/clips.md: 3-6, 4-8, 5-10, 6-12, 8-16 gave +1.35 / +1.44 / +1.47 / +1.49 / +1.55 dB weak,
+# boxes −0.07 / −0.06 / −0.07 / −0.09 / −0.12 dB against the input)
+_SPREAD_LOW, _SPREAD_HIGH = 5.0, 10.0
+# ... and never below a spread of 4 grey levels (a clean clip's median variance is its interpolation error's, near 0:
+# relative to it, every edge would stand out)
+_SPREAD_FLOOR = (4.0 / 255) ** 2
 
 
 def _now(call: Callable):
@@ -68,15 +76,28 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
     share = None
     if fallback and submit is not None:
         share = submit(functools.partial(fallback_share, frame.warped[-1], against))
+    variance = state.spread(index) if fallback else None
     pose = None
     if state.camera is not None:
         pose = state.camera.output_pose(index, list(window), frame.gray.shape)
     return functools.partial(
-        finish, index, fused, against, frame.warped[-1], frame.raw, frame.bwd_flows_px[-1], fallback, share, pose
+        finish,
+        index,
+        fused,
+        against,
+        frame.warped[-1],
+        frame.raw,
+        frame.bwd_flows_px[-1],
+        fallback,
+        share,
+        pose,
+        variance,
     )
 
 
-def finish(index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None) -> ClipFrame:
+def finish(
+    index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None, variance=None
+) -> ClipFrame:
     """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``: a
     Future of it, or None to compute it here against ``against``, or the fusion when None), the frame's own images
     and the output's camera pose (a :class:`~d2turb.clip.camera.OutputPose`, None when the camera is not followed)."""
@@ -84,11 +105,12 @@ def finish(index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool,
     blend = np.zeros(fused.shape[:2], dtype=np.float32)
     if fallback:
         blend = fallback_share(warped, fused if against is None else against) if share is None else share.result()
+        blend = np.maximum(blend, spread_share(variance), out=blend)
     if pose is not None:
         fused, blend, bwd_flow_px = pose.apply(fused, blend, bwd_flow_px)
-        if blend.any():  # the frame's own pixels moved by what its pose differs from the output's (sub-pixel)
-            raw = pose.frame_at_output(raw)
     rows = np.flatnonzero(blend.any(axis=1))
+    if rows.size:  # the frame's own pixels registered by its flow around them (a moving object's own is not the air's)
+        raw = remap(raw, object_flow(bwd_flow_px, blend), consume=True)
     if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
         part = slice(rows[0], rows[-1] + 1)
         step = np.subtract(image_of(raw[part]), fused[part])
@@ -102,16 +124,66 @@ def finish(index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool,
     return ClipFrame(index, fused_t, fused_t, bwd_flow_px, share, camera_px=camera)
 
 
+def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """The frame's backward flow (H,W,2) px with what it reads where the frame stands in for the fusion (``share`` >
+    0: a moving object, an uncovered border) filled from the flow around it, float32. There the dense flow matched the
+    object against a reference it is not in; the air's tilt is smooth over tens of px, so the flow of the static
+    scene around it, spread inward (a normalised Gaussian convolution of σ ``_FILL_SIGMA_PX`` at quarter resolution),
+    unwarps the object's own pixels as the fusion's were (frame t unwarped by its true flow gains +0.9-1.2 dB inside
+    the field clips' objects over the input frame; docs/clips_field_oracles.md). Far from any such flow, the median
+    of the rest (the frame's global shift)."""
+    flow = np.asarray(bwd_flow_px, np.float32)
+    h, w = share.shape
+    known = (share <= _FILL_KNOWN).astype(np.float32)
+    if not known.any():
+        return flow.copy()
+    small = ((w + 3) // 4, (h + 3) // 4)
+    k_small = cv2.resize(known, small, interpolation=cv2.INTER_AREA)
+    f_small = cv2.resize(flow * known[..., None], small, interpolation=cv2.INTER_AREA)
+    sigma = _FILL_SIGMA_PX / 4
+    k_blur = cv2.GaussianBlur(k_small, (0, 0), sigma)
+    f_blur = cv2.GaussianBlur(f_small, (0, 0), sigma)
+    rest = np.median(flow[known > 0], axis=0).astype(np.float32)
+    weight = np.clip(k_blur / _FILL_MIN_WEIGHT, 0, 1)[..., None]  # → the median where no known flow is near
+    filled_small = weight * f_blur / np.maximum(k_blur, 1e-6)[..., None] + (1 - weight) * rest
+    filled = cv2.resize(filled_small, (w, h), interpolation=cv2.INTER_LINEAR)
+    return np.where(known[..., None] > 0, flow, filled)
+
+
+def spread_share(variance: np.ndarray) -> np.ndarray:
+    """Share of the single frame where the window's registered frames disagree (``ClipState.spread``: their grey's
+    temporal variance): from 0 where the box-averaged variance is ``_SPREAD_LOW`` times its median over the frame to
+    1 at ``_SPREAD_HIGH`` times (from a spread of 4 grey levels at least), grown and softened as
+    :func:`fallback_share`'s. A moving object, and the trail it leaves in the mean, makes the window's frames
+    disagree whatever frame t shows there; frame t's own residual against the mean (:func:`fallback_share`) misses an
+    object that stays in most of the window (field validation clips: 0.73-0.99 of the objects' boxes above 4× the
+    median, against a share of 0.09-0.16 in :func:`fallback_share`'s three worst clips; 3-12 % of the rest)."""
+    h, w = variance.shape
+    half = h * w >= 1 << 20
+    box = _FALLBACK_BOX // 2 + 1 if half else _FALLBACK_BOX
+    v = cv2.resize(variance, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA) if half else variance
+    v = cv2.blur(v, (box, box))
+    low = max(_SPREAD_LOW * float(np.median(v[::2, ::2] if half else v)), _SPREAD_FLOOR)
+    share = np.clip((v - low) / (low * (_SPREAD_HIGH / _SPREAD_LOW - 1)), 0, 1).astype(np.float32)
+    return _grown(share, box, (h, w), half)
+
+
+def _grown(share: np.ndarray, box: int, shape: tuple[int, int], half: bool) -> np.ndarray:
+    """A share grown by a disc (a square box printed square patches on real clips), then its edge softened by a box
+    average as wide as the growth: it stays 1 over the object itself and fades over box/2 around it; at full size."""
+    h, w = shape
+    if not share.any():
+        return np.zeros((h, w), np.float32) if half else share
+    share = cv2.blur(cv2.dilate(share, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (box, box))), (box, box))
+    return cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR) if half else share
+
+
 def fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
     """Share of the single frame per pixel: 0 where the registered frame ``warped`` (as held: uint8, or float) agrees
     with the fusion within a few robust scales of its residual (box-averaged), rising to 1 where it stays far above (a
     moving object). On frames of ≥ 1 MP the box average is taken at half resolution (the box and the dilation span
     15 px: the decision is smooth at that scale) and the robust scale from every 4th residual."""
-    diff = cv2.absdiff(as_float(warped), fused)  # OpenCV: a quarter of numpy's time at 1080p
-    if diff.ndim == 2 or diff.shape[2] == 1:  # one channel (OpenCV drops a single channel's axis)
-        r = diff.reshape(diff.shape[:2])
-    else:
-        r = cv2.transform(diff, _CHANNEL_MEAN[diff.shape[2]]).reshape(diff.shape[:2])
+    r = channel_mean(cv2.absdiff(as_float(warped), fused))  # OpenCV: a quarter of numpy's time at 1080p
     h, w = r.shape
     half = h * w >= 1 << 20
     box = _FALLBACK_BOX // 2 + 1 if half else _FALLBACK_BOX
@@ -120,10 +192,4 @@ def fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
     r = cv2.blur(r, (box, box))
     scale = max(1.4826 * float(np.median(r[::2, ::2] if half else r)), 1e-3)
     z = (r / scale - _FALLBACK_LOW) / (_FALLBACK_HIGH - _FALLBACK_LOW)
-    share = np.clip(z, 0, 1).astype(np.float32)
-    if not share.any():
-        return np.zeros((h, w), np.float32) if half else share
-    # grown by a disc (a square box printed square patches on real clips), then its edge softened by a box
-    # average as wide as the growth: the share stays 1 over the object itself and fades over box/2 around it
-    share = cv2.blur(cv2.dilate(share, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (box, box))), (box, box))
-    return cv2.resize(share, (w, h), interpolation=cv2.INTER_LINEAR) if half else share
+    return _grown(np.clip(z, 0, 1).astype(np.float32), box, (h, w), half)

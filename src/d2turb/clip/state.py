@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from d2turb.clip.camera import CameraTrack
-from d2turb.clip.frames import HeldFrame, window_start
+from d2turb.clip.frames import HeldFrame, as_float, channel_mean, window_start
 from d2turb.clip.fusion import Fusion
 from d2turb.clip.registration import DenseFlow, check_registrable
 from d2turb.errors import D2TurbError
@@ -33,7 +33,7 @@ class ClipState:
         self.shape: tuple | None = None
         self.flow_solver: DenseFlow | None = None  # the dense-flow solver, made at the first frame
         self.camera = CameraTrack(temporal) if stabilise else None
-        self.sums: dict[int, tuple] = {}  # level → (lo, hi, running sum, updates since recomputed)
+        self.sums: dict = {}  # level (or "grey", "grey²": spread) → (lo, hi, running sum, updates since recomputed)
         self.buffered = 0
 
     # -- reading -------------------------------------------------------------------------------------------------
@@ -80,13 +80,30 @@ class ClipState:
     def reference(self, index: int, level: int) -> np.ndarray:
         """Mean of level ``level`` (0: the frames' luma, k: round k's unwarped frames) over W(index), from a running sum
         updated by the frames entering and leaving the window (recomputed every ``_RESUM`` updates)."""
+        lo, hi, total = self._window_sum(index, level, lambda j: self.frames[j].level_image(level))
+        return total / np.float32((hi - lo) * (255 if self.frames[lo].level_image(level).dtype == np.uint8 else 1))
+
+    def spread(self, index: int) -> np.ndarray:
+        """Per-pixel variance (H,W) float32, in (unit grey)², of the last round's unwarped frames' grey (the mean of
+        their channels) over W(index): high where the window's frames disagree after registration (a moving object
+        and the trail it leaves in the mean), from running sums of the grey and its square."""
+        last = self.passes
+
+        def grey(j):
+            return channel_mean(as_float(self.frames[j].warped[last - 1]))
+
+        lo, hi, s1 = self._window_sum(index, "grey", grey)
+        _, _, s2 = self._window_sum(index, "grey²", lambda j: np.square(grey(j)))
+        n = np.float32(hi - lo)
+        mean = s1 / n
+        return np.maximum(s2 / n - mean * mean, 0, out=mean)
+
+    def _window_sum(self, index: int, key, image) -> tuple[int, int, np.ndarray]:
+        """(lo, hi, Σ image(j) over W(index) = [lo, hi)), float32, kept as ``sums[key]`` and updated by the frames
+        entering and leaving the window (recomputed every ``_RESUM`` updates)."""
         members = self.window(index)
         lo, hi = members[0], members[-1] + 1
-        cached = self.sums.get(level)
-
-        def image(j):
-            return self.frames[j].level_image(level)
-
+        cached = self.sums.get(key)
         if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
             total = image(members[0]).astype(np.float32)  # summed in place: no stack of the window in memory
             for j in members[1:]:
@@ -99,8 +116,8 @@ class ClipState:
             for j in range(c_lo, lo):
                 total -= image(j)
             count += 1
-        self.sums[level] = (lo, hi, total, count)
-        return total / np.float32((hi - lo) * (255 if image(lo).dtype == np.uint8 else 1))
+        self.sums[key] = (lo, hi, total, count)
+        return lo, hi, total
 
     # -- memory --------------------------------------------------------------------------------------------------
     def release(self) -> None:
@@ -113,8 +130,9 @@ class ClipState:
         readers = []
         for level in range(passes + 1):
             first = window_start(emitted if level == passes else done[level + 1], n, self.length)
-            if level in self.sums:
-                first = min(first, self.sums[level][0])
+            for key in (level, "grey", "grey²") if level == passes else (level,):
+                if key in self.sums:
+                    first = min(first, self.sums[key][0])
             if level == 0:
                 first = min(first, emitted, done[passes])
             readers.append(min(first, guard))
