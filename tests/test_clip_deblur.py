@@ -1,11 +1,12 @@
 """The Wiener filter's prior (d2turb.clip.deblur) against an independent computation: the squared FFT of the
 finite-difference stencils it stands for (numpy's FFT of the kernels on the grid, not the closed form); the prior
-and OTF chosen per path and fusion."""
+and OTF chosen per path and fusion; the filter against numpy's FFT of the mirror-padded image."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from d2turb.clip import PhysicsDeblur, prior_power
 from d2turb.clip.deblur import (
@@ -13,6 +14,9 @@ from d2turb.clip.deblur import (
     LAPLACIAN_BALANCE_AT_2,
     default_balance,
     fusion_prior,
+    padded_spectra,
+    wiener_gain,
+    wiener_padding,
 )
 from d2turb.clip.fusion import SHARPEST_DR0_SCALE
 from d2turb.errors import D2TurbError
@@ -55,3 +59,21 @@ def test_the_prior_and_otf_follow_the_fusion():
     assert PhysicsDeblur(3.0, prior="gradient").balance == pytest.approx(BALANCE_AT_2 * 1.5 ** (5 / 3))
     with pytest.raises(D2TurbError, match="prior"):
         PhysicsDeblur(3.0, prior="tv")
+
+
+def test_spectra_made_once_serve_every_filter_of_an_image():
+    """``padded_spectra`` shared by several filters (the blind deblur's ringing guard): each output is the filter's own
+    to the bit, and that is numpy's Wiener filter of the mirror-padded image (the oracle: np.pad + np.fft)."""
+    image = torch.rand(3, 40, 52, generator=torch.Generator().manual_seed(0))
+    spectra = padded_spectra(image)
+    top, bottom, left, right = wiener_padding(40, 52)
+    shape = (40 + top + bottom, 52 + left + right)
+    for deblur in (PhysicsDeblur(2.0, 2.0, boost_only=True), PhysicsDeblur(1.0, 1.3, prior="gradient")):
+        shared = deblur(image, spectra)
+        assert torch.equal(shared, deblur(image))
+        gain = wiener_gain(deblur.otf(40, 52), deblur.balance, shape, deblur.prior).numpy().astype(np.float64)
+        gain = np.maximum(gain, 1.0) if deblur.boost_only else gain
+        for c in range(3):
+            padded = np.pad(image[c].numpy().astype(np.float64), ((top, bottom), (left, right)), mode="reflect")
+            want = np.fft.irfft2(np.fft.rfft2(padded) * gain, s=shape)[top : top + 40, left : left + 52]
+            np.testing.assert_allclose(shared[c].numpy(), np.clip(want, 0, 1), atol=2e-5)

@@ -29,7 +29,7 @@ from d2turb.clip.blur import (
     ringing_index,
 )
 from d2turb.clip.blur_net import PATCH_PX, TILT_SPREAD_FLOOR_PX, estimate_blur_params, load_blur_net, tilt_spread
-from d2turb.clip.deblur import PhysicsDeblur, fusion_prior
+from d2turb.clip.deblur import PhysicsDeblur, fusion_prior, padded_spectra
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import short_exposure_width, turbulence_otf
 
@@ -214,9 +214,13 @@ class BlindDeblur:
         each is run on ``fused`` and recorded in ``rec["ringing_tried"]`` with its :func:`ringing_index` and the rise
         of its :func:`blockiness_index`; the first at or under ``limit`` that raises the codec grid by at most
         ``BLOCK_RISE_MAX`` becomes the deblur and its entry is returned (None: every one overshoots)."""
-        blocks = None
+        blocks = spectra = None
         for entry, candidate in tries:
-            out = candidate(fused)
+            if isinstance(candidate, PhysicsDeblur):  # the frame's spectra made once for every try
+                spectra = padded_spectra(fused) if spectra is None else spectra
+                out = candidate(fused, spectra)
+            else:
+                out = candidate(fused)
             blocks = blockiness_index(fused) if blocks is None else blocks
             entry["ringing_index"] = ringing_index(fused, out)
             entry["block_rise"] = blockiness_index(out) - blocks
