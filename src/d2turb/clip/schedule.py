@@ -31,8 +31,8 @@ def worker(name: str, enabled: bool):
 def in_order(jobs: Iterable, depth: int = 1) -> Iterator:
     """The results of ``jobs`` (Futures, or values), in order, with ``depth`` more in flight than the one waited for;
     a result that is ready (a value, a finished Future) is passed on at once, without waiting for the next job to be
-    made (the first output is not held back by the second's registration). What is still queued when the caller
-    stops is cancelled."""
+    made (an output is not held back by the next one's registration, which on a stream waits for the next input
+    frame: one frame interval of latency less). What is still queued when the caller stops is cancelled."""
     pending: collections.deque = collections.deque()
     try:
         for job in jobs:
