@@ -60,32 +60,22 @@ def run_in(pool) -> Callable:
     return (lambda call: call()) if pool is None else pool.submit
 
 
-def outputs(
-    state: ClipState, frames: Iterable, fallback: bool, fuse_pool=None, prepare_pool=None, hold_pool=None
-) -> Iterator:
+def outputs(state: ClipState, frames: Iterable, fallback: bool, fuse_pool=None, prepare_pool=None) -> Iterator:
     """Read, register and fuse: the outputs in order (with ``fuse_pool``, Futures of them). Frames are read only
     as far as the windows need, each round runs no further ahead than the next round (or output) needs, and what
-    nothing left reads is released: memory holds about 2·temporal·passes frames whatever the clip's length.
-
-    With ``hold_pool`` each frame read is placed on the camera's canvas there (``ClipState.hold``: a dense flow at
-    up to 256 px) while this thread runs the registration rounds that the frames before it allow; the outputs wait
-    for it (the output's pose reads the placements), and so does the release. A round then runs one frame read
-    later than without: a stream's output waits for one more input frame."""
+    nothing left reads is released: memory holds about 2·temporal·passes frames whatever the clip's length."""
     source = iter(frames)
     passes, done = state.passes, state.done
     prepare = run_in(prepare_pool)
     share = None if prepare_pool is None else prepare_pool.submit
-    placing = None  # the Future of the last frame's hold (with hold_pool)
     while state.emitted < (state.length if state.length is not None else math.inf):
         progressed = False
         if state.length is None:
             item = next(source, None)
             if item is None:
                 state.end()
-            elif hold_pool is None:
-                state.hold(item)
             else:
-                placing = hold_pool.submit(state.hold, item)
+                state.hold(item)
             progressed = True
         total = state.length if state.length is not None else done[0]
         for k in range(1, passes + 1):  # round k of frame i needs round k-1 of W(i)
@@ -96,9 +86,6 @@ def outputs(
                 register(state, done[k], k, prepare)
                 done[k] += 1
                 progressed = True
-        if placing is not None:  # the rounds above ran beside it (done[0] counts it once placed: each round runs,
-            placing.result()  # in the same order, whichever iteration it falls in)
-            placing = None
         while state.emitted < done[passes] and state.window_ready(state.emitted, passes):
             job = output_job(state, state.emitted, fallback, share)
             yield job() if fuse_pool is None else fuse_pool.submit(job)
