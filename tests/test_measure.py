@@ -334,7 +334,9 @@ def test_measure_command_answers_with_its_interval_and_a_note(tmp_path, capsys, 
     assert len(notes) == (span > M.MAX_SPAN), notes  # a note only beyond 3x
     # a note: one line, the span and what narrows it most, to about the span it would have (the 3x limit lowered so
     # that this clip's interval is beyond it)
-    monkeypatch.setattr(M, "MAX_SPAN", 1.01)
+    from d2turb.clip import strength_result  # where the note is written
+
+    monkeypatch.setattr(strength_result, "MAX_SPAN", 1.01)
     assert main(["measure", str(clip), "--out", str(tmp_path / "blind2"), "--bootstrap", "20"]) == 0
     notes = capsys.readouterr().err.strip().splitlines()
     n = blind["narrowing"]["seeing_px"]

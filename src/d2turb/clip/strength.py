@@ -28,7 +28,12 @@ rms above the calibrated 3 px its lower bound (calibrated: there the registratio
 What is answered (issue 53): tilt and blur both measure ρ, so ρ is the answer without the optics; D/r0 = ρ/(λ/(D·ifov))
 needs ifov. An estimate is always given with its interval, however wide; an interval wider than ``MAX_SPAN`` comes with
 what narrows it most (:func:`interval_note`). Only a clip with nothing to estimate is refused: too few frames, no
-texture, frames that do not register onto one static scene. The inversion itself is ``d2turb.clip.strength_fit``.
+texture, frames that do not register onto one static scene.
+
+Code. :func:`measure_clip` runs the steps in order, none calling back: the frames to grey, their registration and
+the structure sums (``d2turb.clip.motion``), the fit (``strength_fit``), the interval (``strength_interval``), the
+result and its words (``strength_result``); the calibration constants are ``strength_calib``'s. The names of those
+modules stay importable from here (benchmarks, tests).
 """
 
 from __future__ import annotations
@@ -69,37 +74,32 @@ from d2turb.clip.strength_calib import (  # the calibration (benchmarks, tests r
     Q_GRID,
     Q_PRIOR,
     Z90,
-    clip_log_sd,
     log_normal_interval,
-    registration_gain,
     texture_log_sd,
 )
 from d2turb.clip.strength_fit import (
-    StrengthEstimate,
     estimate_from_sums,
     fit_nuisance,
     fit_per_footprint,
+    registration_gain,
     structure_models,
+)
+from d2turb.clip.strength_interval import clip_log_sd
+from d2turb.clip.strength_result import (
+    HOW_TO_GIVE,
+    QUANTITY_WORDS,
+    TERM_WORDS,
+    UNITS,
+    StrengthEstimate,
+    answer_quantity,
+    estimate_words,
+    interval_note,
+    measure_record,
+    undetermined_dr0,
 )
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import short_exposure_width
 from d2turb.sim.params import Optics, as_optics, r0_cn2_theta0
-
-# how a user narrows an interval (issue 53): the parameter to give, in the flags of `measure` and `restore`
-HOW_TO_GIVE = {
-    "ifov_rad": "--ifov RAD (the camera's pixel pitch over its focal length)",
-    "path_length_m": "--path-length M (the distance to the scene)",
-}
-# the other terms of an interval, in words (strength_fit.TERMS)
-TERM_WORDS = {
-    "tiles": "the spatial sampling of this crop (more textured area or more frames narrow it)",
-    "clip": "the calibrated clip-to-clip scatter",
-    "texture": "little texture",
-    "footprint_below": "a tilt correlation scale below the calibrated 4 px",
-    "large_tilt_lower": "a tilt beyond the calibrated 3 px rms (the registration errs high)",
-}
-QUANTITY_WORDS = {"seeing_px": "the seeing angle ρ = λ/(r0·ifov)", "dr0": "D/r0"}
-UNITS = {"seeing_px": "px", "dr0": ""}
 
 
 def measure_clip(
@@ -156,20 +156,15 @@ def measure_clip(
     seps = separations_for(*mask.shape)
     blur = _fused_blur(fused) if blind else None
     extra = {"texture": texture_log_sd(diag["valid_fraction"])}
-    result = estimate_from_sums(*lag_sums(flows, mask, seps), optics, bootstrap, seed, {}, blur, extra).to_dict()
-    result.update(diag)
-    key = answer_quantity(result)
-    result["answer"] = {"quantity": key, "value": result[key], "ci": result[f"{key}_ci"], "unit": UNITS[key]}
-    if window:
-        models: dict = {}
-        result["windows"] = []
-        for s in range(0, len(gray) - int(window) + 1, int(window)):
-            est = estimate_from_sums(
-                *lag_sums(flows[s : s + int(window)], mask, seps), optics, bootstrap, seed, models, blur, extra
-            )
-            keys = ("seeing_px", "seeing_px_ci", "dr0", "dr0_ci")
-            result["windows"].append({"start_frame": s, "frames": int(window), **{k: getattr(est, k) for k in keys}})
-    result["inputs"] = {
+    # the clip, then its windows: the same steps on each (the structure models computed once per length)
+    starts = range(0, len(gray) - int(window) + 1, int(window)) if window else ()
+    spans = [(0, len(gray)), *((s, int(window)) for s in starts)]
+    models: dict = {}  # the structure models, computed once per length
+    estimates = [
+        estimate_from_sums(*lag_sums(flows[s : s + n], mask, seps), optics, bootstrap, seed, models, blur, extra)
+        for s, n in spans
+    ]
+    inputs = {
         "frames": len(gray),
         "crop_xywh": crop,
         "separations_px": seps,
@@ -181,7 +176,8 @@ def measure_clip(
         "window": window,
         "registration": f"DIS {preset}",
     }
-    return result
+    windows = [(s, n, est) for (s, n), est in zip(spans[1:], estimates[1:])] if window else None
+    return measure_record(estimates[0], diag, windows, inputs)
 
 
 def _fused_blur(fused: np.ndarray) -> dict | None:
@@ -193,49 +189,6 @@ def _fused_blur(fused: np.ndarray) -> dict | None:
     if not est.confident:
         blur["reason"] = est.reason
     return blur
-
-
-def answer_quantity(result: dict) -> str:
-    """The key of what ``result`` answers with: ``dr0`` when ifov_rad was given, else ``seeing_px``."""
-    return "dr0" if "ifov_rad" in result["parameters"]["given"] else "seeing_px"
-
-
-def interval_note(result: dict, key: str | None = None) -> str | None:
-    """One sentence when the 90 % interval of ``key`` (default :func:`answer_quantity`) spans more than
-    ``MAX_SPAN``: its span and what narrows it most (a parameter to give, with the span it would have, or the term
-    that widens it); None within ``MAX_SPAN``."""
-    key = key or answer_quantity(result)
-    n = result["narrowing"][key]
-    if n["span"] <= MAX_SPAN:
-        return None
-    text = f"the 90 % interval of {QUANTITY_WORDS[key]} spans {n['span']:.1f}x"
-    if n["by"] is not None:
-        return text + f"; giving {HOW_TO_GIVE[n['by']]} narrows it most (to about {n['span_with']:.1f}x)"
-    return text + f", widened most by {TERM_WORDS[n['widened_most_by']]}"
-
-
-def estimate_words(result: dict) -> str:
-    """The estimate in measure's terms: D/r0 and ρ with the camera's ifov; without it ρ, then D/r0 at the
-    λ/(D·ifov) the estimate holds at."""
-    (lo, hi), (s_lo, s_hi) = result["dr0_ci"], result["seeing_px_ci"]
-    seeing = f"seeing angle ρ = {result['seeing_px']:.3g} px [{s_lo:.3g}, {s_hi:.3g}]"
-    if answer_quantity(result) == "dr0":
-        return f"D/r0 {result['dr0']:.3g} [{lo:.3g}, {hi:.3g}], {seeing}"
-    q = result["lambda_over_d_px"]
-    return f"{seeing}; D/r0 {result['dr0']:.3g} [{lo:.3g}, {hi:.3g}] at its λ/(D·ifov) {q:.3g} px"
-
-
-def undetermined_dr0(result: dict) -> str:
-    """Why D/r0 is not determined (``dr0_determined`` False), in the user's terms: what was measured, what to give."""
-    lo, hi = result["dr0_ci"]
-    if "ifov_rad" not in result["parameters"]["given"]:
-        s_lo, s_hi = result["seeing_px_ci"]
-        return (
-            f"without the camera the clip gives the seeing angle ρ = λ/(r0·ifov) = {result['seeing_px']:.2f} px "
-            f"[{s_lo:.2f}, {s_hi:.2f}] (90 %), and D/r0 only within [{lo:.2f}, {hi:.2f}]: give "
-            + HOW_TO_GIVE["ifov_rad"]
-        )
-    return f"D/r0 = {result['dr0']:.2f} [{lo:.2f}, {hi:.2f}] (90 %): {interval_note(result, 'dr0')}"
 
 
 __all__ = [
@@ -253,6 +206,7 @@ __all__ = [
     "GAIN_FOOTPRINT_PX",
     "GAIN_SEPARATIONS_PX",
     "GAIN_TABLE",
+    "HOW_TO_GIVE",
     "LARGE_TILT_LOG_SD",
     "MAX_SPAN",
     "MIN_FRAMES",
@@ -260,7 +214,10 @@ __all__ = [
     "Optics",
     "Q_GRID",
     "Q_PRIOR",
+    "QUANTITY_WORDS",
     "StrengthEstimate",
+    "TERM_WORDS",
+    "UNITS",
     "Z90",
     "answer_quantity",
     "estimate_words",
@@ -276,6 +233,7 @@ __all__ = [
     "lag_sums",
     "log_normal_interval",
     "measure_clip",
+    "measure_record",
     "r0_cn2_theta0",
     "register_clip",
     "register_measurable",

@@ -1,6 +1,6 @@
-"""The calibration of ``d2turb.clip.strength``: the registration gain, the interval's terms and the prior ranges of
-what a user did not give, each with where it was measured (docs/measure.md); ``d2turb.clip.strength`` re-exports
-them."""
+"""The calibration of ``d2turb.clip.strength``: the registration gain's table (read by
+``strength_fit.registration_gain``), the interval's terms and the prior ranges of what a user did not give, each with
+where it was measured (docs/measure.md); ``d2turb.clip.strength`` re-exports them."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 
-from d2turb.sim.otf import short_exposure_width
 from d2turb.sim.tilt import tilt_variance_px2
 
 # registration gain ε(r, D/r0, footprint): DIS-measured / true differential-tilt power at separation r px, from
@@ -85,29 +84,6 @@ MAX_SPAN = 3.0  # a 90 % interval wider (hi/lo) gets a note naming what narrows 
 NEGLIGIBLE_DR0 = 0.3  # ... or when its upper bound is below this: "no measurable turbulence" is an answer
 
 
-def registration_gain(sep_px, dr0: float, footprint_px: float = 38.1) -> np.ndarray:
-    """ε for separations ``sep_px`` at strength ``dr0`` and tilt correlation scale ``footprint_px`` = D/(ifov·L)
-    from ``GAIN_TABLE`` (linear in ln footprint, D/r0 and ln r; clamped outside the table)."""
-    table = np.asarray(GAIN_TABLE)  # (F, X, R)
-    lf = np.clip(math.log(footprint_px), math.log(GAIN_FOOTPRINT_PX[0]), math.log(GAIN_FOOTPRINT_PX[-1]))
-    at_f = np.array(
-        [
-            [np.interp(lf, np.log(GAIN_FOOTPRINT_PX), table[:, i, k]) for k in range(table.shape[2])]
-            for i in range(table.shape[1])
-        ]
-    )  # (X, R)
-    at_dr0 = np.array([np.interp(dr0, GAIN_DR0, at_f[:, k]) for k in range(at_f.shape[1])])
-    return np.interp(np.log(np.asarray(sep_px, np.float64)), np.log(GAIN_SEPARATIONS_PX), at_dr0)
-
-
-def clip_log_sd(dr0: float, frames: int = CLIP_FRAMES) -> float:
-    """The interval's clip-to-clip term (sd of ln D/r0) at strength ``dr0`` from ``CLIP_LOG_SD``, for a clip or window
-    of ``frames`` frames: variance CLIP_LOG_SD² + CLIP_WINDOW_VAR·(CLIP_FRAMES/frames − 1), not below its value at
-    CLIP_FRAMES (longer clips keep the calibrated term)."""
-    var = float(np.interp(dr0, GAIN_DR0, CLIP_LOG_SD)) ** 2
-    return math.sqrt(var + CLIP_WINDOW_VAR * max(CLIP_FRAMES / int(frames) - 1.0, 0.0))
-
-
 def log_normal_interval(estimate: float, log_sds, z: float = Z90) -> tuple[float, float]:
     """``estimate``·exp(∓z·s) with s the quadrature sum of the independent log-sds ``log_sds`` (a 90 % interval
     with the default z, the t quantile of the calibrated clip term, when ln of the estimate is normal about ln of
@@ -121,9 +97,3 @@ def texture_log_sd(valid_fraction: float) -> float:
     if valid_fraction >= TEXTURED_FULL:
         return 0.0
     return LOW_TEXTURE_LOG_SD * math.sqrt(TEXTURED_FULL / max(valid_fraction, 1e-6) - 1.0)
-
-
-def short_widths(dr0: np.ndarray) -> np.ndarray:
-    nodes = np.geomspace(0.05, 20.0, 40)
-    table = np.array([short_exposure_width(x) for x in nodes])
-    return np.interp(np.clip(dr0, nodes[0], nodes[-1]), nodes, table)
