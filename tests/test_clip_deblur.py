@@ -4,6 +4,8 @@ and OTF chosen per path and fusion; the filter against numpy's FFT of the mirror
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -14,6 +16,7 @@ from d2turb.clip.deblur import (
     LAPLACIAN_BALANCE_AT_2,
     default_balance,
     fusion_prior,
+    one_torch_thread,
     padded_spectra,
     wiener_gain,
     wiener_padding,
@@ -77,3 +80,32 @@ def test_spectra_made_once_serve_every_filter_of_an_image():
             padded = np.pad(image[c].numpy().astype(np.float64), ((top, bottom), (left, right)), mode="reflect")
             want = np.fft.irfft2(np.fft.rfft2(padded) * gain, s=shape)[top : top + 40, left : left + 52]
             np.testing.assert_allclose(shared[c].numpy(), np.clip(want, 0, 1), atol=2e-5)
+
+
+def test_one_torch_thread_holds_for_the_block_in_its_own_thread():
+    """The physical deblurs run their torch ops on one intra-op thread; the count is the calling thread's own (a
+    thread that already ran torch keeps its count) and comes back after the block."""
+    before = torch.get_num_threads()
+    seen, ready, asked, answered = {}, threading.Event(), threading.Event(), threading.Event()
+
+    def other():
+        seen["other, before"] = torch.get_num_threads()  # this thread's count set up (torch: at its first use)
+        ready.set()
+        asked.wait()
+        seen["other"] = torch.get_num_threads()
+        answered.set()
+
+    torch.set_num_threads(2)
+    try:
+        thread = threading.Thread(target=other)
+        thread.start()
+        ready.wait()
+        with one_torch_thread():
+            seen["inside"] = torch.get_num_threads()
+            asked.set()
+            answered.wait()
+        thread.join()
+        seen["after"] = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+    assert seen == {"other, before": 2, "inside": 1, "other": 2, "after": 2}
