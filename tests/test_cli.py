@@ -317,7 +317,7 @@ def test_library_errors_name_the_parameter_the_command_line_its_flag(tmp_path, c
     ("argv", "options", "given"),
     [
         (["restore", "a.png", "--out", "o"], "d2turb.restore.files.RestoreOptions", set()),
-        (["restore", "a.mp4", "--temporal", "4", "--out", "o"], "d2turb.restore.clip_build.ClipOptions", {"params"}),
+        (["restore", "a.mp4", "--temporal", "4", "--out", "o"], "d2turb.restore.clip_build.ClipOptions", {"optics"}),
         (["simulate", "a.png", "--out", "o"], "d2turb.data.simulate.SimulateOptions", {"save_tilt"}),
     ],
 )

@@ -13,6 +13,7 @@ from d2turb.cli import build_parser, main
 from d2turb.commands.common import OPTICS_FLAGS
 from d2turb.defaults import DEFAULT_APERTURE_M, DEFAULT_PATH_LENGTH_M, DEFAULT_WAVELENGTH_M
 from d2turb.errors import D2TurbError
+from d2turb.sim.optics import Optics
 
 # listed by hand: a command losing the flags, or a new one with some of them only, fails below
 OPTICS_COMMANDS = ["demo", "make-dataset", "measure", "restore", "simulate", "simulate-video"]
@@ -86,13 +87,14 @@ def test_the_old_param_spelling_is_an_alias_with_a_warning(capsys):
     assert measure.optics_of(new) == measure.optics_of(old) == {"aperture_m": 0.2, "ifov_rad": 2e-6, "fps": 25}
     assert measure.optics_of(parser.parse_args(["measure", "c", "--out", "o"])) == {}
     rgb = parser.parse_args(["measure", "c", "--out", "o", "--wavelength", "6.3e-7", "5.25e-7", "4.5e-7"])
-    assert measure.optics_of(rgb) == {"wavelength_m": 5.25e-7}  # the reference (middle) wavelength
+    assert measure.optics_of(rgb) == {"wavelength_m": [6.3e-7, 5.25e-7, 4.5e-7]}
+    assert Optics(**measure.optics_of(rgb)).wavelength_m == 5.25e-7  # the reference (middle) wavelength
     clash = parser.parse_args(["measure", "c", "--out", "o", "--aperture", "0.2", "--param", "aperture_m=0.3"])
     with pytest.raises(D2TurbError, match="aperture_m given twice"):
         measure.optics_of(clash)
     r_new = parser.parse_args(["restore", "c", "--temporal", "8", "--out", "o", "--wavelength", "6e-7"])
     r_old = parser.parse_args(["restore", "c", "--temporal", "8", "--out", "o", "--param", "wavelength_m=6e-7"])
-    assert restore._optics(r_new) == restore._optics(r_old) == {"wavelength_m": 6e-7}
+    assert restore._optics(r_new) == restore._optics(r_old) == Optics(wavelength_m=6e-7)
     d_old = parser.parse_args(
         ["make-dataset", "--clean", "c", "--out", "o", "--pairs", "1", "--param", "ifov_rad=3e-6"]
     )

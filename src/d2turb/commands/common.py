@@ -226,16 +226,6 @@ def optics_given(args, params: dict | None = None) -> dict:
     return given
 
 
-def measured_optics(given: dict) -> dict:
-    """:func:`optics_given` for a measurement (d2turb.sim.Optics): of three wavelengths, the middle (reference) one."""
-    wl = given.get("wavelength_m")
-    if isinstance(wl, (list, tuple)):
-        if len(wl) not in (1, 3):
-            raise D2TurbError(f"wavelength_m takes one or three values, got {len(wl)}", param="wavelength_m")
-        given = {**given, "wavelength_m": wl[len(wl) // 2]}
-    return given
-
-
 def add_max_pixels_arg(p) -> None:
     """Images whose header claims more pixels are refused before decoding (applied by ``d2turb.cli.main``)."""
     p.add_argument(

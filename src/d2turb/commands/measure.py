@@ -12,7 +12,6 @@ from d2turb.commands.common import (
     OPTICS_FLAGS,
     add_max_pixels_arg,
     add_optics_args,
-    measured_optics,
     optics_given,
     parse_params,
 )
@@ -118,7 +117,7 @@ def optics_of(args) -> dict:
     """The optics given (d2turb.sim.Optics fields, and fps): the flags, the camera's (--pixel-pitch, --focal-length,
     --f-number), or their old spelling ``--param KEY=VALUE``."""
     params = parse_params(args.param, PARAM_KEYS)
-    given = _from_camera(measured_optics(optics_given(args, params)), args)
+    given = _from_camera(optics_given(args, params), args)
     fps = params.pop("fps", None)
     if fps is not None:
         log.warning("--param fps=… is the old spelling of --fps (kept until the next release)")

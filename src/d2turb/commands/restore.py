@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from d2turb.commands.common import (
+    OPTICS_FLAGS,
     add_device_arg,
     add_fail_fast_arg,
     add_max_pixels_arg,
     add_optics_args,
     add_param_arg,
     add_png_level_arg,
-    measured_optics,
     optics_given,
     parse_params,
     wait_passively,
@@ -166,11 +166,13 @@ def run(args) -> int:
     return restore_files(args.inputs, args.out, args.weights, RestoreOptions.from_args(args))
 
 
-def _optics(args) -> dict:
-    """The optics given for the physics deblur: the flags, or their old spelling ``--param KEY=VALUE``."""
-    params = parse_params(args.param)
-    given = measured_optics(optics_given(args, params))  # takes the optics keys out of params
-    return {**params, **given}
+def _optics(args):
+    """The optics given for the physics deblur (:class:`~d2turb.sim.Optics`; None: none given): the flags, or their
+    old spelling ``--param KEY=VALUE``."""
+    from d2turb.sim.optics import Optics  # lazy: see d2turb.commands
+
+    given = optics_given(args, parse_params(args.param, tuple(OPTICS_FLAGS)))
+    return Optics(**given) if given else None
 
 
 def run_clips(args) -> int:
@@ -182,6 +184,6 @@ def run_clips(args) -> int:
     if len(args.inputs) != 1:
         n = len(args.inputs)
         raise D2TurbError(f"--temporal restores one clip per run (a video or a folder of frames), not {n}")
-    params = _optics(args) if args.deblur in ("physics", "auto") else {}
-    options = ClipOptions.from_args(args, params=params)
+    optics = _optics(args) if args.deblur in ("physics", "auto") else None
+    options = ClipOptions.from_args(args, optics=optics)
     return restore_clip_files(args.inputs[0], args.out, args.temporal, options, max_frames=args.max_frames)

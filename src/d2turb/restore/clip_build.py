@@ -15,7 +15,9 @@ from d2turb.errors import D2TurbError
 from d2turb.restore.clip_source import Clip, open_clip, rgb_tensor
 from d2turb.restore.files import RestoreOptions
 from d2turb.restore.single import Restorer
-from d2turb.sim import Optics, TurbulenceParams
+from d2turb.sim import Optics
+from d2turb.sim.optics import positive_finite
+from d2turb.sim.params import MAX_DR0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,7 +26,7 @@ class ClipOptions(RestoreOptions):
     :class:`RestoreOptions`'.
 
     Args:
-        deblur, dr0, params: see :func:`clip_deblur`.
+        deblur, dr0, optics: see :func:`clip_deblur`.
         passes, preset: registration rounds, DIS preset.
         fusion: fusion of the registered frames; None: the sharpest with ``deblur="none"``, the mean before a deblur
             (:attr:`fusion_used`).
@@ -34,7 +36,7 @@ class ClipOptions(RestoreOptions):
 
     deblur: str = "auto"
     dr0: float | None = None
-    params: dict | None = None
+    optics: Optics | None = None
     passes: int = 2
     preset: str = "fast"
     fusion: str | None = None
@@ -62,24 +64,53 @@ def _clip_head(clip) -> list:
     return clip.head(MEASURE_FRAMES)
 
 
-def _turbulence_params(params: dict, **extra) -> TurbulenceParams:
-    """TurbulenceParams from the given optics (the path length is the measurement's only); one-line error."""
+def _measured(clip, optics: Optics) -> dict:
+    """``d2turb measure``'s result on the clip's first frames (the same estimates and intervals: what ``restore`` calls
+    measured, ``measure`` measures: on the frames as (3,H,W) RGB, one at a time); D2TurbError where measure refuses,
+    or where D/r0 is not determined (the physics deblur needs it), said in measure's terms: the seeing angle without
+    the camera."""
+    head = _clip_head(clip)
     try:
-        return TurbulenceParams(**{k: v for k, v in params.items() if k != "path_length_m"}, **extra)
-    except TypeError as exc:
-        raise D2TurbError(f"--param: {exc}") from exc
-
-
-def _measured_dr0(head: list, params: dict) -> dict:
-    """``d2turb measure``'s result on the clip's first frames ``head`` (the same estimates and intervals: what
-    ``restore`` calls measured, ``measure`` measures: on the frames as (3,H,W) RGB, one at a time); D2TurbError where
-    measure refuses, or where D/r0 is not determined (the physics deblur needs it), said in measure's terms: the
-    seeing angle without the camera."""
-    optics = {k: params[k] for k in ("aperture_m", "wavelength_m", "ifov_rad", "path_length_m") if k in params}
-    measured = measure_clip(map(rgb_tensor, head), optics, bootstrap=50)
-    if not measured["dr0_determined"]:
-        raise D2TurbError(undetermined_dr0(measured))
+        measured = measure_clip(map(rgb_tensor, head), optics, bootstrap=50)
+        if not measured["dr0_determined"]:
+            raise D2TurbError(undetermined_dr0(measured))
+    except D2TurbError as exc:
+        raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
     return measured
+
+
+def _physics_deblur(clip, dr0, optics: Optics | None, fusion: str):
+    """:func:`clip_deblur`'s physics deblur: at ``dr0``, or at what ``d2turb measure`` finds on the clip's first
+    MEASURE_FRAMES frames, at the λ/(D·ifov) of the given ifov, or of the measured estimate, or Nyquist's."""
+    optics = Optics() if optics is None else optics
+    source, measured = "given (--dr0)", None
+    sampling = "given" if optics.ifov_known else "Nyquist (default)"
+    if dr0 is None:
+        measured = _measured(clip, optics)
+        dr0 = measured["dr0"]
+        frames = measured["inputs"]["frames"]
+        source = f"measured on the clip's first {frames} frames (d2turb measure, 90 %: {estimate_words(measured)})"
+        if not optics.ifov_known:  # the λ/(D·ifov) at which measure's estimate holds
+            ifov = optics.wavelength_m / (optics.aperture_m * measured["lambda_over_d_px"])
+            optics = dataclasses.replace(optics, ifov_rad=ifov)
+            sampling = "λ/(D·ifov) of d2turb measure's estimate"
+    dr0 = positive_finite("dr0", min(dr0, MAX_DR0))
+    optics.check_sampling()
+    q = optics.lambda_over_d_px
+    deblur = PhysicsDeblur.for_fusion(dr0, q, fusion)
+    model = "" if deblur.dr0 == dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
+    record = {
+        "method": "physics",
+        "dr0": dr0,
+        "dr0_source": source,
+        **({k: measured[k] for k in ("dr0_ci", "seeing_px", "seeing_px_ci")} if measured else {}),
+        "otf_dr0": deblur.dr0,
+        "lambda_over_d_px": q,
+        "optics": sampling,
+        "balance": deblur.balance,
+        "prior": deblur.prior,
+    }
+    return deblur, f"physics (D/r0 {dr0:.3g} {source}, λ/D {q:.3g} px{model})", record
 
 
 def clip_deblur(
@@ -87,7 +118,7 @@ def clip_deblur(
     clip,
     *,
     dr0=None,
-    params=None,
+    optics: Optics | None = None,
     device="cpu",
     tile=DEFAULT_TILE_PX,
     overlap=DEFAULT_OVERLAP_PX,
@@ -103,48 +134,18 @@ def clip_deblur(
             ``auto`` (physics at a given ``dr0``; else the blind deblur of :class:`~d2turb.clip.blind.BlindDeblur`,
             estimated on the fused frames of the one restoring pass: no second decode or registration); or a
             weights name/path.
-        params: optics overrides (aperture_m, wavelength_m, ifov_rad, path_length_m).
+        optics: the optics given (:class:`~d2turb.sim.Optics`; None: the defaults); without its ifov the OTF is at
+            the λ/(D·ifov) of the measured estimate, or with ``dr0`` at Nyquist's.
         fusion: the clip's fusion; after ``sharpest`` the physics deblur models a weaker blur
             (:meth:`~d2turb.clip.PhysicsDeblur.for_fusion`) and the blind one keeps the Laplacian prior.
     """
     if choice == "none":
         return None, "none", {"method": "none"}
-    params = dict(params or {})
     if choice == "auto" and dr0 is None:
         blind = BlindDeblur(fusion=fusion)
         return blind, blind.describe(), None  # the record comes from the deblur once it has seen a fused frame
     if choice in ("physics", "auto"):
-        source, measured = "given (--dr0)", None
-        optics = "given" if {"aperture_m", "wavelength_m", "ifov_rad"} & set(params) else "Nyquist (default)"
-        if dr0 is None:
-            head = _clip_head(clip)
-            try:
-                measured = _measured_dr0(head, params)
-            except D2TurbError as exc:
-                raise D2TurbError(f"--deblur physics needs the turbulence strength: give --dr0 X ({exc})") from exc
-            dr0 = measured["dr0"]
-            source = (
-                f"measured on the clip's first {len(head)} frames (d2turb measure, 90 %: {estimate_words(measured)})"
-            )
-            if "ifov_rad" not in params:  # the λ/(D·ifov) at which measure's estimate holds
-                o = Optics(**{k: params[k] for k in ("aperture_m", "wavelength_m") if k in params})
-                params["ifov_rad"] = o.wavelength_m / (o.aperture_m * measured["lambda_over_d_px"])
-                optics = "λ/(D·ifov) of d2turb measure's estimate"
-        p = _turbulence_params(params, dr0=min(dr0, 10.0))
-        deblur = PhysicsDeblur.for_fusion(p.dr0, p.lambda_over_d_px, fusion)
-        model = "" if deblur.dr0 == p.dr0 else f"; OTF at D/r0 {deblur.dr0:.3g} after the sharpest fusion"
-        record = {
-            "method": "physics",
-            "dr0": p.dr0,
-            "dr0_source": source,
-            **({k: measured[k] for k in ("dr0_ci", "seeing_px", "seeing_px_ci")} if measured else {}),
-            "otf_dr0": deblur.dr0,
-            "lambda_over_d_px": p.lambda_over_d_px,
-            "optics": optics,
-            "balance": deblur.balance,
-            "prior": deblur.prior,
-        }
-        return deblur, f"physics (D/r0 {p.dr0:.3g} {source}, λ/D {p.lambda_over_d_px:.3g} px{model})", record
+        return _physics_deblur(clip, dr0, optics, fusion)
     restorer = Restorer(choice, device=device, tile=tile, overlap=overlap)
     return restorer.restore, restorer.name, {"method": "model", "weights": restorer.name}
 
@@ -161,7 +162,7 @@ def clip_restorer(
             restorer) or a path (a video file or a folder of frames, opened for them alone).
         temporal: frames per window.
         options: :class:`ClipOptions` (None: restore's defaults; ``kwargs``: its fields by name, in place of those);
-            of them this reads deblur, dr0, params, device, tile, overlap (see :func:`clip_deblur`) and passes,
+            of them this reads deblur, dr0, optics, device, tile, overlap (see :func:`clip_deblur`) and passes,
             preset, fusion (:attr:`ClipOptions.fusion_used`).
 
     Returns:
@@ -172,7 +173,7 @@ def clip_restorer(
     fusion = o.fusion_used
     ClipRestorer.check_settings(temporal, o.passes, fusion, o.preset)  # before the physics deblur reads the clip
     deblur, name, record = clip_deblur(
-        o.deblur, clip, dr0=o.dr0, params=o.params, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
+        o.deblur, clip, dr0=o.dr0, optics=o.optics, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
     )
     deblur = "none" if deblur is None else deblur
     settings = {"passes": o.passes, "fusion": fusion, "preset": o.preset, "linear_light": o.linear_light}
