@@ -21,12 +21,14 @@ _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
 _FILL_SIGMA_PX, _FILL_KNOWN, _FILL_MIN_WEIGHT = 32.0, 0.01, 0.05  # object_flow: spread, share of a known flow, and
 # the blurred known weight below which the fill leans on the median
-# spread_share: the window's grey variance, box-averaged, over its median: blend from → to (chosen on the field
-# validation clips, docs/clips.md: 3-6, 4-8, 5-10, 6-12, 8-16 gave +1.35 / +1.44 / +1.47 / +1.49 / +1.55 dB weak,
-# boxes −0.07 / −0.06 / −0.07 / −0.09 / −0.12 dB against the input)
-_SPREAD_LOW, _SPREAD_HIGH = 5.0, 10.0
-# ... and never below a spread of 4 grey levels (a clean clip's median variance is its interpolation error's, near 0:
-# relative to it, every edge would stand out)
+# spread_share: the window's grey variance (box-averaged) over what noise and registration explain, from k to 2k:
+# chosen on 24 field validation clips (val_field24, docs/clips.md), default restore, offset-removed PSNR per bin:
+# before (frame t's residual only) 22.34 / 21.63 / 21.12 dB, boxes −1.23 / −0.98 / −0.51 dB against the input; k = 3,
+# 5, 8: 22.67 / 21.74 / 21.19, 22.73 / 21.73 / 21.23, 22.72 / 21.78 / 21.22 dB (boxes +0.12 / −0.06 / +0.38,
+# +0.14 / −0.13 / +0.38, +0.06 / −0.18 / +0.27); 5 to 10 times the variance's median instead: 22.62 / 21.62 / 21.09
+_SPREAD_K = 5.0
+# ... and never below a spread of 4 grey levels (a clean clip's registered frames differ by interpolation alone: on
+# it every edge would stand out)
 _SPREAD_FLOOR = (4.0 / 255) ** 2
 
 
@@ -76,7 +78,7 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
     share = None
     if fallback and submit is not None:
         share = submit(functools.partial(fallback_share, frame.warped[-1], against))
-    variance = state.spread(index) if fallback else None
+    spread = state.spread(index) if fallback else None
     pose = None
     if state.camera is not None:
         pose = state.camera.output_pose(index, list(window), frame.gray.shape)
@@ -91,12 +93,12 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
         fallback,
         share,
         pose,
-        variance,
+        spread,
     )
 
 
 def finish(
-    index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None, variance=None
+    index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None, spread=None
 ) -> ClipFrame:
     """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``: a
     Future of it, or None to compute it here against ``against``, or the fusion when None), the frame's own images
@@ -105,7 +107,8 @@ def finish(
     blend = np.zeros(fused.shape[:2], dtype=np.float32)
     if fallback:
         blend = fallback_share(warped, fused if against is None else against) if share is None else share.result()
-        blend = np.maximum(blend, spread_share(variance), out=blend)
+        if spread is not None:
+            blend = np.maximum(blend, spread_share(*spread, blend.shape), out=blend)
     if pose is not None:
         fused, blend, bwd_flow_px = pose.apply(fused, blend, bwd_flow_px)
     rows = np.flatnonzero(blend.any(axis=1))
@@ -150,22 +153,31 @@ def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
     return np.where(known[..., None] > 0, flow, filled)
 
 
-def spread_share(variance: np.ndarray) -> np.ndarray:
-    """Share of the single frame where the window's registered frames disagree (``ClipState.spread``: their grey's
-    temporal variance): from 0 where the box-averaged variance is ``_SPREAD_LOW`` times its median over the frame to
-    1 at ``_SPREAD_HIGH`` times (from a spread of 4 grey levels at least), grown and softened as
-    :func:`fallback_share`'s. A moving object, and the trail it leaves in the mean, makes the window's frames
-    disagree whatever frame t shows there; frame t's own residual against the mean (:func:`fallback_share`) misses an
-    object that stays in most of the window (field validation clips: 0.73-0.99 of the objects' boxes above 4× the
-    median, against a share of 0.09-0.16 in :func:`fallback_share`'s three worst clips; 3-12 % of the rest)."""
-    h, w = variance.shape
-    half = h * w >= 1 << 20
+def spread_share(variance: np.ndarray, mean: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Share of the single frame (H,W) = ``shape`` where the window's registered frames disagree more than
+    registration can explain (``ClipState.spread``: their grey's temporal ``variance`` and ``mean``, at half size for
+    ≥ 1 MP). A static scene's registered frames differ by noise and by what registration leaves, which shows on
+    edges: a + b·|∇mean|², a the variance of the 30 % flattest pixels (median), b the median of (variance − a)/|∇|²
+    over the 30 % steepest. The share rises from 0 where the box-averaged variance is ``_SPREAD_K`` times that (and
+    at least ``_SPREAD_FLOOR``) to 1 at twice it, grown and softened as :func:`fallback_share`'s. A moving object, and
+    the trail it leaves in the mean, makes the window's frames disagree whatever frame t shows there; frame t's own
+    residual against the mean (:func:`fallback_share`) misses an object that stays in most of the window (field
+    validation clips: 0.73-0.99 of the objects' boxes above 4× the median variance, against a share of 0.09-0.16 in
+    :func:`fallback_share`'s three worst clips)."""
+    half = variance.shape != tuple(shape)
     box = _FALLBACK_BOX // 2 + 1 if half else _FALLBACK_BOX
-    v = cv2.resize(variance, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA) if half else variance
-    v = cv2.blur(v, (box, box))
-    low = max(_SPREAD_LOW * float(np.median(v[::2, ::2] if half else v)), _SPREAD_FLOOR)
-    share = np.clip((v - low) / (low * (_SPREAD_HIGH / _SPREAD_LOW - 1)), 0, 1).astype(np.float32)
-    return _grown(share, box, (h, w), half)
+    v = cv2.blur(variance, (box, box))
+    gx = cv2.Sobel(mean, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(mean, cv2.CV_32F, 0, 1, ksize=3)
+    g2 = cv2.blur(cv2.addWeighted(gx * gx, 1 / 64, gy * gy, 1 / 64, 0), (box, box))  # |∇mean|², per px²
+    vs, gs = v[::2, ::2].ravel(), g2[::2, ::2].ravel()
+    flat_max, steep_min = np.quantile(gs, (0.3, 0.7))
+    a = float(np.median(vs[gs <= flat_max]))
+    steep = gs >= steep_min
+    b = float(np.median(np.maximum(vs[steep] - a, 0) / np.maximum(gs[steep], 1e-12)))
+    low = np.maximum(_SPREAD_K * (a + b * g2), _SPREAD_FLOOR)
+    share = np.clip((v - low) / low, 0, 1).astype(np.float32)
+    return _grown(share, box, tuple(shape), half)
 
 
 def _grown(share: np.ndarray, box: int, shape: tuple[int, int], half: bool) -> np.ndarray:

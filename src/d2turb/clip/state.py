@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from d2turb.clip.camera import CameraTrack
@@ -83,20 +84,26 @@ class ClipState:
         lo, hi, total = self._window_sum(index, level, lambda j: self.frames[j].level_image(level))
         return total / np.float32((hi - lo) * (255 if self.frames[lo].level_image(level).dtype == np.uint8 else 1))
 
-    def spread(self, index: int) -> np.ndarray:
-        """Per-pixel variance (H,W) float32, in (unit grey)², of the last round's unwarped frames' grey (the mean of
-        their channels) over W(index): high where the window's frames disagree after registration (a moving object
-        and the trail it leaves in the mean), from running sums of the grey and its square."""
+    def spread(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(variance, mean) of the last round's unwarped frames' grey (the mean of their channels, unit range) over
+        W(index), per pixel, float32, from running sums of the grey and its square; at half size (area-averaged) for
+        frames of ≥ 1 MP (what reads it, ``stages.spread_share``, decides at that scale). The variance is high where
+        the window's frames disagree after registration: a moving object, and the trail it leaves in the mean."""
         last = self.passes
 
         def grey(j):
-            return channel_mean(as_float(self.frames[j].warped[last - 1]))
+            image = as_float(self.frames[j].warped[last - 1])
+            h, w = image.shape[:2]
+            if h * w >= 1 << 20:
+                image = cv2.resize(image, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+                image = image.reshape(image.shape[:2] + (-1,))
+            return channel_mean(image)
 
         lo, hi, s1 = self._window_sum(index, "grey", grey)
         _, _, s2 = self._window_sum(index, "grey²", lambda j: np.square(grey(j)))
         n = np.float32(hi - lo)
         mean = s1 / n
-        return np.maximum(s2 / n - mean * mean, 0, out=mean)
+        return np.maximum(s2 / n - mean * mean, 0), mean
 
     def _window_sum(self, index: int, key, image) -> tuple[int, int, np.ndarray]:
         """(lo, hi, Σ image(j) over W(index) = [lo, hi)), float32, kept as ``sums[key]`` and updated by the frames
