@@ -22,10 +22,10 @@ from d2turb.sim.tilt import (
 
 def test_tilt_variance_inversion_against_hand_computed_values():
     # Nyquist sampling: λ/(D·ifov) = 2, σ² = 0.1816·4·2.5^(5/3) = 0.7264·4.60503 = 3.34510 px²
-    assert tilt_variance_px2(2.5, 0.1, 525e-9, 525e-9 / 0.2) == pytest.approx(3.34510, rel=1e-5)
-    assert dr0_from_tilt_variance(3.34510, 0.1, 525e-9, 525e-9 / 0.2) == pytest.approx(2.5, rel=1e-5)
-    # ifov twice Nyquist: σ² four times smaller for the same D/r0
-    assert dr0_from_tilt_variance(3.34510 / 4, 0.1, 525e-9, 525e-9 / 0.1) == pytest.approx(2.5, rel=1e-5)
+    assert tilt_variance_px2(2.5, 2.0) == pytest.approx(3.34510, rel=1e-5)
+    assert dr0_from_tilt_variance(3.34510, 2.0) == pytest.approx(2.5, rel=1e-5)
+    # ifov twice Nyquist (λ/(D·ifov) = 1): σ² four times smaller for the same D/r0
+    assert dr0_from_tilt_variance(3.34510 / 4, 1.0) == pytest.approx(2.5, rel=1e-5)
 
 
 def test_r0_cn2_theta0_against_the_worked_value():

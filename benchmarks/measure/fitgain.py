@@ -77,7 +77,7 @@ def measure(c, gains_fn, n_boot=200, seed=0):
     sub-estimates of the same clip from parts of its series with the same gains: x / y displacement component,
     separation along x / along y, each separation alone."""
     t_len = c["num"].shape[-1]
-    unit = (c["aperture_m"], c["wavelength_m"], c["ifov_rad"])
+    unit = (c["wavelength_m"] / (c["aperture_m"] * c["ifov_rad"]),)  # λ/(D·ifov) px
     models = M.structure_models(c["series"], t_len, [c["ifov_rad"] * c["path_length_m"] / c["aperture_m"]])
     dr0 = 2.5
     for _ in range(3):

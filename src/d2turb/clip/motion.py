@@ -222,7 +222,7 @@ def registration_dr0(
     window of ``REGISTRATION_WINDOW`` frames; a rough estimate: 0.10–0.15 there, unknown on real footage), inverted by
     the Z-tilt law σ² = 0.1816 (λ/D)² (D/r0)^(5/3) with λ/D in pixels. Clipped to [0.05, MAX_DR0]."""
     var = registration_tilt_variance(frames, REGISTRATION_WINDOW, preset) / OBSERVED_TILT_SHARE
-    dr0 = float(dr0_from_tilt_variance(var, 1.0, lambda_over_d_px, 1.0))  # only λ/(D·ifov) matters
+    dr0 = float(dr0_from_tilt_variance(var, lambda_over_d_px))
     return min(max(dr0, 0.05), MAX_DR0)
 
 

@@ -74,7 +74,7 @@ EXTRAPOLATION_LOG_SD = 0.3
 # by an extra log-sd LARGE_TILT_LOG_SD per unit of ln(tilt rms / 2.98 px), the rms of the log errors' excess over the
 # interval's own (non-negative least squares; coverage of those clips 0.43 → 0.96). A footprint above the largest
 # node (38 px) needed no term of its own in that fit.
-CALIBRATED_TILT_RMS_PX = math.sqrt(float(tilt_variance_px2(GAIN_DR0[-1], 1.0, 2.0, 1.0)))
+CALIBRATED_TILT_RMS_PX = math.sqrt(float(tilt_variance_px2(GAIN_DR0[-1], 2.0)))
 LARGE_TILT_LOG_SD = 0.96
 # little usable area: an extra log-sd LOW_TEXTURE_LOG_SD·sqrt(TEXTURED_FULL/valid − 1) below TEXTURED_FULL
 # (uncalibrated widening; the tile bootstrap already widens with fewer pairs)

@@ -138,7 +138,7 @@ def fit_grid(num, pairs, seps, t_len, models, grid: PriorGrid) -> np.ndarray:
     for qi, q in enumerate(grid.q):
         for _ in range(3):
             sig2 = fit_per_footprint(tot_num, tot_pairs, t_len, models, grid.gains(seps, dr0[:, qi]))[0]
-            dr0[:, qi] = dr0_from_tilt_variance(np.maximum(sig2, 0.0), 1.0, float(q), 1.0)
+            dr0[:, qi] = dr0_from_tilt_variance(np.maximum(sig2, 0.0), float(q))
     return dr0
 
 

@@ -79,7 +79,7 @@ def clip_log_sd(dr0: float, frames: int = CLIP_FRAMES) -> float:
 def error_budget(dr0, grid: PriorGrid, tiles_sd, t_len: int, extra: dict) -> ErrorBudget:
     """The interval's terms at the nodes' estimates ``dr0`` (F, Q): the tile bootstrap, the calibrated clip term, the
     widening below the calibrated footprint and beyond the calibrated tilt, and ``extra``."""
-    tilt_rms = np.sqrt(tilt_variance_px2(dr0, 1.0, grid.q[None, :], 1.0))  # per node: λ/(D·ifov) = q px
+    tilt_rms = np.sqrt(tilt_variance_px2(dr0, grid.q[None, :]))  # per node: λ/(D·ifov) = q px
     return ErrorBudget(
         tiles=tiles_sd,
         footprint_below=EXTRAPOLATION_LOG_SD * np.log(np.maximum(GAIN_FOOTPRINT_PX[0] / grid.fs, 1.0)),

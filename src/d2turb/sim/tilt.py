@@ -126,14 +126,15 @@ def layer_tilt_radial_cdf() -> tuple[np.ndarray, np.ndarray]:
 TILT_VARIANCE_COEF = 0.1816  # Z-tilt variance per axis in (λ/D)² (D/r0)^(5/3) rad² (docs/physics.md §2)
 
 
-def tilt_variance_px2(dr0, aperture_m: float, wavelength_m: float, ifov_rad: float):
-    """Z-tilt variance per axis in px²: 0.1816 (λ/D)² (D/r0)^(5/3) / ifov² (docs/physics.md §2)."""
-    return TILT_VARIANCE_COEF * (wavelength_m / (aperture_m * ifov_rad)) ** 2 * np.asarray(dr0, np.float64) ** (5 / 3)
+def tilt_variance_px2(dr0, lambda_over_d_px):
+    """Z-tilt variance per axis in px²: 0.1816 q² (D/r0)^(5/3) with q = λ/(D·ifov) the diffraction angle in pixels
+    (:attr:`Optics.lambda_over_d_px <d2turb.sim.Optics.lambda_over_d_px>`; docs/physics.md §2); only q matters."""
+    return TILT_VARIANCE_COEF * lambda_over_d_px**2 * np.asarray(dr0, np.float64) ** (5 / 3)
 
 
-def dr0_from_tilt_variance(var_px2, aperture_m: float, wavelength_m: float, ifov_rad: float):
-    """Inverse of :func:`tilt_variance_px2`: D/r0 = (σ²·ifov² / (0.1816 (λ/D)²))^(3/5)."""
-    unit = TILT_VARIANCE_COEF * (wavelength_m / (aperture_m * ifov_rad)) ** 2
+def dr0_from_tilt_variance(var_px2, lambda_over_d_px):
+    """Inverse of :func:`tilt_variance_px2`: D/r0 = (σ² / (0.1816 q²))^(3/5), q = λ/(D·ifov) in pixels."""
+    unit = TILT_VARIANCE_COEF * lambda_over_d_px**2
     return (np.clip(np.asarray(var_px2, np.float64), 0, None) / unit) ** (3 / 5)
 
 
