@@ -36,7 +36,7 @@ from d2turb.clip.strength_calib import (
 from d2turb.clip.strength_interval import interval_of
 from d2turb.clip.strength_result import StrengthEstimate, strength_estimate
 from d2turb.sim.params import Optics, as_optics, r0_cn2_theta0
-from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance
+from d2turb.sim.tilt import differential_tilt_covariance, dr0_from_tilt_variance, tilt_variance_px2
 
 
 # ---- the fit ----------------------------------------------------------------------------------------------------
@@ -164,7 +164,8 @@ class Fit:
     """What the fit of one set of structure sums gives (:func:`fit_sums`): D/r0 per node ``dr0`` (F, Q), the sd of
     its log over the tile bootstrap ``tiles_sd`` (F,), and per footprint the weighted residual ``resid`` (F,) and the
     flat index ``best`` (F,) of the best nuisance point, on the nuisance grid ``nuisance_shape`` (V, Dir, B), from
-    clip windows of ``t_len`` frames."""
+    clip windows of ``t_len`` frames; ``tilt_var_px2`` (F, Q): the Z-tilt variance per axis that ``dr0`` gives at
+    each node's λ/(D·ifov)."""
 
     grid: PriorGrid
     dr0: np.ndarray
@@ -173,6 +174,7 @@ class Fit:
     best: np.ndarray
     nuisance_shape: tuple
     t_len: int
+    tilt_var_px2: np.ndarray
 
 
 def fit_sums(num, pairs, series, grid: PriorGrid, bootstrap: int, seed: int, cache: dict) -> Fit:
@@ -188,7 +190,7 @@ def fit_sums(num, pairs, series, grid: PriorGrid, bootstrap: int, seed: int, cac
     gains = grid.gains(seps, dr0[:, int(np.argmin(np.abs(np.log(grid.q / 2.0))))])  # at the central q
     tiles_sd = bootstrap_log_sd(num, pairs, t_len, models, gains, bootstrap, seed)
     _, resid, best = fit_per_footprint(num.sum(0), pairs.sum(0), t_len, models, gains)
-    return Fit(grid, dr0, tiles_sd, resid, best, models.shape[1:4], t_len)
+    return Fit(grid, dr0, tiles_sd, resid, best, models.shape[1:4], t_len, tilt_variance_px2(dr0, grid.q[None, :]))
 
 
 def estimate_from_sums(

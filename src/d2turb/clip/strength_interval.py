@@ -31,7 +31,6 @@ from d2turb.clip.strength_calib import (
 )
 from d2turb.sim.otf import short_exposure_width
 from d2turb.sim.params import Optics
-from d2turb.sim.tilt import tilt_variance_px2
 
 if TYPE_CHECKING:
     from d2turb.clip.strength_fit import Fit, PriorGrid
@@ -76,14 +75,14 @@ def clip_log_sd(dr0: float, frames: int = CLIP_FRAMES) -> float:
     return math.sqrt(var + CLIP_WINDOW_VAR * max(CLIP_FRAMES / int(frames) - 1.0, 0.0))
 
 
-def error_budget(dr0, grid: PriorGrid, tiles_sd, t_len: int, extra: dict) -> ErrorBudget:
-    """The interval's terms at the nodes' estimates ``dr0`` (F, Q): the tile bootstrap, the calibrated clip term, the
-    widening below the calibrated footprint and beyond the calibrated tilt, and ``extra``."""
-    tilt_rms = np.sqrt(tilt_variance_px2(dr0, grid.q[None, :]))  # per node: λ/(D·ifov) = q px
+def error_budget(fit: Fit, extra: dict) -> ErrorBudget:
+    """The interval's terms at the nodes' estimates ``fit.dr0`` (F, Q): the tile bootstrap, the calibrated clip term,
+    the widening below the calibrated footprint and beyond the calibrated tilt, and ``extra``."""
+    tilt_rms = np.sqrt(fit.tilt_var_px2)
     return ErrorBudget(
-        tiles=tiles_sd,
-        footprint_below=EXTRAPOLATION_LOG_SD * np.log(np.maximum(GAIN_FOOTPRINT_PX[0] / grid.fs, 1.0)),
-        clip=np.vectorize(lambda x: clip_log_sd(x, t_len))(dr0),
+        tiles=fit.tiles_sd,
+        footprint_below=EXTRAPOLATION_LOG_SD * np.log(np.maximum(GAIN_FOOTPRINT_PX[0] / fit.grid.fs, 1.0)),
+        clip=np.vectorize(lambda x: clip_log_sd(x, fit.t_len))(fit.dr0),
         large_tilt_lower=LARGE_TILT_LOG_SD * np.log(np.maximum(tilt_rms / CALIBRATED_TILT_RMS_PX, 1.0)),
         extra=dict(extra),
     )
@@ -230,7 +229,7 @@ def interval_of(fit: Fit, optics: Optics, blur: dict | None, extra: dict) -> Int
     """The :class:`Interval` of a :class:`~d2turb.clip.strength_fit.Fit`: its error budget (with the named extra
     log-sds ``extra``), the nodes the fused frame's ``blur`` allows, the point and the unions of the nodes' bounds."""
     grid, dr0 = fit.grid, fit.dr0
-    budget = error_budget(dr0, grid, fit.tiles_sd, fit.t_len, extra)
+    budget = error_budget(fit, extra)
     lo, hi = budget.bounds(dr0)
     allowed, blur_used = blur_allowed(blur, grid, dr0)
     choice = choose_point(grid, fit.resid, allowed)

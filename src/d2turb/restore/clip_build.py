@@ -12,7 +12,8 @@ from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.strength import estimate_words, measure_clip, undetermined_dr0
 from d2turb.defaults import DEFAULT_FUSION, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
-from d2turb.restore.clip_source import Clip, open_clip, rgb_tensor
+from d2turb.io.formats import to_restorer
+from d2turb.restore.clip_source import RGB_FLOAT, Clip, open_clip
 from d2turb.restore.files import RestoreOptions
 from d2turb.restore.single import Restorer
 from d2turb.sim import Optics
@@ -66,12 +67,12 @@ def _clip_head(clip) -> list:
 
 def _measured(clip, optics: Optics) -> dict:
     """``d2turb measure``'s result on the clip's first frames (the same estimates and intervals: what ``restore`` calls
-    measured, ``measure`` measures: on the frames as (3,H,W) RGB, one at a time); D2TurbError where measure refuses,
-    or where D/r0 is not determined (the physics deblur needs it), said in measure's terms: the seeing angle without
-    the camera."""
+    measured, ``measure`` measures: the frames as float RGB, (H,W,3) here as the restorer holds them, the same grey as
+    measure's (3,H,W) tensors); D2TurbError where measure refuses, or where D/r0 is not determined (the physics deblur
+    needs it), said in measure's terms: the seeing angle without the camera."""
     head = _clip_head(clip)
     try:
-        measured = measure_clip(map(rgb_tensor, head), optics, bootstrap=50)
+        measured = measure_clip((to_restorer(f, RGB_FLOAT) for f in head), optics, bootstrap=50)
         if not measured["dr0_determined"]:
             raise D2TurbError(undetermined_dr0(measured))
     except D2TurbError as exc:
