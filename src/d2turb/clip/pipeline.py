@@ -13,7 +13,8 @@ Each frame i is registered to a reference of its own window, in ``passes`` round
    frame i unwarped; R^k_i = mean of the unwarped frames of W(i) (sharper, same geometry);
 3. output t = fusion of the last round's unwarped frames of W(t) (mean; robust: each pixel weighted by its
    agreement with the reference; fba: Fourier burst accumulation, clip/fusion.py); where the frame's own
-   residual stays high (a moving object) the single frame is used instead (no ghost); the fusion is moved from the
+   residual stays high, or the window's frames disagree more than registration explains (a moving object and its
+   trail), the single frame is used instead (no ghost), unwarped by the flow around it; the fusion is moved from the
    canvas to W(t)'s mean camera pose (bicubic; near a jump, that of the frames around t) and where W(t)'s frames do
    not all see the scene (the borders a shake uncovers) frame t itself is used; then deblurred (none, a physics
    Wiener filter, or a model) and the deblur's over- and undershoots limited (``clip.deblur.tone_guard``).
