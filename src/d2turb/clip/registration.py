@@ -169,7 +169,7 @@ def pixel_grid(shape: tuple[int, int]) -> np.ndarray:
 
 def shift_maps(shape: tuple[int, int], dx: float, dy: float) -> np.ndarray:
     """``pixel_grid(shape) + shift_flow(shape, dx, dy)`` equal to the bit, filled axis by axis: (H,W,2) float32 maps
-    of a pure shift for ``cv2.remap`` (1080p: 5 ms against 25 for the flow and the sum)."""
+    of a pure shift for ``cv2.remap`` (1080p: 1.7 ms against 3.1 for the flow and the sum)."""
     h, w = shape
     maps = np.empty((h, w, 2), dtype=np.float32)
     maps[..., 0] = np.arange(w, dtype=np.float32) + np.float32(dx)
