@@ -135,22 +135,27 @@ def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
     unwarps the object's own pixels as the fusion's were (frame t unwarped by its true flow gains +0.9-1.2 dB inside
     the field clips' objects over the input frame; docs/clips_field_oracles.md). Far from any such flow, the median
     of the rest (the frame's global shift)."""
-    flow = np.asarray(bwd_flow_px, np.float32)
+    flow = cv2.multiply(bwd_flow_px, 1.0, dtype=cv2.CV_32F)  # float32 (held as float16), a copy: filled in place
     h, w = share.shape
-    known = (share <= _FILL_KNOWN).astype(np.float32)
+    unknown = share > _FILL_KNOWN
+    if not unknown.any():
+        return flow
+    known = np.float32(1) - unknown.astype(np.float32)
     if not known.any():
-        return flow.copy()
+        return flow
     small = ((w + 3) // 4, (h + 3) // 4)
     k_small = cv2.resize(known, small, interpolation=cv2.INTER_AREA)
     f_small = cv2.resize(flow * known[..., None], small, interpolation=cv2.INTER_AREA)
+    whole = k_small >= 1  # cells of known flow only: their mean flows, whose median is the rest's
+    rest = np.median(f_small[whole] if whole.any() else flow[known > 0], axis=0).astype(np.float32)
     sigma = _FILL_SIGMA_PX / 4
     k_blur = cv2.GaussianBlur(k_small, (0, 0), sigma)
     f_blur = cv2.GaussianBlur(f_small, (0, 0), sigma)
-    rest = np.median(flow[known > 0], axis=0).astype(np.float32)
     weight = np.clip(k_blur / _FILL_MIN_WEIGHT, 0, 1)[..., None]  # → the median where no known flow is near
     filled_small = weight * f_blur / np.maximum(k_blur, 1e-6)[..., None] + (1 - weight) * rest
     filled = cv2.resize(filled_small, (w, h), interpolation=cv2.INTER_LINEAR)
-    return np.where(known[..., None] > 0, flow, filled)
+    flow[unknown] = filled[unknown]
+    return flow
 
 
 def spread_share(variance: np.ndarray, mean: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
