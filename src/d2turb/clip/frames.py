@@ -71,6 +71,7 @@ class HeldFrame:
     prepared: object = None  # what the fusion prepared from the last round's image (sharpest: its coefficients)
     coarse: object = None  # fusion "sharpest": coarse grey of the image the last round's reference averages
     canvas_gray: np.ndarray | None = None  # (H,W,1) uint8: the grey placed on the canvas (``stabilise``), else None
+    spread_grey: np.ndarray | None = None  # the last round's grey as ``ClipState.spread`` sums it (made once)
 
     @classmethod
     def of(cls, item) -> HeldFrame:

@@ -140,12 +140,12 @@ def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
     unknown = share > _FILL_KNOWN
     if not unknown.any():
         return flow
-    known = np.float32(1) - unknown.astype(np.float32)
+    known = (share <= _FILL_KNOWN).astype(np.float32)
     if not known.any():
         return flow
     small = ((w + 3) // 4, (h + 3) // 4)
     k_small = cv2.resize(known, small, interpolation=cv2.INTER_AREA)
-    f_small = cv2.resize(flow * known[..., None], small, interpolation=cv2.INTER_AREA)
+    f_small = cv2.resize(cv2.multiply(flow, cv2.merge([known, known])), small, interpolation=cv2.INTER_AREA)
     whole = k_small >= 1  # cells of known flow only: their mean flows, whose median is the rest's
     rest = np.median(f_small[whole] if whole.any() else flow[known > 0], axis=0).astype(np.float32)
     sigma = _FILL_SIGMA_PX / 4
@@ -154,7 +154,7 @@ def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
     weight = np.clip(k_blur / _FILL_MIN_WEIGHT, 0, 1)[..., None]  # → the median where no known flow is near
     filled_small = weight * f_blur / np.maximum(k_blur, 1e-6)[..., None] + (1 - weight) * rest
     filled = cv2.resize(filled_small, (w, h), interpolation=cv2.INTER_LINEAR)
-    flow[unknown] = filled[unknown]
+    np.copyto(flow, filled, where=unknown[..., None])
     return flow
 
 

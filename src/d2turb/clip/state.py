@@ -92,12 +92,15 @@ class ClipState:
         last = self.passes
 
         def grey(j):
-            image = as_float(self.frames[j].warped[last - 1])
-            h, w = image.shape[:2]
-            if h * w >= 1 << 20:
-                image = cv2.resize(image, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
-                image = image.reshape(image.shape[:2] + (-1,))
-            return channel_mean(image)
+            frame = self.frames[j]
+            if frame.spread_grey is None:
+                image = as_float(frame.warped[last - 1])
+                h, w = image.shape[:2]
+                if h * w >= 1 << 20:
+                    image = cv2.resize(image, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+                    image = image.reshape(image.shape[:2] + (-1,))
+                frame.spread_grey = channel_mean(image)
+            return frame.spread_grey
 
         lo, hi, s1 = self._window_sum(index, "grey", grey)
         _, _, s2 = self._window_sum(index, "grey²", lambda j: np.square(grey(j)))
@@ -154,7 +157,7 @@ class ClipState:
                 if j < readers[level] and len(frame.warped) >= level:
                     frame.warped[level - 1] = None
                     if level == passes:
-                        frame.prepared = None
+                        frame.prepared = frame.spread_grey = None
             if frame.raw is None and len(frame.warped) == passes and all(w is None for w in frame.warped):
                 del frames[j]
         self.buffered = sum((f.raw is not None) + sum(w is not None for w in f.warped) for f in frames.values())
