@@ -111,13 +111,6 @@ class OutputPose:
     common: tuple[int, int, int, int]
     frame_shift: tuple[float, float]  # the frame's own pose on the canvas
 
-    def frame_at_output(self, raw: np.ndarray) -> np.ndarray:
-        """The frame (H,W,C) as held, resampled to the output's pose: ``frame(y + g − pose)`` (bilinear)."""
-        dx, dy = self.frame_shift[0] - self.shift[0], self.frame_shift[1] - self.shift[1]
-        if abs(dx) < 1e-3 and abs(dy) < 1e-3:
-            return raw
-        return shifted(raw, dx, dy)
-
     def apply(self, fused: np.ndarray, share: np.ndarray, bwd_flow_px: np.ndarray):
         """(fused (H,W,C), moving-object share (H,W), the frame's backward flow (H,W,2) px) on the canvas → the same at
         the output's pose."""

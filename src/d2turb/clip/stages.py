@@ -101,8 +101,10 @@ def finish(
     index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None, spread=None
 ) -> ClipFrame:
     """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``: a
-    Future of it, or None to compute it here against ``against``, or the fusion when None), the frame's own images
-    and the output's camera pose (a :class:`~d2turb.clip.camera.OutputPose`, None when the camera is not followed)."""
+    Future of it, or None to compute it here against ``against``, or the fusion when None; with ``spread``, the
+    window's (variance, mean) of :meth:`ClipState.spread`, the larger of it and :func:`spread_share`), the frame's own
+    images and the output's camera pose (a :class:`~d2turb.clip.camera.OutputPose`, None when the camera is not
+    followed)."""
     fused = fused if isinstance(fused, np.ndarray) else fused()
     blend = np.zeros(fused.shape[:2], dtype=np.float32)
     if fallback:
@@ -112,9 +114,9 @@ def finish(
     if pose is not None:
         fused, blend, bwd_flow_px = pose.apply(fused, blend, bwd_flow_px)
     rows = np.flatnonzero(blend.any(axis=1))
-    if rows.size:  # the frame's own pixels registered by its flow around them (a moving object's own is not the air's)
-        raw = remap(raw, object_flow(bwd_flow_px, blend), consume=True)
     if rows.size:  # fused + blend·(image − fused) on the rows the fallback touches (fused is this output's own)
+        # the frame's own pixels registered by the flow around them (a moving object's own flow is not the air's)
+        raw = remap(raw, object_flow(bwd_flow_px, blend), consume=True)
         part = slice(rows[0], rows[-1] + 1)
         step = np.subtract(image_of(raw[part]), fused[part])
         step *= blend[part, :, None]
