@@ -16,12 +16,12 @@ from d2turb.clip.deblur import (
     LAPLACIAN_BALANCE_AT_2,
     default_balance,
     fusion_prior,
-    one_torch_thread,
     padded_spectra,
     wiener_gain,
     wiener_padding,
 )
 from d2turb.clip.fusion import SHARPEST_DR0_SCALE
+from d2turb.device import one_torch_thread
 from d2turb.errors import D2TurbError
 
 

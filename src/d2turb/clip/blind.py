@@ -29,7 +29,8 @@ from d2turb.clip.blur import (
     ringing_index,
 )
 from d2turb.clip.blur_net import PATCH_PX, TILT_SPREAD_FLOOR_PX, estimate_blur_params, load_blur_net, tilt_spread
-from d2turb.clip.deblur import PhysicsDeblur, fusion_prior, one_torch_thread, padded_spectra
+from d2turb.clip.deblur import PhysicsDeblur, fusion_prior, padded_spectra
+from d2turb.device import one_torch_thread
 from d2turb.errors import D2TurbError
 from d2turb.sim.otf import short_exposure_width, turbulence_otf
 
@@ -111,7 +112,7 @@ class BlindDeblur:
             self.bwd_flow_px, self.moving = frame.bwd_flow_px, frame.fallback
 
     def decide(self, fused: torch.Tensor) -> None:
-        with one_torch_thread():  # a few FFTs and a tiny network, beside the registration (clip.deblur)
+        with one_torch_thread():  # a few FFTs and a tiny network, beside the registration (d2turb.device)
             self._decide(fused)
 
     def _decide(self, fused: torch.Tensor) -> None:

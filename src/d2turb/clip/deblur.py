@@ -4,7 +4,6 @@ applies either after fusion."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 from typing import Protocol, runtime_checkable
 
@@ -14,6 +13,7 @@ import torch
 
 from d2turb.clip.fusion import fusion_class
 from d2turb.defaults import NYQUIST_LAMBDA_OVER_D_PX
+from d2turb.device import one_torch_thread
 from d2turb.errors import D2TurbError
 from d2turb.sim.camera import linear_to_srgb, srgb_to_linear
 from d2turb.sim.otf import image_otf, pixel_frequency_grid
@@ -35,24 +35,6 @@ TONE_HEADROOM = 0.5
 # there, and no pixel is moved into that band from outside it: deep shadows and highlights hold noise and clipping,
 # not detail (the test3 clip's black area, the airport clip's fuselage; issue 49)
 TONE_KNEE = 12 / 255
-
-
-@contextlib.contextmanager
-def one_torch_thread():
-    """torch's intra-op threads at one in the calling thread while the block runs, then as they were. The physical
-    deblurs are a few FFTs and elementwise passes a frame, run in the clip room's deblur thread beside the
-    registration: a second OpenMP thread only adds its wake-ups (a 48-frame 256² clip restore: 13 % less CPU, 11 % less
-    wall time at load 11-13, benchmarks/RESULTS.md); the outputs are the same to the bit. torch keeps the count per
-    thread (OpenMP's and MKL's), so the other threads keep theirs."""
-    threads = torch.get_num_threads()
-    if threads == 1:
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _checked(prior: str) -> str:

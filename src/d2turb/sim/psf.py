@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
-import threading
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from d2turb.device import one_torch_thread
 from d2turb.sim.fields import fast_size
 from d2turb.sim.optics import Optics
 from d2turb.sim.zernike import zernike
@@ -117,46 +116,17 @@ def _chunk_floats(device: torch.device) -> int:
     return 1 << 26 if device.type != "cpu" else 1 << 19
 
 
-_THREADS_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def _one_thread(device: torch.device):
-    """Run the block on one torch thread (CPU only): torch's thread count is process-wide, so it is lowered
-    only for the block and restored on the way out; the lock keeps two threads from saving and restoring
-    each other's value.
-
-    Used for the PCA of the PSFs, for two reasons. (1) Its BLAS products have a long inner dimension (w² up to
-    ~10⁴), and MKL splits that dimension differently for different thread counts: the Gram matrix of 384
-    PSFs of 65² differs in the last bits between 1 and 2 threads, and so would every blurred image, so a
-    make-dataset resumed with another thread count (a busy machine, another ``OMP_NUM_THREADS``) would not
-    be byte-identical. On one thread the result depends on the inputs only. (2) Multi-threaded LAPACK eigh
-    of a small matrix on a busy CPU takes 10× longer and stalls for seconds (384×384 on 2 shared cores:
-    0.08 s on one thread, 0.75 s median / 7 s worst on two).
-    """
-    if device.type != "cpu":
-        yield
-        return
-    with _THREADS_LOCK:
-        threads = torch.get_num_threads()
-        if threads == 1:
-            yield
-            return
-        torch.set_num_threads(1)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(threads)
-
-
 def pca_basis(psfs: torch.Tensor, max_components: int = 10, explained: float = 0.99, max_fit: int = 384):
     """PSFs (N, w, w) → basis (K+1, w, w) [mean, components summing to 0] and weights (N, K).
 
     The principal components are fitted on at most ``max_fit`` evenly strided PSFs (eigh of their Gram
     matrix), then every PSF is projected on them. On a CPU it runs on one thread, so the result does not
-    depend on the thread count (:func:`_one_thread`).
+    depend on the thread count (:func:`d2turb.device.one_torch_thread`): MKL splits the Gram matrix's long inner
+    dimension (w² up to ~10⁴) by thread count, and a make-dataset resumed on another count would not be
+    byte-identical; a multi-threaded eigh of a small matrix also stalls on a busy CPU (384×384 on 2 shared cores:
+    0.08 s on one thread, 0.75 s median / 7 s worst on two).
     """
-    with _one_thread(psfs.device):
+    with one_torch_thread(psfs.device):
         return _pca_basis(psfs, max_components, explained, max_fit)
 
 
@@ -203,7 +173,7 @@ def _cmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     multiplied on 1, 2 or 4 threads differed in the last bits. On one thread the split is always the same; this
     memory-bound product is also faster there on a busy machine (300² × 6 planes: 1.4 ms on one thread, 15 ms on
     two with the other core loaded)."""
-    with _one_thread(a.device):
+    with one_torch_thread(a.device):
         return a * b
 
 
