@@ -300,6 +300,12 @@ def clip_rows(item: dict, record: dict, temporal: int, stride: int, fps: float) 
     return means, info
 
 
+def _mean_se(values: list[float]) -> tuple[float, float]:
+    """Mean and its standard error (nan for a single value)."""
+    se = float(np.std(values, ddof=1) / math.sqrt(len(values))) if len(values) > 1 else float("nan")
+    return float(np.mean(values)), se
+
+
 def summarise(samples: list[dict]) -> dict:
     """Per bin and row: mean ± standard error over the clips of the row's gain over the input (dB)."""
     out = {}
@@ -314,8 +320,8 @@ def summarise(samples: list[dict]) -> dict:
                 g = [c["rows"][row][k] - c["rows"]["input"][k] for c in clips if k in c["rows"][row]]
                 a = [c["rows"][row][k] for c in clips if k in c["rows"][row]]
                 if g:
-                    se = float(np.std(g, ddof=1) / math.sqrt(len(g))) if len(g) > 1 else float("nan")
-                    out[b][row][k] = {"gain": float(np.mean(g)), "se": se, "abs": float(np.mean(a)), "n": len(g)}
+                    mean, se = _mean_se(g)
+                    out[b][row][k] = {"gain": mean, "se": se, "abs": float(np.mean(a)), "n": len(g)}
     return out
 
 
@@ -356,8 +362,8 @@ def causes(samples: list[dict]) -> dict:
         for name, (ra, ka), (rb, kb) in CAUSES:
             d = [c["rows"][ra][ka] - c["rows"][rb][kb] for c in clips if ka in c["rows"][ra] and kb in c["rows"][rb]]
             if d:
-                se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else float("nan")
-                out[b][name] = {"mean": float(np.mean(d)), "se": se, "n": len(d)}
+                mean, se = _mean_se(d)
+                out[b][name] = {"mean": mean, "se": se, "n": len(d)}
     return out
 
 
