@@ -28,6 +28,10 @@ _POSE_HALF = 2
 # left the window's by 3-6 px: followed, two of them lost 1.1 dB; the field validation clips' mean gain is the same
 # with 6 (+0.37 / +1.49 / +0.52 dB against +0.39 / +1.30 / +0.68 with 3: their jumps and pans reach 5-13 px)
 _POSE_OUTLIER, _POSE_MIN_PX = 3.0, 6.0
+# ... and the output stays within _POSE_FROM_OWN_PX of its own frame's pose on each axis: a window that straddles a
+# jump (or two) put the output 5-9 px from its frame's view, a frame whose truth it no longer matched (field
+# validation clips 16 and 17: 16-19 dB against the input frame's 21-24 on those frames, offset removed)
+_POSE_FROM_OWN_PX = 3.0
 # frames are placed at this size: the median of a DIS flow there, not phase correlation, which a dark square moving
 # 8 px a frame over a blurred scene dragged along (its poses wandered by 100 px in 12 frames)
 _PLACE_SIDE_PX = 256
@@ -88,6 +92,8 @@ class CameraTrack:
         spread = 1.4826 * np.median(steps, axis=0) / np.sqrt(2)
         if np.any(np.abs(near - pose) > np.maximum(_POSE_OUTLIER * spread, _POSE_MIN_PX)):
             pose = near  # the camera moved (a jump): the frames around the output, not the window
+        own = np.array(self.shifts.get(index, self.poses[index]))
+        pose = own + np.clip(pose - own, -_POSE_FROM_OWN_PX, _POSE_FROM_OWN_PX)  # never far from the frame's own view
         h, w = shape
         # canvas x is seen by frame j where 0 <= x + g_j <= w - 1: the window's common view; an edge replicated by
         # less than _REPLICATE_PX (the turbulence's own global jitter) is taken as seen

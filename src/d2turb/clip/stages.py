@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from d2turb.clip.frames import STORE_DTYPE, ClipFrame, as_float, channel_mean, image_of
-from d2turb.clip.registration import global_shift_px, remap, shift_flow, to_gray_u8
-from d2turb.clip.state import ClipState
+from d2turb.clip.registration import global_shift_px, pixel_grid, remap, shift_flow, to_gray_u8
+from d2turb.clip.state import OBJECT_REACH, ClipState
 
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
 _FALLBACK_LOW, _FALLBACK_HIGH = 3.0, 6.0  # in units of the frame's robust residual scale: blend from → to
@@ -30,6 +30,13 @@ _SPREAD_K = 5.0
 # ... and never below a spread of 4 grey levels (a clean clip's registered frames differ by interpolation alone: on
 # it every edge would stand out)
 _SPREAD_FLOOR = (4.0 / 255) ** 2
+# object_average: the neighbours t ± 1 .. t ± _OBJECT_REACH averaged into the frame where it stands in, each weighted
+# by exp(−(e / (_OBJECT_AGREE · s))²), e its box-averaged difference from frame t after alignment, s the median e
+_OBJECT_AGREE = 2.0
+_OBJECT_CENTRE_SIGMA = 2.0  # px: the smoothing of the mean-geometry correction
+_OBJECT_FILL_REACH = 96  # px: a neighbour's flow is filled over the object's box grown by this (3σ of the fill)
+_OBJECT_BOX = 7  # px: the disagreement is averaged over this box
+_OBJECT_MARGIN = 16  # px: the aligned crop reaches this far beyond the share
 
 
 def _now(call: Callable):
@@ -82,6 +89,10 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
     pose = None
     if state.camera is not None:
         pose = state.camera.output_pose(index, list(window), frame.gray.shape)
+    neighbours = None
+    if fallback and OBJECT_REACH > 0:  # frames t ± 1 .. t ± OBJECT_REACH of the window: raw and last flow
+        near = [(j, window[j]) for j in window if 0 < abs(j - index) <= OBJECT_REACH]
+        neighbours = [(j - index, f.raw, f.bwd_flows_px[-1]) for j, f in near if f.raw is not None and f.bwd_flows_px]
     return functools.partial(
         finish,
         index,
@@ -94,11 +105,22 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
         share,
         pose,
         spread,
+        neighbours,
     )
 
 
 def finish(
-    index: int, fused, against, warped, raw, bwd_flow_px, fallback: bool, share=None, pose=None, spread=None
+    index: int,
+    fused,
+    against,
+    warped,
+    raw,
+    bwd_flow_px,
+    fallback: bool,
+    share=None,
+    pose=None,
+    spread=None,
+    neighbours=None,
 ) -> ClipFrame:
     """The output frame from its fusion (an array, or a call that fuses), the moving-object fallback (``share``: a
     Future of it, or None to compute it here against ``against``, or the fusion when None; with ``spread``, the
@@ -118,7 +140,17 @@ def finish(
         # the frame's own pixels registered by the flow around them (a moving object's own flow is not the air's)
         raw = remap(raw, object_flow(bwd_flow_px, blend), consume=True)
         part = slice(rows[0], rows[-1] + 1)
-        step = np.subtract(image_of(raw[part]), fused[part])
+        own = image_of(raw[part])
+        box = _object_box(blend, part) if neighbours else None
+        if box is not None:  # the frames near t unwarped as it is, aligned onto its pixels, averaged where they agree
+            y0, y1, x0, x1 = box
+            shift = (0.0, 0.0) if pose is None else pose.shift
+            near = [_unwarped(r, f, shift, blend, box) for _, r, f in neighbours]
+            inside = (slice(y0 - part.start, y1 - part.start), slice(x0, x1))
+            own[inside] = object_average(
+                np.ascontiguousarray(own[inside]), near, blend[y0:y1, x0:x1], [d for d, _, _ in neighbours]
+            )
+        step = np.subtract(own, fused[part])
         step *= blend[part, :, None]
         fused[part] += step
     # (3,H,W) as a view of the (H,W,3) array; a deblur gets a contiguous copy (ClipRestorer._deblur_jobs)
@@ -158,6 +190,103 @@ def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
     filled = cv2.resize(filled_small, (w, h), interpolation=cv2.INTER_LINEAR)
     np.copyto(flow, filled, where=unknown[..., None])
     return flow
+
+
+def _object_box(share: np.ndarray, rows: slice) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1): the bounding box of ``share`` > ``_FILL_KNOWN`` grown by ``_OBJECT_MARGIN``, within ``rows``
+    (None: none, or too small to register)."""
+    ys = np.flatnonzero((share > _FILL_KNOWN).any(axis=1))
+    if ys.size == 0:
+        return None
+    xs = np.flatnonzero((share[ys[0] : ys[-1] + 1] > _FILL_KNOWN).any(axis=0))
+    w = share.shape[1]
+    m = _OBJECT_MARGIN
+    y0, y1 = max(rows.start, int(ys[0]) - m), min(rows.stop, int(ys[-1]) + m + 1)
+    x0, x1 = max(0, int(xs[0]) - m), min(w, int(xs[-1]) + m + 1)
+    return None if min(y1 - y0, x1 - x0) < 16 else (y0, y1, x0, x1)
+
+
+def _unwarped(raw: np.ndarray, bwd_flow_px: np.ndarray, shift: tuple[float, float], share, box) -> np.ndarray:
+    """A neighbour's raw frame unwarped as frame t's own pixels are, inside ``box`` (y0, y1, x0, x1): its flow onto
+    the canvas moved to the output's pose (``output(y) = canvas(y − shift)``, flow(y − shift) − shift), filled where
+    frame t stands in (``share``) by :func:`object_flow` over the box grown by ``_OBJECT_FILL_REACH`` (the fill reads
+    the flow within a few σ of the object); float32 (h,w,C). Only that part of the frame is computed."""
+    h, w = share.shape
+    y0, y1, x0, x1 = box
+    r = _OBJECT_FILL_REACH
+    ry0, ry1, rx0, rx1 = max(0, y0 - r), min(h, y1 + r), max(0, x0 - r), min(w, x1 + r)
+    dx, dy = shift
+    sy0, sy1 = max(0, math.floor(ry0 - dy) - 2), min(h, math.ceil(ry1 - dy) + 2)
+    sx0, sx1 = max(0, math.floor(rx0 - dx) - 2), min(w, math.ceil(rx1 - dx) + 2)
+    src = cv2.multiply(np.ascontiguousarray(bwd_flow_px[sy0:sy1, sx0:sx1]), 1.0, dtype=cv2.CV_32F)
+    m = np.array([[1.0, 0.0, rx0 - dx - sx0], [0.0, 1.0, ry0 - dy - sy0]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    flow = cv2.warpAffine(src, m, (rx1 - rx0, ry1 - ry0), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    flow[..., 0] -= np.float32(dx)
+    flow[..., 1] -= np.float32(dy)
+    flow = object_flow(flow, share[ry0:ry1, rx0:rx1])[y0 - ry0 : y1 - ry0, x0 - rx0 : x1 - rx0]
+    maps = flow + pixel_grid(flow.shape[:2])
+    maps[..., 0] += np.float32(x0)
+    maps[..., 1] += np.float32(y0)
+    out = cv2.remap(raw, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return image_of(out.reshape(flow.shape[:2] + raw.shape[2:]))
+
+
+def object_average(
+    base: np.ndarray, neighbours: list[np.ndarray], share: np.ndarray, offsets: list[int] | None = None
+) -> np.ndarray:
+    """Frame t's own pixels ``base`` (h,w,C) float32 around a moving object (where it stands in for the fusion,
+    ``share`` > 0: the object keeps its own motion, which the fusion's registration does not follow) averaged with
+    its neighbours' (each (h,w,C), unwarped as frame t is, at frame offsets ``offsets``): each aligned onto frame t by
+    a dense flow (DIS) and weighted per pixel by how well it then agrees with frame t (exp(−(e/(k·s))²), e its
+    box-averaged difference, s the median of e where ``share`` > 0.5, k ``_OBJECT_AGREE``), so that a neighbour the
+    flow did not align (an occlusion, an object entering) falls out. With ``offsets`` the result is then moved to the
+    frames' mean geometry: per pixel the flows f_j onto the neighbours are fitted by (j − t)·v + c (weighted least
+    squares, frame t's own f = 0 with weight 1; v the object's motion, c the mean tilt less frame t's), and the
+    average is read at x − c (c smoothed by a Gaussian of σ ``_OBJECT_CENTRE_SIGMA``). The single frame's noise and
+    small-scale turbulent distortion average out (frame t unwarped by its true flow gains +0.9–1.2 dB inside the field
+    clips' objects: docs/clips_field_oracles.md). Returns a new (h,w,C) float32 array."""
+    base = np.ascontiguousarray(base, dtype=np.float32)
+    base_gray = to_gray_u8(base)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setUseMeanNormalization(True)  # the frames' brightness flickers (scintillation, exposure)
+    aligned, errors, flows = [], [], []
+    for n in neighbours:
+        n = np.ascontiguousarray(n)
+        flow = dis.calc(base_gray, to_gray_u8(n), None)
+        flows.append(flow)
+        a = remap(n, flow)
+        aligned.append(a)
+        errors.append(cv2.blur(channel_mean(cv2.absdiff(a, base)), (_OBJECT_BOX, _OBJECT_BOX)))
+    if not aligned:
+        return base.copy()
+    inside = share > 0.5
+    pool = np.concatenate([e[inside] if inside.any() else e.ravel() for e in errors])
+    scale = max(float(np.median(pool)), 1.0 / 255) * _OBJECT_AGREE
+    total = base.copy()
+    s0 = np.ones(base.shape[:2], np.float32)  # Σ w_j, frame t's weight 1 included
+    s1, s2 = np.zeros_like(s0), np.zeros_like(s0)  # Σ w_j·d_j, Σ w_j·d_j²
+    f0 = np.zeros(base.shape[:2] + (2,), np.float32)  # Σ w_j·f_j
+    f1 = np.zeros_like(f0)  # Σ w_j·d_j·f_j
+    for k, (a, e, f) in enumerate(zip(aligned, errors, flows)):
+        wj = np.exp(-np.square(e / scale)).astype(np.float32)
+        total += a * wj[..., None]
+        s0 += wj
+        if offsets is not None:
+            d = np.float32(offsets[k])
+            s1 += wj * d
+            s2 += wj * d * d
+            f0 += f * wj[..., None]
+            f1 += f * (wj * d)[..., None]
+    total /= s0[..., None]
+    if offsets is None:
+        return total
+    det = s0 * s2 - s1 * s1
+    ok = det > 1e-3  # the offsets spread: a line through them (else no correction)
+    c = (s2[..., None] * f0 - s1[..., None] * f1) / np.where(ok, det, 1)[..., None]
+    c[~ok] = 0
+    c = cv2.GaussianBlur(c, (0, 0), _OBJECT_CENTRE_SIGMA)
+    return remap(total, np.negative(c, out=c), consume=True)
 
 
 def spread_share(variance: np.ndarray, mean: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -16,6 +16,9 @@ from d2turb.clip.registration import DenseFlow, check_registrable
 from d2turb.errors import D2TurbError
 
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
+# an output's moving-object pixels also read the raw frames and last flows of this many frames before it
+# (stages.object_average): they are held that much longer
+OBJECT_REACH = 4
 
 
 class ClipState:
@@ -144,13 +147,13 @@ class ClipState:
                 if key in self.sums:
                     first = min(first, self.sums[key][0])
             if level == 0:
-                first = min(first, emitted, done[passes])
+                first = min(first, emitted - OBJECT_REACH, done[passes])
             readers.append(min(first, guard))
         frames = self.frames
         for j in [j for j in frames if j < max(*readers, emitted)]:
             frame = frames[j]
-            if j < emitted:
-                frame.bwd_flows_px = []  # read by its next round and its own output only (1080p: 16.6 MB a frame)
+            if j < emitted - OBJECT_REACH:  # read by its next round, its own output and the next outputs' objects
+                frame.bwd_flows_px = []  # (1080p: 8.3 MB a frame)
             if j < readers[0]:
                 frame.raw = None
             for level in range(1, passes + 1):
