@@ -109,9 +109,12 @@ class DenseFlow:
 
     Args:
         preset: one of ``DIS_PRESETS`` ("fast", "medium", "fine").
+        coarser: pyramid levels above the preset's finest scale where the search stops (0: the preset; 1: the flow
+            at half the preset's resolution, upsampled by DIS: about a third of the time at 1080p).
     """
 
     preset: str = "medium"
+    coarser: int = 0
 
     def __post_init__(self):
         if self.preset not in DIS_PRESETS:
@@ -119,7 +122,7 @@ class DenseFlow:
         cv2.setNumThreads(usable_cores())
         s = DIS_PRESETS[self.preset]
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        dis.setFinestScale(s["finest_scale"])
+        dis.setFinestScale(s["finest_scale"] + self.coarser)
         dis.setPatchSize(s["patch_size"])
         dis.setPatchStride(s["patch_stride"])
         dis.setGradientDescentIterations(s["grad_descent_iter"])

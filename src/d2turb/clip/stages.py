@@ -55,7 +55,7 @@ def register(state: ClipState, index: int, k: int, submit: Callable = _now) -> N
         )
     else:
         init = frame.bwd_flows_px[-1]
-    bwd_flow_px = state.flow_solver(ref_gray, frame.gray, init)
+    bwd_flow_px = state.flow_solver_for(k)(ref_gray, frame.gray, init)
     # held as float16 (1080p: 8.3 MB instead of 16.6 a frame, up to two windows of them; 0.004 px resolution below
     # 8 px): it starts the next round's search and becomes the output's bwd_flow_px (float32 again)
     frame.bwd_flows_px = [cv2.multiply(bwd_flow_px, 1.0, dtype=cv2.CV_16F)]  # as numpy's astype, in a third of its time

@@ -16,6 +16,11 @@ from d2turb.clip.registration import DenseFlow, check_registrable
 from d2turb.errors import D2TurbError
 
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
+# registration rounds before the last, on frames of >= 1 MP, stop DIS's search this many pyramid levels above the
+# preset's finest (they only start the last round's search and make its reference). 1080p "fast": 44 against 125 ms a
+# call (one thread); simulated 1080p clips (an upscaled sunhays_outdoor scene at D/r0 2, 3, 4, 24 frames, offset
+# removed, benchmarks/RESULTS.md 2026-12-08): restored -0.04 to +0.10 dB, fused -0.00 to +0.03 dB
+EARLY_ROUND_COARSER, EARLY_ROUND_MIN_PIXELS = 1, 1 << 20
 # an output's moving-object pixels also read the raw frames and last flows of this many frames before it
 # (stages.object_average): they are held that much longer
 OBJECT_REACH = 4
@@ -36,6 +41,7 @@ class ClipState:
         self.length: int | None = None
         self.shape: tuple | None = None
         self.flow_solver: DenseFlow | None = None  # the dense-flow solver, made at the first frame
+        self.early_solver: DenseFlow | None = None  # ... of the rounds before the last (see flow_solver_for)
         self.camera = CameraTrack(temporal) if stabilise else None
         self.sums: dict = {}  # level (or "grey", "grey²": spread) → (lo, hi, running sum, updates since recomputed)
         self.buffered = 0
@@ -56,6 +62,9 @@ class ClipState:
             )
         if self.flow_solver is None:
             self.flow_solver = DenseFlow(self.preset)
+            h, w = frame.raw.shape[:2]
+            large = h * w >= EARLY_ROUND_MIN_PIXELS
+            self.early_solver = DenseFlow(self.preset, EARLY_ROUND_COARSER) if large else self.flow_solver
         self.frames[index] = frame
         if self.camera is not None:
             frame.canvas_gray = self.camera.place(index, frame.gray)
@@ -66,6 +75,11 @@ class ClipState:
         self.length = self.done[0]
         if self.length < 2:
             raise D2TurbError(f"a clip needs at least 2 frames, got {self.length}")
+
+    def flow_solver_for(self, k: int) -> DenseFlow:
+        """The dense-flow solver of registration round ``k``: the last round's at the preset's resolution; on frames of
+        >= 1 MP the rounds before it ``EARLY_ROUND_COARSER`` levels coarser (they start the last round's search)."""
+        return self.flow_solver if k >= self.passes else self.early_solver
 
     # -- windows -------------------------------------------------------------------------------------------------
     def window_end(self, index: int) -> int:

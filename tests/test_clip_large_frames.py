@@ -1,0 +1,69 @@
+"""The clip room's rules for large frames (>= 1 MP, issue 49 acceptance 5): the registration rounds before the last
+run DIS one pyramid level coarser (``ClipState.flow_solver_for``), and that coarser flow still recovers a known
+smooth warp (the truth: the warp's own inverse)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from d2turb.clip.fusion import make_fusion
+from d2turb.clip.registration import DIS_PRESETS, DenseFlow
+from d2turb.clip.state import EARLY_ROUND_COARSER, ClipState
+
+
+def _scene(n: int, seed: int = 0) -> np.ndarray:
+    """A grey scene with structure at several scales, (n, n) uint8."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((n, n), np.float32)
+    for sigma, weight in ((1.5, 0.5), (4, 1.0), (12, 1.5)):
+        img += weight * cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), sigma) * sigma
+    img = (img - img.min()) / (img.max() - img.min())
+    return np.rint(img * 255).astype(np.uint8)
+
+
+def _smooth_field(rng, n: int, sigma: float, rms: float) -> np.ndarray:
+    """A smooth random displacement field (n, n, 2) of about ``rms`` px per axis."""
+    f = np.stack([ndimage.gaussian_filter(rng.standard_normal((n, n)), sigma, mode="wrap") for _ in range(2)], -1)
+    return (f * rms / f.std()).astype(np.float32)
+
+
+def test_a_coarser_dis_recovers_a_smooth_warp():
+    """Frame = img(x + Δ(x)), Δ smooth over ~25 px (2 px rms): the flow of DIS stopped one level above "fast"'s
+    finest scale is the inverse of Δ to within a quarter of its size, as the full-resolution one is."""
+    rng = np.random.default_rng(3)
+    n = 256
+    img = _scene(n)
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    inner = (slice(16, -16), slice(16, -16))
+    for coarser in (0, EARLY_ROUND_COARSER):
+        errs, sizes = [], []
+        for _ in range(3):
+            delta = _smooth_field(rng, n, 25, 2.0)
+            frame = ndimage.map_coordinates(img.astype(np.float64), [yy + delta[..., 1], xx + delta[..., 0]], order=3)
+            frame = np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+            est = DenseFlow("fast", coarser)(img, frame)  # frame(x + est(x)) ≈ img(x)
+            back = [yy - delta[..., 1], xx - delta[..., 0]]  # est(x) = −Δ(x + est(x)) ≈ −Δ(x − Δ(x))
+            inv = -np.stack([ndimage.map_coordinates(delta[..., c], back, order=1) for c in (0, 1)], -1)
+            errs.append(np.linalg.norm(est - inv, axis=-1)[inner].mean())
+            sizes.append(np.linalg.norm(inv, axis=-1)[inner].mean())
+        assert np.mean(errs) < 0.25 * np.mean(sizes), (coarser, errs, sizes)
+
+
+def _state_after_one_frame(h: int, w: int, passes: int = 2) -> ClipState:
+    state = ClipState(temporal=4, passes=passes, fusion=make_fusion("mean"), preset="fast", stabilise=False)
+    state.hold(np.zeros((h, w, 3), np.uint8))
+    return state
+
+
+def test_early_rounds_of_large_frames_stop_one_level_coarser():
+    finest = DIS_PRESETS["fast"]["finest_scale"]
+    large = _state_after_one_frame(1024, 1024)  # 1 MP
+    assert large.flow_solver_for(1)._dis.getFinestScale() == finest + EARLY_ROUND_COARSER
+    assert large.flow_solver_for(2)._dis.getFinestScale() == finest  # the last round: the preset's
+    small = _state_after_one_frame(1000, 1000)  # under 1 MP: every round the preset's
+    assert small.flow_solver_for(1) is small.flow_solver_for(2)
+    assert small.flow_solver_for(1)._dis.getFinestScale() == finest
+    single = _state_after_one_frame(1024, 1024, passes=1)  # one round is the last round
+    assert single.flow_solver_for(1)._dis.getFinestScale() == finest
