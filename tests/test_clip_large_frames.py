@@ -1,13 +1,16 @@
 """The clip room's rules for large frames (>= 1 MP, issue 49 acceptance 5): the registration rounds before the last
 run DIS one pyramid level coarser (``ClipState.flow_solver_for``), and that coarser flow still recovers a known
-smooth warp (the truth: the warp's own inverse)."""
+smooth warp (the truth: the warp's own inverse); the physics Wiener filter runs on the luma alone (checked against
+the per-channel filter on grey frames and against a frame of constant luma)."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 from scipy import ndimage
 
+from d2turb.clip.deblur import PhysicsDeblur, luma_deconvolve, wiener_deconvolve, wiener_gain, wiener_padding
 from d2turb.clip.fusion import make_fusion
 from d2turb.clip.registration import DIS_PRESETS, DenseFlow
 from d2turb.clip.state import EARLY_ROUND_COARSER, ClipState
@@ -67,3 +70,31 @@ def test_early_rounds_of_large_frames_stop_one_level_coarser():
     assert small.flow_solver_for(1)._dis.getFinestScale() == finest
     single = _state_after_one_frame(1024, 1024, passes=1)  # one round is the last round
     assert single.flow_solver_for(1)._dis.getFinestScale() == finest
+
+
+def test_the_luma_wiener_of_a_grey_frame_is_the_per_channel_one():
+    """On frames of >= 1 MP the physics Wiener filter runs on the luma and adds its change to each channel: a grey
+    frame (three equal channels, so luma = each channel) comes out as the per-channel filter gives it."""
+    rng = np.random.default_rng(5)
+    grey = torch.from_numpy(cv2.GaussianBlur(rng.random((1024, 1024)).astype(np.float32), (0, 0), 2))
+    image = grey.expand(3, -1, -1).contiguous()
+    deblur = PhysicsDeblur(2.0)
+    out = deblur(image)  # 1 MP: the luma path
+    gain = deblur._gain[(1024, 1024)]
+    assert torch.allclose(out, wiener_deconvolve(image, gain), atol=2e-5)
+    assert torch.allclose(luma_deconvolve(image, gain), out)
+
+
+def test_the_luma_wiener_leaves_a_flat_luma_alone():
+    """A frame whose luma is constant (its detail all in the colour): the filter of a constant is that constant, so
+    the luma path changes nothing."""
+    rng = np.random.default_rng(6)
+    r = torch.from_numpy(cv2.GaussianBlur(rng.random((256, 320)).astype(np.float32), (0, 0), 2)) * 0.4 + 0.3
+    b = torch.full_like(r, 0.5)
+    g = (0.5 - 0.299 * r - 0.114 * b) / 0.587  # luma 0.5 everywhere
+    image = torch.stack([r, g, b])
+    deblur = PhysicsDeblur(2.0)
+    deblur(image[:, :8, :8])  # (a gain of another size: the cache keys by size)
+    top, bottom, left, right = wiener_padding(256, 320)
+    gain = wiener_gain(deblur.otf(256, 320), deblur.balance, (256 + top + bottom, 320 + left + right), deblur.prior)
+    assert torch.allclose(luma_deconvolve(image, gain), image, atol=1e-5)
