@@ -37,6 +37,7 @@ _OBJECT_CENTRE_SIGMA = 2.0  # px: the smoothing of the mean-geometry correction
 _OBJECT_FILL_REACH = 96  # px: a neighbour's flow is filled over the object's box grown by this (3σ of the fill)
 _OBJECT_BOX = 7  # px: the disagreement is averaged over this box
 _OBJECT_MARGIN = 16  # px: the aligned crop reaches this far beyond the share
+_OBJECT_MAX_PX = 1 << 17  # px: the boxes averaged in one frame, at most (twice a 256² frame: a field clip's are all)
 
 
 def _now(call: Callable):
@@ -142,10 +143,10 @@ def finish(
         raw = remap(raw, object_flow(bwd_flow_px, blend), consume=True)
         part = slice(rows[0], rows[-1] + 1)
         own = image_of(raw[part])
-        box = _object_box(blend, part) if neighbours else None
-        if box is not None:  # the frames near t unwarped as it is, aligned onto its pixels, averaged where they agree
+        shift = (0.0, 0.0) if pose is None else pose.shift
+        for box in _object_boxes(blend, part) if neighbours else []:  # smallest first, within _OBJECT_MAX_PX
+            # the frames near t unwarped as it is, aligned onto its pixels, averaged where they agree
             y0, y1, x0, x1 = box
-            shift = (0.0, 0.0) if pose is None else pose.shift
             near = [_unwarped(r, f, shift, blend, box) for _, r, f in neighbours]
             inside = (slice(y0 - part.start, y1 - part.start), slice(x0, x1))
             own[inside] = object_average(
@@ -193,18 +194,43 @@ def object_flow(bwd_flow_px: np.ndarray, share: np.ndarray) -> np.ndarray:
     return flow
 
 
-def _object_box(share: np.ndarray, rows: slice) -> tuple[int, int, int, int] | None:
-    """(y0, y1, x0, x1): the bounding box of ``share`` > ``_FILL_KNOWN`` grown by ``_OBJECT_MARGIN``, within ``rows``
-    (None: none, or too small to register)."""
-    ys = np.flatnonzero((share > _FILL_KNOWN).any(axis=1))
-    if ys.size == 0:
-        return None
-    xs = np.flatnonzero((share[ys[0] : ys[-1] + 1] > _FILL_KNOWN).any(axis=0))
-    w = share.shape[1]
+def _object_boxes(share: np.ndarray, rows: slice) -> list[tuple[int, int, int, int]]:
+    """(y0, y1, x0, x1) of each connected part of ``share`` > ``_FILL_KNOWN`` (found at quarter size), grown by
+    ``_OBJECT_MARGIN`` and kept within ``rows``; boxes that overlap are merged (an uncovered border strip and an
+    object far from it stay two boxes: one bounding box of both made a 1080p frame cost 2 s). Boxes under 16 px a
+    side are left out (too small to register), and the largest ones beyond ``_OBJECT_MAX_PX`` in all (their pixels
+    keep frame t alone: a 1080p frame whose share is scattered over the frame, as dost_street_clip's, merged into one
+    box of the whole frame and made the default restore 4× slower)."""
+    h, w = share.shape
+    mask = (share > _FILL_KNOWN).astype(np.float32)
+    small = (cv2.resize(mask, ((w + 3) // 4, (h + 3) // 4), interpolation=cv2.INTER_AREA) > 0).astype(np.uint8)
+    count, _, stats, _ = cv2.connectedComponentsWithStats(small, connectivity=8)
     m = _OBJECT_MARGIN
-    y0, y1 = max(rows.start, int(ys[0]) - m), min(rows.stop, int(ys[-1]) + m + 1)
-    x0, x1 = max(0, int(xs[0]) - m), min(w, int(xs[-1]) + m + 1)
-    return None if min(y1 - y0, x1 - x0) < 16 else (y0, y1, x0, x1)
+    boxes = []
+    for x, y, bw, bh, _ in stats[1:count]:
+        boxes.append(
+            [max(rows.start, 4 * y - m), min(rows.stop, 4 * (y + bh) + m), max(0, 4 * x - m), min(w, 4 * (x + bw) + m)]
+        )
+    merged = True
+    while merged:  # until no two boxes overlap
+        merged = False
+        for a in range(len(boxes)):
+            for b in range(a + 1, len(boxes)):
+                p, q = boxes[a], boxes[b]
+                if p[0] < q[1] and q[0] < p[1] and p[2] < q[3] and q[2] < p[3]:
+                    boxes[a] = [min(p[0], q[0]), max(p[1], q[1]), min(p[2], q[2]), max(p[3], q[3])]
+                    del boxes[b]
+                    merged = True
+                    break
+            if merged:
+                break
+    kept, total = [], 0
+    for b in sorted(boxes, key=lambda b: (b[1] - b[0]) * (b[3] - b[2])):
+        area = (b[1] - b[0]) * (b[3] - b[2])
+        if min(b[1] - b[0], b[3] - b[2]) >= 16 and total + area <= _OBJECT_MAX_PX:
+            kept.append(tuple(int(v) for v in b))
+            total += area
+    return kept
 
 
 def _unwarped(raw: np.ndarray, bwd_flow_px: np.ndarray, shift: tuple[float, float], share, box) -> np.ndarray:
