@@ -13,7 +13,7 @@ from scipy import ndimage
 from d2turb.clip.deblur import PhysicsDeblur, luma_deconvolve, wiener_deconvolve, wiener_gain, wiener_padding
 from d2turb.clip.fusion import make_fusion
 from d2turb.clip.registration import DIS_PRESETS, DenseFlow
-from d2turb.clip.state import EARLY_ROUND_COARSER, ClipState
+from d2turb.clip.state import EARLY_ROUND_COARSER, LAST_ROUND_STRIDE, ClipState
 
 
 def _scene(n: int, seed: int = 0) -> np.ndarray:
@@ -34,24 +34,25 @@ def _smooth_field(rng, n: int, sigma: float, rms: float) -> np.ndarray:
 
 def test_a_coarser_dis_recovers_a_smooth_warp():
     """Frame = img(x + Δ(x)), Δ smooth over ~25 px (2 px rms): the flow of DIS stopped one level above "fast"'s
-    finest scale is the inverse of Δ to within a quarter of its size, as the full-resolution one is."""
+    finest scale, or with its patches further apart, is the inverse of Δ to within a quarter of its size, as the
+    preset's own is."""
     rng = np.random.default_rng(3)
     n = 256
     img = _scene(n)
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
     inner = (slice(16, -16), slice(16, -16))
-    for coarser in (0, EARLY_ROUND_COARSER):
+    for coarser, stride in ((0, None), (EARLY_ROUND_COARSER, None), (0, LAST_ROUND_STRIDE["fast"])):
         errs, sizes = [], []
         for _ in range(3):
             delta = _smooth_field(rng, n, 25, 2.0)
             frame = ndimage.map_coordinates(img.astype(np.float64), [yy + delta[..., 1], xx + delta[..., 0]], order=3)
             frame = np.clip(np.rint(frame), 0, 255).astype(np.uint8)
-            est = DenseFlow("fast", coarser)(img, frame)  # frame(x + est(x)) ≈ img(x)
+            est = DenseFlow("fast", coarser, stride)(img, frame)  # frame(x + est(x)) ≈ img(x)
             back = [yy - delta[..., 1], xx - delta[..., 0]]  # est(x) = −Δ(x + est(x)) ≈ −Δ(x − Δ(x))
             inv = -np.stack([ndimage.map_coordinates(delta[..., c], back, order=1) for c in (0, 1)], -1)
             errs.append(np.linalg.norm(est - inv, axis=-1)[inner].mean())
             sizes.append(np.linalg.norm(inv, axis=-1)[inner].mean())
-        assert np.mean(errs) < 0.25 * np.mean(sizes), (coarser, errs, sizes)
+        assert np.mean(errs) < 0.25 * np.mean(sizes), (coarser, stride, errs, sizes)
 
 
 def _state_after_one_frame(h: int, w: int, passes: int = 2) -> ClipState:
@@ -61,13 +62,15 @@ def _state_after_one_frame(h: int, w: int, passes: int = 2) -> ClipState:
 
 
 def test_early_rounds_of_large_frames_stop_one_level_coarser():
-    finest = DIS_PRESETS["fast"]["finest_scale"]
+    finest, stride = DIS_PRESETS["fast"]["finest_scale"], DIS_PRESETS["fast"]["patch_stride"]
     large = _state_after_one_frame(1024, 1024)  # 1 MP
     assert large.flow_solver_for(1)._dis.getFinestScale() == finest + EARLY_ROUND_COARSER
-    assert large.flow_solver_for(2)._dis.getFinestScale() == finest  # the last round: the preset's
+    assert large.flow_solver_for(2)._dis.getFinestScale() == finest  # the last round: the preset's scale ...
+    assert large.flow_solver_for(2)._dis.getPatchStride() == LAST_ROUND_STRIDE["fast"]  # ... its patches further apart
     small = _state_after_one_frame(1000, 1000)  # under 1 MP: every round the preset's
     assert small.flow_solver_for(1) is small.flow_solver_for(2)
     assert small.flow_solver_for(1)._dis.getFinestScale() == finest
+    assert small.flow_solver_for(2)._dis.getPatchStride() == stride
     single = _state_after_one_frame(1024, 1024, passes=1)  # one round is the last round
     assert single.flow_solver_for(1)._dis.getFinestScale() == finest
 

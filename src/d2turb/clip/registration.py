@@ -111,10 +111,12 @@ class DenseFlow:
         preset: one of ``DIS_PRESETS`` ("fast", "medium", "fine").
         coarser: pyramid levels above the preset's finest scale where the search stops (0: the preset; 1: the flow
             at half the preset's resolution, upsampled by DIS: about a third of the time at 1080p).
+        patch_stride: the patches' stride in px (None: the preset's).
     """
 
     preset: str = "medium"
     coarser: int = 0
+    patch_stride: int | None = None
 
     def __post_init__(self):
         if self.preset not in DIS_PRESETS:
@@ -124,7 +126,7 @@ class DenseFlow:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
         dis.setFinestScale(s["finest_scale"] + self.coarser)
         dis.setPatchSize(s["patch_size"])
-        dis.setPatchStride(s["patch_stride"])
+        dis.setPatchStride(s["patch_stride"] if self.patch_stride is None else self.patch_stride)
         dis.setGradientDescentIterations(s["grad_descent_iter"])
         dis.setVariationalRefinementIterations(s["var_iter"])
         dis.setUseMeanNormalization(True)  # robust to the frame-to-frame brightness flicker of scintillation

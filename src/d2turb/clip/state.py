@@ -21,6 +21,9 @@ _RESUM = 256  # running window sums are recomputed from scratch after this many 
 # call (one thread); simulated 1080p clips (an upscaled sunhays_outdoor scene at D/r0 2, 3, 4, 24 frames, offset
 # removed, benchmarks/RESULTS.md 2026-12-08): restored -0.04 to +0.10 dB, fused -0.00 to +0.03 dB
 EARLY_ROUND_COARSER, EARLY_ROUND_MIN_PIXELS = 1, 1 << 20
+# ... and the last round's patches a px further apart there ("fast": 5 against 4 px; 1080p: 89 against 117-131 ms a
+# call, one thread; the simulated 1080p clips at 28751cb: restored -0.00 to +0.02 dB, fused -0.00 to -0.01 dB)
+LAST_ROUND_STRIDE = {"fast": 5}
 # an output's moving-object pixels also read the raw frames and last flows of this many frames before it
 # (stages.object_average): they are held that much longer
 OBJECT_REACH = 4
@@ -61,9 +64,10 @@ class ClipState:
                 "must have one size"
             )
         if self.flow_solver is None:
-            self.flow_solver = DenseFlow(self.preset)
             h, w = frame.raw.shape[:2]
             large = h * w >= EARLY_ROUND_MIN_PIXELS
+            stride = LAST_ROUND_STRIDE.get(self.preset) if large else None
+            self.flow_solver = DenseFlow(self.preset, patch_stride=stride)
             self.early_solver = DenseFlow(self.preset, EARLY_ROUND_COARSER) if large else self.flow_solver
         self.frames[index] = frame
         if self.camera is not None:
@@ -78,7 +82,8 @@ class ClipState:
 
     def flow_solver_for(self, k: int) -> DenseFlow:
         """The dense-flow solver of registration round ``k``: the last round's at the preset's resolution; on frames of
-        >= 1 MP the rounds before it ``EARLY_ROUND_COARSER`` levels coarser (they start the last round's search)."""
+        >= 1 MP the rounds before it ``EARLY_ROUND_COARSER`` levels coarser (they start the last round's search) and
+        the last one's patches ``LAST_ROUND_STRIDE`` px apart."""
         return self.flow_solver if k >= self.passes else self.early_solver
 
     # -- windows -------------------------------------------------------------------------------------------------
