@@ -146,13 +146,10 @@ class DenseFlow:
         return self._dis.calc(ref_gray, frame_gray, start)
 
 
-def remap(
-    frame_hwc: np.ndarray, bwd_flow_px: np.ndarray, consume: bool = False, interpolation: int = cv2.INTER_LINEAR
-) -> np.ndarray:
-    """``frame(x + flow(x))`` by bilinear (or ``interpolation``: an OpenCV flag) interpolation (``cv2.remap``, edges
-    replicated), (H,W,C) of the frame's dtype (float32, or uint8 rounded to nearest and saturated). ``consume``: the
-    flow (float32) is the caller's to give up, and becomes the absolute coordinates in place (1080p: a 16.6 MB array
-    fewer).
+def remap(frame_hwc: np.ndarray, bwd_flow_px: np.ndarray, consume: bool = False) -> np.ndarray:
+    """``frame(x + flow(x))`` by bilinear interpolation (``cv2.remap``, edges replicated), (H,W,C) of the frame's
+    dtype (float32, or uint8 rounded to nearest). ``consume``: the flow (float32) is the caller's to give up, and
+    becomes the absolute coordinates in place (1080p: a 16.6 MB array fewer).
 
     Shape:
         frame_hwc: (H, W, C); bwd_flow_px: (H, W, 2), x then y.
@@ -160,7 +157,7 @@ def remap(
     grid = pixel_grid(bwd_flow_px.shape[:2])
     # absolute coordinates (H,W,2), one map for cv2.remap
     maps = np.add(bwd_flow_px, grid, out=bwd_flow_px) if consume else bwd_flow_px + grid
-    out = cv2.remap(frame_hwc, maps, None, interpolation, borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.remap(frame_hwc, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(frame_hwc.shape)
 
 
