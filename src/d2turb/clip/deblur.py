@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from d2turb.clip.fusion import fusion_class
+from d2turb.clip.registration import LUMA_BT601, is_large_frame
 from d2turb.defaults import NYQUIST_LAMBDA_OVER_D_PX
 from d2turb.device import one_torch_thread
 from d2turb.errors import D2TurbError
@@ -169,20 +170,18 @@ def wiener_deconvolve(
     return out.clamp_(0, 1)
 
 
-# On frames of >= 1 MP the physics Wiener filter (PhysicsDeblur without given spectra: the blind deblur's frames after
-# its decision, --deblur physics) runs on the luma alone (1080p: 33 against 77 ms a frame, one thread; the whole
-# default restore of dost_street_clip 0.91x the CPU; simulated 1080p clips -0.02 to -0.04 dB, benchmarks/RESULTS.md
-# 2026-12-08); the blind decision's ringing guard still filters each channel (its spectra are shared by its tries)
-LUMA_ONLY_MIN_PIXELS = 1 << 20
-_LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601
-
-
+# On large frames (registration.is_large_frame) the physics Wiener filter (PhysicsDeblur without given spectra: the
+# blind deblur's frames after its decision, --deblur physics) runs on the luma alone (1080p: 33 against 77 ms a frame,
+# one thread; the whole default restore of dost_street_clip 0.91x the CPU; simulated 1080p clips -0.02 to -0.04 dB,
+# benchmarks/RESULTS.md 2026-12-08); the blind decision's ringing guard still filters each channel (its spectra are
+# shared by its tries)
 def luma_deconvolve(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     """The Wiener filter's change to the luma Y (BT.601) added to each channel, ``image + (G∗Y − Y)``, in [0, 1]:
     one FFT pair instead of three (the filter is linear: per channel it would add (G∗c − c))."""
     top, bottom, left, right = wiener_padding(*image.shape[-2:])
     h, w = image.shape[-2:]
-    luma = image[0] * _LUMA[0] + image[1] * _LUMA[1] + image[2] * _LUMA[2]
+    y = [float(c) for c in LUMA_BT601]
+    luma = image[0] * y[0] + image[1] * y[1] + image[2] * y[2]
     padded = torch.nn.functional.pad(luma[None, None].float(), (left, right, top, bottom), mode="reflect")[0, 0]
     full = torch.fft.irfft2(torch.fft.rfft2(padded) * gain, s=padded.shape)
     change = full[top : top + h, left : left + w] - luma
@@ -286,7 +285,7 @@ class PhysicsDeblur:
                 shape = (size[0] + top + bottom, size[1] + left + right)
                 gain = wiener_gain(self.otf(*size), self.balance, shape, self.prior)
                 self._gain[size] = gain.clamp(min=1.0) if self.boost_only else gain
-            if spectra is None and image.shape[0] == 3 and size[0] * size[1] >= LUMA_ONLY_MIN_PIXELS:
+            if spectra is None and image.shape[0] == 3 and is_large_frame(*size):
                 return luma_deconvolve(image, self._gain[size])
             return wiener_deconvolve(image, self._gain[size], spectra)
 

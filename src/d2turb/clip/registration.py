@@ -28,8 +28,16 @@ DIS_PRESETS = {
 }
 # OpenCV's DIS refuses images under 12 px (cv2.error) and crashed by SIGSEGV on 11x40 in OpenCV 5.0.0: checked first
 MIN_SIDE_PX = 12
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as OpenCV's cvtColor
+LUMA_BT601 = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601, as OpenCV's cvtColor
+# a frame of at least this many pixels is "large" (1080p is 2 MP): the clip room decides some of its statistics at half
+# size there and registers and deblurs it more cheaply (state.py, stages.py, deblur.py say what and how it measured)
+LARGE_FRAME_PIXELS = 1 << 20
 _UNIT_OF_U8 = np.arange(256, dtype=np.float32) / np.float32(255)  # k/255 in float32
+
+
+def is_large_frame(height: int, width: int) -> bool:
+    """Whether a frame of ``height`` × ``width`` px is at least ``LARGE_FRAME_PIXELS``."""
+    return height * width >= LARGE_FRAME_PIXELS
 
 
 def check_registrable(height: int, width: int) -> None:
@@ -68,7 +76,7 @@ def to_gray_u8(frame_hwc: np.ndarray) -> np.ndarray:
     if frame_hwc.shape[2] == 1:
         gray = frame_hwc[..., 0] * 255.0
     else:
-        gray = frame_hwc[..., :3] @ _LUMA
+        gray = frame_hwc[..., :3] @ LUMA_BT601
         gray *= 255.0  # in place (the product is this function's own), in its dtype, as gray * 255.0 would be
     gray += 0.5
     return np.clip(gray, 0, 255, out=gray).astype(np.uint8)

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from d2turb.clip.frames import STORE_DTYPE, ClipFrame, as_float, channel_mean, image_of
-from d2turb.clip.registration import global_shift_px, pixel_grid, remap, shift_flow, to_gray_u8
+from d2turb.clip.registration import global_shift_px, is_large_frame, pixel_grid, remap, shift_flow, to_gray_u8
 from d2turb.clip.state import OBJECT_REACH, ClipState
 
 _FALLBACK_BOX = 15  # px: residuals are averaged over this box before the moving-object test
@@ -359,7 +359,7 @@ def fallback_share(warped: np.ndarray, fused: np.ndarray) -> np.ndarray:
     15 px: the decision is smooth at that scale) and the robust scale from every 4th residual."""
     r = channel_mean(cv2.absdiff(as_float(warped), fused))  # OpenCV: a quarter of numpy's time at 1080p
     h, w = r.shape
-    half = h * w >= 1 << 20
+    half = is_large_frame(h, w)
     box = _FALLBACK_BOX // 2 + 1 if half else _FALLBACK_BOX
     if half:
         r = cv2.resize(r, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)

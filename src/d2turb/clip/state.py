@@ -12,7 +12,7 @@ import numpy as np
 from d2turb.clip.camera import CameraTrack
 from d2turb.clip.frames import HeldFrame, as_float, channel_mean, window_start
 from d2turb.clip.fusion import Fusion
-from d2turb.clip.registration import DenseFlow, check_registrable
+from d2turb.clip.registration import DenseFlow, check_registrable, is_large_frame
 from d2turb.errors import D2TurbError
 
 _RESUM = 256  # running window sums are recomputed from scratch after this many updates (float32 drift)
@@ -20,7 +20,7 @@ _RESUM = 256  # running window sums are recomputed from scratch after this many 
 # preset's finest (they only start the last round's search and make its reference). 1080p "fast": 44 against 125 ms a
 # call (one thread); simulated 1080p clips (an upscaled sunhays_outdoor scene at D/r0 2, 3, 4, 24 frames, offset
 # removed, benchmarks/RESULTS.md 2026-12-08): restored -0.04 to +0.10 dB, fused -0.00 to +0.03 dB
-EARLY_ROUND_COARSER, EARLY_ROUND_MIN_PIXELS = 1, 1 << 20
+EARLY_ROUND_COARSER = 1
 # ... and the last round's patches a px further apart there ("fast": 5 against 4 px; 1080p: 89 against 117-131 ms a
 # call, one thread; the simulated 1080p clips at 28751cb: restored -0.00 to +0.02 dB, fused -0.00 to -0.01 dB)
 LAST_ROUND_STRIDE = {"fast": 5}
@@ -65,7 +65,7 @@ class ClipState:
             )
         if self.flow_solver is None:
             h, w = frame.raw.shape[:2]
-            large = h * w >= EARLY_ROUND_MIN_PIXELS
+            large = is_large_frame(h, w)
             stride = LAST_ROUND_STRIDE.get(self.preset) if large else None
             self.flow_solver = DenseFlow(self.preset, patch_stride=stride)
             self.early_solver = DenseFlow(self.preset, EARLY_ROUND_COARSER) if large else self.flow_solver
@@ -118,7 +118,7 @@ class ClipState:
             if frame.spread_grey is None:
                 image = as_float(frame.warped[last - 1])
                 h, w = image.shape[:2]
-                if h * w >= 1 << 20:
+                if is_large_frame(h, w):
                     image = cv2.resize(image, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
                     image = image.reshape(image.shape[:2] + (-1,))
                 frame.spread_grey = channel_mean(image)

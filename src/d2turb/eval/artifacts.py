@@ -14,7 +14,7 @@ import math
 import cv2
 import numpy as np
 
-from d2turb.clip.registration import global_shift_px, to_hwc
+from d2turb.clip.registration import LUMA_BT601, global_shift_px, to_hwc
 
 NEAR_BLACK_U8 = 4  # luma at or below 4/255 (8-bit, rounded): crushed shadows
 NEAR_WHITE_U8 = 251  # luma at or above 251/255: clipped highlights
@@ -30,7 +30,6 @@ GHOST_LEVEL = 0.25  # output edges: gradient above this share of the input's str
 GHOST_PRESENCE = 0.5  # input edges: above GHOST_PRESENCE × GHOST_LEVEL of it (a blurred input edge still counts)
 GHOST_SMOOTH_PX = 1.0  # Gaussian σ before the ghost check's gradients (noise is not an edge)
 GHOST_EXCESS_MAX = 0.05  # a shaken frame's ghost share above the calm frames' by more than this: a ghost
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)  # ITU-R BT.601 (JPEG's and OpenCV's luma)
 # Immerkær's mask: the difference of two Laplacians, blind to a plane and (mostly) to image structure
 _IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
 
@@ -47,7 +46,7 @@ def luma(image) -> np.ndarray:
     hwc = to_hwc(image)
     if hwc.shape[2] < 3:
         return np.ascontiguousarray(hwc[..., 0])
-    return np.ascontiguousarray(hwc[..., :3] @ _LUMA)
+    return np.ascontiguousarray(hwc[..., :3] @ LUMA_BT601)
 
 
 def _u8(y: np.ndarray) -> np.ndarray:
