@@ -46,12 +46,42 @@ class ClipFrame:
         return self._bwd_flow_px
 
 
-def window_start(index: int, temporal: int, length: int | None) -> int:
-    """First frame of W(index): centred, shifted inward at the clip's ends (``length`` None: end not known yet)."""
-    lo = max(0, index - temporal // 2)
+def window_start(index: int, temporal: int, length: int | None, ahead: int | None = None) -> int:
+    """First frame of W(index): centred (``ahead`` None), or reaching ``ahead`` frames past ``index`` (its last frame
+    index + ahead: a stream's lookahead window, :func:`lookahead_split`); shifted inward at the clip's ends
+    (``length`` None: end not known yet)."""
+    lo = max(0, index - (temporal // 2 if ahead is None else temporal - 1 - ahead))
     if length is not None:
         lo = min(lo, max(0, length - temporal))
     return lo
+
+
+def lookahead_split(lookahead: int | None, temporal: int, passes: int) -> list[int | None]:
+    """How far past frame i the window of each level reaches (level 0: the frames, k: registration round k; the
+    window over level k is what round k + 1, or the output for k = ``passes``, averages), given that output t may
+    wait for input t + ``lookahead`` at most: an output waits for the sum (output t needs level ``passes`` up to
+    t + a_passes, frame t + a_passes's last round level passes − 1 up to a_passes + a_(passes−1) further, ...).
+    ``lookahead`` None: centred windows at every level (each reaches temporal − 1 − temporal // 2 ahead; a file's
+    windows). Else the frames of lookahead are dealt one by one to the levels, the output's first, then the
+    rounds' from the last down, none beyond the centred reach; a level given none is causal (W(i) ends at i)."""
+    if lookahead is None:
+        return [None] * (passes + 1)
+    centred = temporal - 1 - temporal // 2
+    ahead = [0] * (passes + 1)
+    left = lookahead
+    while left > 0 and any(a < centred for a in ahead):
+        for level in range(passes, -1, -1):
+            if left > 0 and ahead[level] < centred:
+                ahead[level] += 1
+                left -= 1
+    return ahead  # all centred when lookahead >= (passes + 1) · centred: the windows of a file
+
+
+def stream_lookahead(temporal: int) -> int:
+    """The lookahead of a stream's windows (``restore -``, :func:`lookahead_split`): temporal/2 − 1 frames, so that an
+    output waits for the input half a window later with the threaded deblur's hand-over (one frame), whatever the
+    frame rate; centred windows wait for 3·(temporal/2 − 1) with two rounds."""
+    return max(0, temporal // 2 - 1)
 
 
 @dataclass

@@ -1,7 +1,8 @@
 """Clip restoration: remove the tilt that a single frame cannot see by registering the frames of a sliding window to
 a common reference, fusing them and deblurring the result (docs/clips.md).
 
-For output frame t, the window W(t) holds the ``temporal`` frames around t (shifted inward at the clip's ends).
+For output frame t, the window W(t) holds the ``temporal`` frames around t (shifted inward at the clip's ends); with
+``lookahead`` L (a stream's), the windows of the rounds and of the output reach at most L frames past t together.
 Each frame i is registered to a reference of its own window, in ``passes`` rounds:
 
 0. camera motion (``clip.camera``, ``stabilise``): each frame's global shift against the mean of the frames placed
@@ -68,6 +69,10 @@ class ClipRestorer:
             camera's footage): a physical deblur runs in linear light (:func:`deblurred`). Not the default: it gains
             +0.45 dB on field-realistic clips but loses up to 1 dB on clips blurred after encoding (our simulator's
             test clips; docs/clips_linear_light.md).
+        lookahead: None (default): centred windows, output t waits for input t + 3·(temporal/2 − 1) with 2 rounds
+            (the best windows for a file). An integer L >= 0: output t waits for input t + L at most: the windows of
+            the rounds and of the output reach L frames ahead together (``clip.frames.lookahead_split``), the rest
+            behind: a stream's latency (``restore -`` uses temporal/2 − 1; its quality cost: docs/clips.md, streams).
 
     Returns:
         :meth:`restore` yields one :class:`ClipFrame` per input frame, in order.
@@ -89,24 +94,27 @@ class ClipRestorer:
         tone_guard: bool = True,
         threaded: bool = True,
         linear_light: bool = False,
+        lookahead: int | None = None,
     ):
-        self.check_settings(temporal, passes, fusion, preset)
+        self.check_settings(temporal, passes, fusion, preset, lookahead)
         if not (deblur == "none" or isinstance(deblur, ClipDeblur)):
             raise D2TurbError(f"deblur must be 'none' or a callable (3,H,W) -> (3,H,W), got {deblur!r}")
         self.temporal, self.passes, self.fusion = temporal, passes, fusion
         self.deblur = None if deblur == "none" else deblur
         self.stabilise, self.fallback, self.tone_guard = stabilise, fallback, tone_guard
         self.preset = preset
-        self.threaded, self.linear_light = threaded, linear_light
+        self.threaded, self.linear_light, self.lookahead = threaded, linear_light, lookahead
         self.state: ClipState | None = None  # the state of the clip being (or last) restored
 
     @staticmethod
-    def check_settings(temporal: int, passes: int, fusion: str, preset: str) -> None:
+    def check_settings(temporal: int, passes: int, fusion: str, preset: str, lookahead: int | None = None) -> None:
         """D2TurbError, in one line, for settings a restorer refuses (before anything reads a clip)."""
         if not isinstance(temporal, int) or isinstance(temporal, bool) or temporal < 2:
             raise D2TurbError(f"temporal must be an integer >= 2, got {temporal!r}", param="temporal")
         if not isinstance(passes, int) or isinstance(passes, bool) or passes < 1:
             raise D2TurbError(f"passes must be an integer >= 1, got {passes!r}")
+        if lookahead is not None and (not isinstance(lookahead, int) or isinstance(lookahead, bool) or lookahead < 0):
+            raise D2TurbError(f"lookahead must be an integer >= 0, got {lookahead!r}", param="lookahead")
         fusion_class(fusion)  # an unknown fusion: one line naming the registered ones
         DenseFlow(preset)  # an unknown preset is an error now, not at the first frame
 
@@ -121,7 +129,8 @@ class ClipRestorer:
         then share the cores (docs/clips.md, speed). The run's state is :attr:`state` (a fresh
         :class:`~d2turb.clip.state.ClipState` per call)."""
         fusion = make_fusion(self.fusion)
-        self.state = state = ClipState(self.temporal, self.passes, fusion, self.preset, self.stabilise)
+        state = ClipState(self.temporal, self.passes, fusion, self.preset, self.stabilise, self.lookahead)
+        self.state = state
         threaded_fusion = self.threaded and fusion.threaded
         with (
             worker("d2turb-fuse", threaded_fusion) as fuse_pool,

@@ -81,7 +81,7 @@ def outputs(state: ClipState, frames: Iterable, fallback: bool, fuse_pool=None, 
         for k in range(1, passes + 1):  # round k of frame i needs round k-1 of W(i)
             # no further ahead than the next round (or output) needs: once the clip's end is read, every window
             # is ready, and running ahead would hold a window more of unwarped frames and flows (1080p: 0.2 GB)
-            need = state.window_end(done[k + 1] if k < passes else state.emitted)
+            need = state.window_end(done[k + 1] if k < passes else state.emitted, k)
             while done[k] < min(total, need) and state.window_ready(done[k], k - 1):
                 register(state, done[k], k, prepare)
                 done[k] += 1

@@ -70,7 +70,7 @@ def register(state: ClipState, index: int, k: int, submit: Callable = _now) -> N
         frame.warped.append(remap(frame.raw, bwd_flow_px, consume=True))
     else:
         frame.warped.append(remap(frame.raw, bwd_flow_px, consume=True).astype(STORE_DTYPE))
-    state.fusion.prepare(frame, [state.frames[j] for j in state.window(index)], k - 1, submit)
+    state.fusion.prepare(frame, [state.frames[j] for j in state.window(index, k - 1)], k - 1, submit)
 
 
 def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | None = None) -> Callable[[], ClipFrame]:
@@ -78,7 +78,7 @@ def output_job(state: ClipState, index: int, fallback: bool, submit: Callable | 
     it may run in another thread while the next frames register). ``submit``: where the moving-object share of a
     threaded fusion is made beside it (None: in the call)."""
     fusion = state.fusion
-    window = {j: state.frames[j] for j in state.window(index)}
+    window = {j: state.frames[j] for j in state.window(index, state.passes)}
     mean = state.reference(index, state.passes) if fusion.reads_mean else None
     fused = fusion.fuse(window, mean)
     against = mean if fusion.moving_against_mean else None  # what moving objects are found against (None: the fusion)

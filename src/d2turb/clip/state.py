@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from d2turb.clip.camera import CameraTrack
-from d2turb.clip.frames import HeldFrame, as_float, channel_mean, window_start
+from d2turb.clip.frames import HeldFrame, as_float, channel_mean, lookahead_split, window_start
 from d2turb.clip.fusion import Fusion
 from d2turb.clip.registration import DenseFlow, check_registrable, is_large_frame
 from d2turb.errors import D2TurbError
@@ -34,10 +34,14 @@ class ClipState:
 
     ``done[k]``: the frames whose level k is computed (0: read, k ≥ 1: registration round k); ``emitted``: the
     outputs made (the next output is frame ``emitted``); ``length``: the clip's length once its end is read;
-    ``buffered``: frame images held (bounded by the window, not by the clip's length)."""
+    ``buffered``: frame images held (bounded by the window, not by the clip's length); ``ahead[level]``: how far
+    past frame i the window over that level reaches (None: centred; :func:`~d2turb.clip.frames.lookahead_split`)."""
 
-    def __init__(self, temporal: int, passes: int, fusion: Fusion, preset: str, stabilise: bool):
+    def __init__(
+        self, temporal: int, passes: int, fusion: Fusion, preset: str, stabilise: bool, lookahead: int | None = None
+    ):
         self.temporal, self.passes, self.fusion, self.preset = temporal, passes, fusion, preset
+        self.ahead = lookahead_split(lookahead, temporal, passes)
         self.frames: dict[int, HeldFrame] = {}
         self.done = [0] * (passes + 1)
         self.emitted = 0
@@ -87,23 +91,27 @@ class ClipState:
         return self.flow_solver if k >= self.passes else self.early_solver
 
     # -- windows -------------------------------------------------------------------------------------------------
-    def window_end(self, index: int) -> int:
-        """One past the last frame of W(index)."""
-        lo = window_start(index, self.temporal, self.length)
+    def window_start(self, index: int, level: int) -> int:
+        """The first frame of W(index) over level ``level`` (what round level + 1, or the output, averages)."""
+        return window_start(index, self.temporal, self.length, self.ahead[level])
+
+    def window_end(self, index: int, level: int) -> int:
+        """One past the last frame of W(index) over level ``level``."""
+        lo = self.window_start(index, level)
         return lo + self.temporal if self.length is None else min(self.length, lo + self.temporal)
 
     def window_ready(self, index: int, level: int) -> bool:
         """Level ``level`` of every frame of W(index) is computed."""
-        return self.done[level] >= self.window_end(index)
+        return self.done[level] >= self.window_end(index, level)
 
-    def window(self, index: int) -> list[int]:
-        """The frames of W(index)."""
-        return list(range(window_start(index, self.temporal, self.length), self.window_end(index)))
+    def window(self, index: int, level: int) -> list[int]:
+        """The frames of W(index) over level ``level``."""
+        return list(range(self.window_start(index, level), self.window_end(index, level)))
 
     def reference(self, index: int, level: int) -> np.ndarray:
         """Mean of level ``level`` (0: the frames' luma, k: round k's unwarped frames) over W(index), from a running sum
         updated by the frames entering and leaving the window (recomputed every ``_RESUM`` updates)."""
-        lo, hi, total = self._window_sum(index, level, lambda j: self.frames[j].level_image(level))
+        lo, hi, total = self._window_sum(index, level, level, lambda j: self.frames[j].level_image(level))
         return total / np.float32((hi - lo) * (255 if self.frames[lo].level_image(level).dtype == np.uint8 else 1))
 
     def spread(self, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -124,16 +132,16 @@ class ClipState:
                 frame.spread_grey = channel_mean(image)
             return frame.spread_grey
 
-        lo, hi, s1 = self._window_sum(index, "grey", grey)
-        _, _, s2 = self._window_sum(index, "grey²", lambda j: np.square(grey(j)))
+        lo, hi, s1 = self._window_sum(index, last, "grey", grey)
+        _, _, s2 = self._window_sum(index, last, "grey²", lambda j: np.square(grey(j)))
         n = np.float32(hi - lo)
         mean = s1 / n
         return np.maximum(s2 / n - mean * mean, 0), mean
 
-    def _window_sum(self, index: int, key, image) -> tuple[int, int, np.ndarray]:
-        """(lo, hi, Σ image(j) over W(index) = [lo, hi)), float32, kept as ``sums[key]`` and updated by the frames
-        entering and leaving the window (recomputed every ``_RESUM`` updates)."""
-        members = self.window(index)
+    def _window_sum(self, index: int, level: int, key, image) -> tuple[int, int, np.ndarray]:
+        """(lo, hi, Σ image(j) over W(index) = [lo, hi) over ``level``), float32, kept as ``sums[key]`` and updated by
+        the frames entering and leaving the window (recomputed every ``_RESUM`` updates)."""
+        members = self.window(index, level)
         lo, hi = members[0], members[-1] + 1
         cached = self.sums.get(key)
         if cached is None or cached[3] >= _RESUM or cached[0] > lo or cached[1] > hi or cached[1] <= lo:
@@ -161,7 +169,7 @@ class ClipState:
         guard = done[0] - n if self.length is None else math.inf  # the end may still shift the last windows back
         readers = []
         for level in range(passes + 1):
-            first = window_start(emitted if level == passes else done[level + 1], n, self.length)
+            first = self.window_start(emitted if level == passes else done[level + 1], level)
             for key in (level, "grey", "grey²") if level == passes else (level,):
                 if key in self.sums:
                     first = min(first, self.sums[key][0])
