@@ -276,8 +276,8 @@ def x264_params() -> str:
 
 
 class Mp4Writer:
-    """Streams frames into an H.264 mp4 (PyAV, libx264 ``X264_PRESET``, ``X264_THREADS`` slice threads and
-    :func:`x264_params`: the same frames give the same bytes; yuv420p: odd sizes are padded by one edge
+    """Streams frames into an H.264 mp4 (PyAV, libx264 at ``preset``, default ``X264_PRESET``; ``X264_THREADS`` slice
+    threads and :func:`x264_params`: the same frames give the same bytes; yuv420p: odd sizes are padded by one edge
     row/column), encoding in a thread of its own (at most two frames wait: the caller computes the next frame while
     the last one is encoded; the encoder releases the GIL).
 
@@ -286,7 +286,7 @@ class Mp4Writer:
     :class:`~d2turb.io.SharedUint8` of a tensor (converted once for this and another consumer).
     """
 
-    def __init__(self, path: str | os.PathLike, fps: float):
+    def __init__(self, path: str | os.PathLike, fps: float, preset: str = X264_PRESET):
         try:
             import av
         except ImportError as exc:
@@ -301,7 +301,7 @@ class Mp4Writer:
             self._stream.codec_context.thread_type = "SLICE"
             self._stream.codec_context.thread_count = X264_THREADS
             params = x264_params()
-            self._stream.options = {"preset": X264_PRESET, **({"x264-params": params} if params else {})}
+            self._stream.options = {"preset": preset, **({"x264-params": params} if params else {})}
         except Exception as exc:  # noqa: BLE001 - e.g. a PyAV without libx264: one line, no temp file left
             self._stack.__exit__(type(exc), exc, exc.__traceback__)
             raise D2TurbError(f"cannot write {self.path}: {_first_line(exc)} ({VIDEO_HINT})") from exc

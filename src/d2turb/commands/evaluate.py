@@ -59,7 +59,10 @@ def register(sub):
         help=f"with --real-clips: frames read per clip, from its start (default {DEFAULT_REAL_CLIP_FRAMES})",
     )
     p.add_argument(
-        "--preset", default="fast", choices=["fast", "medium", "fine"], help="with --clips: registration (default fast)"
+        "--preset",
+        default="balanced",
+        choices=["fast", "balanced", "medium", "fine"],
+        help="with --clips: the preset of restore --temporal (default balanced; fast: the live preset)",
     )
     p.add_argument("--fusion", default=DEFAULT_FUSION, choices=CLIP_FUSIONS, help="with --clips: fusion (default mean)")
     p.add_argument(

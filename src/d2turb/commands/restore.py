@@ -17,6 +17,9 @@ from d2turb.commands.common import (
 from d2turb.defaults import CLIP_FUSIONS, DEFAULT_FUSION, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
 
+# what the live preset gives up (clip.live.LIVE_LOSS: measured on the blind test set; docs/clips.md "The live preset")
+LIVE_HELP = "one registration round at a coarser flow, no moving-object fallback, no camera following"
+
 
 def register(sub):
     p = sub.add_parser(
@@ -123,9 +126,12 @@ def _add_clip_args(clip) -> None:
     )
     clip.add_argument(
         "--preset",
-        default="fast",
-        choices=["fast", "medium", "fine"],
-        help="registration (DIS): fast = flow at half resolution (default), medium/fine = full resolution, slower",
+        default="balanced",
+        choices=["fast", "balanced", "medium", "fine"],
+        help="balanced (default): two registration rounds (DIS, the flow at half resolution), the moving-object "
+        "fallback, the camera followed; medium/fine: the flow at full resolution, slower; fast: the live preset "
+        f"for live cameras (1280x720 at 25+ frames/s on 2 cores: {LIVE_HELP}; docs/clips.md). Until 2026-12-08 "
+        "'fast' named what is now 'balanced'",
     )
     clip.add_argument(
         "--linear-light",

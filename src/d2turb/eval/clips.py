@@ -24,6 +24,7 @@ from skimage.registration import phase_cross_correlation
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.live import DEFAULT_PRESET, LiveRestorer, dis_preset, live_deblurred
 from d2turb.clip.pipeline import deblurred
 from d2turb.data.sequence import SequenceDataset
 from d2turb.defaults import DEFAULT_FUSION, MEASURED_TEMPORAL
@@ -111,7 +112,7 @@ def box_psnr(image: torch.Tensor, reference: torch.Tensor, box, offset: int = 0)
     return float(psnr(image[None, :, y0:y1, x0:x1], reference[None, :, y0:y1, x0:x1]))
 
 
-def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestorer, stride: int) -> dict[str, float]:
+def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer, stride: int) -> dict[str, float]:
     """Means over one clip's frames: ``epe``, ``epe_zero`` (every frame) and ``"<row> psnr"``, ``"<row> ssim"``, their
     ``_aligned`` versions and ``"<row> cwssim"`` of each row (every ``stride``-th frame); with a truth per frame
     (field clips) each frame against its own, and ``"<row> box_psnr"``, ``box_psnr_aligned`` inside the objects'
@@ -131,7 +132,9 @@ def _clip_scores(item: dict, deblurs: dict[str, Callable], restorer: ClipRestore
         for name, fn in deblurs.items():
             if hasattr(fn, "observe"):  # as ClipRestorer does for its own deblur (the blind one reads the flow)
                 fn.observe(o)
-            images[f"fused + {name}"] = deblurred(fn, o)  # the restorer's deblur stage: tone guard, fallback kept
+            # the restorer's deblur stage: tone guard, fallback kept (the live preset: its own)
+            live = isinstance(restorer, LiveRestorer)
+            images[f"fused + {name}"] = live_deblurred(fn, o.fused) if live else deblurred(fn, o)
         for row, img in images.items():
             img = img.clamp(0, 1)
             moved, ref, _ = remove_global_offset(img, gt)
@@ -161,7 +164,7 @@ def evaluate_clips(
     out: str | os.PathLike,
     deblur: list[str] = ("physics",),
     temporal: int = MEASURED_TEMPORAL,
-    preset: str = "fast",
+    preset: str = DEFAULT_PRESET,
     fusion: str = DEFAULT_FUSION,
     passes: int = 2,
     stride: int = 4,
@@ -175,6 +178,9 @@ def evaluate_clips(
         deblur: deblur options compared after fusion: "physics" (Wiener at the clip's true D/r0 and optics),
             "blind" (the default of ``restore --temporal``: restore.blur.BlindDeblur, estimated per clip), weights
             names/paths (a model on the fused frame); "none" is always the "fused" row.
+        preset: a command line ``--preset`` (``clip.live.PRESETS``): "balanced" (the default's registration), "medium",
+            "fine", or "fast": the live restorer (``clip.live``; its own mean fusion and luma deblur: ``fusion`` and
+            ``passes`` unused).
         fusion: the restorer's fusion ("mean", "robust" or "fba").
         stride: image metrics on every ``stride``-th frame (the displacement error on every frame).
     """
@@ -200,7 +206,10 @@ def evaluate_clips(
             elif fn == "blind":
                 fn = BlindDeblur(fusion=fusion)  # decides on this clip's first fused frame
             deblurs[name] = fn
-        restorer = ClipRestorer(temporal=temporal, preset=preset, passes=passes, fusion=fusion)
+        if dis_preset(preset) is None:  # the live preset: one pass, its mean, its deblur (clip.live)
+            restorer = LiveRestorer(temporal)
+        else:
+            restorer = ClipRestorer(temporal=temporal, preset=dis_preset(preset), passes=passes, fusion=fusion)
         frame_means = _clip_scores(item, deblurs, restorer, stride)
         sample = {"id": item["id"], "bin": record["bin"], "dr0": float(record["dr0"])} | frame_means
         if isinstance(deblurs.get("blind"), BlindDeblur) and deblurs["blind"].record is not None:

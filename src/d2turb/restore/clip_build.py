@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 from d2turb.clip import ClipRestorer, PhysicsDeblur
 from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.live import DEFAULT_PRESET, LIVE_PRESET, PRESETS, LiveRestorer, dis_preset
 from d2turb.clip.strength import estimate_words, measure_clip, undetermined_dr0
 from d2turb.defaults import DEFAULT_FUSION, DEFAULT_OVERLAP_PX, DEFAULT_TILE_PX, FUSION_WITHOUT_DEBLUR
 from d2turb.errors import D2TurbError
@@ -28,7 +29,9 @@ class ClipOptions(RestoreOptions):
 
     Args:
         deblur, dr0, optics: see :func:`clip_deblur`.
-        passes, preset: registration rounds, DIS preset.
+        passes: registration rounds.
+        preset: a key of :data:`d2turb.clip.live.PRESETS`: "balanced" (the default: DIS "fast"), "medium", "fine", or
+            "fast": the live restorer (:class:`~d2turb.clip.live.LiveRestorer`).
         fusion: fusion of the registered frames; None: the sharpest with ``deblur="none"``, the mean before a deblur
             (:attr:`fusion_used`).
         fps: frame rate of a folder clip's mp4 (None: 30).
@@ -39,7 +42,7 @@ class ClipOptions(RestoreOptions):
     dr0: float | None = None
     optics: Optics | None = None
     passes: int = 2
-    preset: str = "fast"
+    preset: str = DEFAULT_PRESET
     fusion: str | None = None
     fps: float | None = None
     linear_light: bool = False
@@ -51,6 +54,28 @@ class ClipOptions(RestoreOptions):
         if self.fusion is not None:
             return self.fusion
         return FUSION_WITHOUT_DEBLUR if self.deblur == "none" else DEFAULT_FUSION
+
+
+DIS_OF_DEFAULT = PRESETS[DEFAULT_PRESET]
+
+
+def check_clip_settings(temporal: int, o: ClipOptions) -> str:
+    """D2TurbError, in one line, for settings a restorer refuses (an unknown ``preset``, settings the live preset does
+    not have, those :meth:`ClipRestorer.check_settings` refuses); else the DIS preset of ``o.preset`` (the live
+    one's: the default's, whose checks its own settings pass)."""
+    dis = dis_preset(o.preset)
+    if dis is None:
+        _check_live(o)
+    ClipRestorer.check_settings(temporal, o.passes, o.fusion_used, dis or DIS_OF_DEFAULT)
+    return dis or DIS_OF_DEFAULT
+
+
+def _check_live(o: ClipOptions) -> None:
+    if o.passes != 2 or o.fusion not in (None, "mean") or o.linear_light:
+        raise D2TurbError(
+            f"--preset {LIVE_PRESET} (live) registers each frame in one pass and fuses by the mean, in sRGB values: "
+            "--passes, --fusion and --linear-light go with the other presets"
+        )
 
 
 MEASURE_FRAMES = 64  # frames from the clip's start used to measure D/r0 when it is not given
@@ -172,10 +197,12 @@ def clip_restorer(
     """
     o = ClipOptions.of(options, **kwargs)
     fusion = o.fusion_used
-    ClipRestorer.check_settings(temporal, o.passes, fusion, o.preset)  # before the physics deblur reads the clip
+    dis = check_clip_settings(temporal, o)  # before the physics deblur reads the clip
     deblur, name, record = clip_deblur(
         o.deblur, clip, dr0=o.dr0, optics=o.optics, device=o.device, tile=o.tile, overlap=o.overlap, fusion=fusion
     )
     deblur = "none" if deblur is None else deblur
-    settings = {"passes": o.passes, "fusion": fusion, "preset": o.preset, "linear_light": o.linear_light}
+    if dis_preset(o.preset) is None:
+        return LiveRestorer(temporal, deblur=deblur), name, record
+    settings = {"passes": o.passes, "fusion": fusion, "preset": dis, "linear_light": o.linear_light}
     return ClipRestorer(temporal=temporal, deblur=deblur, **settings), name, record

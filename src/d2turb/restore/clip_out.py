@@ -10,12 +10,13 @@ import sys
 
 import numpy as np
 
+from d2turb.clip.live import LIVE_X264_PRESET, dis_preset
 from d2turb.io import BackgroundWriter, SharedUint8, check_output_dir, write_image, write_json, write_npy
 from d2turb.io.formats import RGB8, to_stored
 from d2turb.ops.splat import invert_flow
 from d2turb.restore.compare import output_name, save_compare, side_by_side
 from d2turb.restore.files import no_empty_out
-from d2turb.video import VIDEO_HINT, Mp4Writer, Y4mWriter, can_write_mp4
+from d2turb.video import VIDEO_HINT, X264_PRESET, Mp4Writer, Y4mWriter, can_write_mp4
 
 
 def _panel(image) -> np.ndarray:
@@ -27,7 +28,8 @@ def _panel(image) -> np.ndarray:
 
 class FolderOut:
     """A restored clip into the folder ``out`` (see :func:`~d2turb.restore.clips.restore_clip_files`):
-    FRAME_restored.png a frame in the clip's format, NAME_restored.mp4 (video extra), and with the options
+    FRAME_restored.png a frame in the clip's format (the live preset: only where no mp4 is written), NAME_restored.mp4
+    (video extra; the live preset's at x264 ``LIVE_X264_PRESET``), and with the options
     ``compare`` NAME_compare.mp4 and NAME_compare.png (the middle frame), ``save_intermediate`` FRAME_fused.png,
     ``save_flow`` fwd_flow_px/NNNNNN.npy. A folder that the run leaves empty is removed."""
 
@@ -40,6 +42,10 @@ class FolderOut:
         if not can_write_mp4():
             print(f"note: no mp4 written; {VIDEO_HINT}")
             self.mp4 = self.side = None
+        # the live preset writes the mp4 alone (x264 ultrafast; a PNG a frame would take a core of its own at 720p),
+        # or the PNGs where no mp4 can be written
+        self.live = dis_preset(options.preset) is None
+        self.frame_pngs = not self.live or self.mp4 is None
         self._inputs: dict[int, object] = {}  # with compare: the input frames not yet restored (the lookahead's)
         self._pick, self._last = (clip.total or 0) // 2, None  # NAME_compare.png: the middle frame (or the last)
 
@@ -48,7 +54,8 @@ class FolderOut:
         stack.enter_context(no_empty_out(self.dir))
         # one writer thread, one frame queued: the PNGs keep pace (~0.1 s a 1080p frame) at 80 MB less peak than 2 + 2
         self.writer = stack.enter_context(BackgroundWriter(max_pending=1, compute_device=self.device, threads=1))
-        self.video = None if self.mp4 is None else stack.enter_context(Mp4Writer(self.mp4, self.fps))
+        preset = LIVE_X264_PRESET if self.live else X264_PRESET
+        self.video = None if self.mp4 is None else stack.enter_context(Mp4Writer(self.mp4, self.fps, preset))
         self.side_video = None if self.side is None else stack.enter_context(Mp4Writer(self.side, self.fps))
         return self
 
@@ -72,7 +79,8 @@ class FolderOut:
         o, stem, level = self.o, self.names[frame.index], self.o.png_level
         restored = SharedUint8(frame.restored)  # converted once, for the PNG and the mp4
         stored = restored if self.fmt == RGB8 else to_stored(frame.restored, self.fmt)  # 16 bits, grey: as the input
-        self.writer.submit(write_image, self.dir / output_name(stem, "restored", "png"), stored, level)
+        if self.frame_pngs:
+            self.writer.submit(write_image, self.dir / output_name(stem, "restored", "png"), stored, level)
         if o.compare:
             before = _panel(self._inputs.pop(frame.index))
             if frame.index <= self._pick:

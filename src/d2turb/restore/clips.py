@@ -12,12 +12,11 @@ import sys
 import numpy as np
 from tqdm import tqdm
 
-from d2turb.clip import ClipRestorer
 from d2turb.clip.blind import BlindDeblur
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io.formats import RGB8
-from d2turb.restore.clip_build import ClipOptions, clip_restorer
+from d2turb.restore.clip_build import ClipOptions, check_clip_settings, clip_restorer
 from d2turb.restore.clip_out import FolderOut, StdoutOut
 from d2turb.restore.clip_source import open_clip
 from d2turb.video import is_stream, sigint_noted
@@ -57,7 +56,7 @@ def _restore_clip_files(src, out, temporal: int, options, max_frames, **kwargs) 
     o = ClipOptions.of(options, **kwargs)
     to_stdout = os.fspath(out) == "-"
     _check_request(src, o, max_frames, to_stdout)  # before a stream is opened: it may wait for its first bytes
-    ClipRestorer.check_settings(temporal, o.passes, o.fusion_used, o.preset)  # bad settings first, in one line
+    check_clip_settings(temporal, o)  # bad settings first, in one line
     errors = FileErrors(2, o.fail_fast)  # per frame: a bad one is reported and skipped
     clip = open_clip(src, errors, max_frames)
     device = resolve_device(o.device)
