@@ -77,30 +77,34 @@ def test_a_known_shake_is_recovered():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_shaken_static_scene_is_fused_as_if_the_shake_were_known(seed):
-    """The mean fusion of a static band-limited scene filmed by a shaking camera (walk and jump, no turbulence),
-    against the oracle: each frame put back by its true shift (bilinear, as the registration resamples) and averaged
-    over the same window. Offset-removed PSNR against the scene; the three seeds measured +0.42, +0.51 and +1.00 dB
-    (before issue 49 the restorer registered each frame to its own window's smeared mean: −3 to −8 dB)."""
+    """The fusion of a static band-limited scene filmed by a shaking camera (walk and jump, no turbulence). Issue 49
+    acceptance 6: the default (mean fusion, blind deblur) within 0.5 dB of its own input frames (measured +1.34 to
+    +1.68 dB above them: the mean of 16 frames averages the 8-bit rounding out). The mean fusion against the oracle,
+    each frame put back by its true shift (bicubic, as the last round resamples) and averaged over the same window
+    (measured +0.09, -0.56, -0.33 dB). Offset-removed PSNR against the scene. With bilinear resampling the default
+    was 3.9-4.6 dB below the inputs; before issue 49 the restorer registered each frame to its window's smeared
+    mean (-3 to -8 dB)."""
     big = _scene()
     shifts = _walk(32, seed)
     frames = [_u8(_translated(big, s)) for s in shifts]
     scene = big[64:192, 64:192]
     back = [cv2.warpAffine(f.astype(np.float32) / 255, np.float32([[1, 0, -s[0]], [0, 1, -s[1]]]), (128, 128),
-                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+                           flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
             for f, s in zip(frames, shifts)]  # fmt: skip
     oracle = []
     for t in range(len(frames)):
         lo = min(max(0, t - 8), len(frames) - 16)
         oracle.append(_offset_psnr(np.mean(back[lo : lo + 16], 0), scene))
-    out = [o.restored.permute(1, 2, 0).numpy() for o in ClipRestorer(temporal=16, fusion="mean").restore(frames)]
-    ours = [_offset_psnr(o, scene) for o in out]
-    assert np.mean(ours) > np.mean(oracle) - 0.6, (np.mean(ours), np.mean(oracle))
-    inputs = [_offset_psnr(f.astype(np.float32) / 255, scene) for f in frames]
-    # the sharpest fusion keeps what a frame holds: within 2 dB of the input frames (measured +0.32, −1.03, −1.55 dB)
-    sharpest = [
-        o.restored.permute(1, 2, 0).numpy() for o in ClipRestorer(temporal=16, fusion="sharpest").restore(frames)
-    ]
-    assert np.mean([_offset_psnr(o, scene) for o in sharpest]) > np.mean(inputs) - 2.0
+    inputs = np.mean([_offset_psnr(f.astype(np.float32) / 255, scene) for f in frames])
+
+    def restored(**options) -> float:
+        out = ClipRestorer(temporal=16, **options).restore(frames)
+        return float(np.mean([_offset_psnr(o.restored.permute(1, 2, 0).numpy(), scene) for o in out]))
+
+    assert restored(fusion="mean") > np.mean(oracle) - 0.8
+    assert restored(fusion="mean", deblur=BlindDeblur()) > inputs - 0.5
+    # the sharpest fusion keeps what a frame holds: within 1.5 dB of the input frames (measured +0.31, -0.88, -0.19)
+    assert restored(fusion="sharpest") > inputs - 1.5
 
 
 def test_a_moving_square_is_taken_from_its_own_frame_and_leaves_no_trail():
