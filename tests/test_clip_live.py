@@ -5,6 +5,9 @@ command line's presets."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import cv2
 import numpy as np
 import pytest
@@ -12,7 +15,17 @@ import torch
 
 from d2turb.clip import PhysicsDeblur
 from d2turb.clip.deblur import tone_guard
-from d2turb.clip.live import PRESETS, LiveRestorer, dis_preset, live_deblurred, upsampled_flow
+from d2turb.clip.live import (
+    LIVE_JITTER_PX,
+    LIVE_LOSS_DB,
+    LIVE_LOSS_PLAIN_DB,
+    PRESETS,
+    LiveRestorer,
+    dis_preset,
+    live_deblurred,
+    upsampled_flow,
+)
+from d2turb.clip.live_state import upsampled_maps
 from d2turb.errors import D2TurbError
 
 SHIFT_TOLERANCE_PX = 0.1  # what a registration that works must reach on a textured scene (DIS: ~0.02 px)
@@ -56,6 +69,14 @@ def test_upsampled_flow_reproduces_a_linear_field():
     inner = (slice(2, -2), slice(2, -2))
     assert full.shape == (h, w, 2) and full.dtype == np.float32
     np.testing.assert_allclose(full[inner], want[inner], atol=1e-4)
+
+
+@pytest.mark.parametrize("shape, small", [((72, 128), (36, 64)), ((101, 77), (50, 38)), ((60, 60), (15, 15))])
+def test_upsampled_maps_are_the_grid_plus_the_upsampled_flow(shape, small):
+    """The remap coordinates made in one pass equal the pixel grid plus the upsampled flow (float rounding apart)."""
+    flow = cv2.GaussianBlur(np.random.default_rng(0).normal(0, 2, (*small, 2)).astype(np.float32), (0, 0), 3)
+    want = upsampled_flow(flow, shape) + np.stack(np.meshgrid(np.arange(shape[1]), np.arange(shape[0])), -1)
+    np.testing.assert_allclose(upsampled_maps(flow, shape), want, atol=1e-3)
 
 
 def test_static_scene_kept_within_interpolation():
@@ -136,10 +157,12 @@ def test_threads_change_nothing():
 
 def test_luma_deblur_of_a_grey_frame_is_the_per_channel_one():
     """On a grey frame (R = G = B) the luma is the frame, so the live deblur (the Wiener filter and tone guard on the
-    luma, the change added to each channel) equals the per-channel filter and guard of the default."""
+    luma, the change added to each channel, the live registration's jitter in the OTF) equals the per-channel filter
+    and guard of the default with that jitter."""
     grey = torch.from_numpy(_scene(64, 80, seed=5)[..., 0]).expand(3, 64, 80).contiguous()
     deblur = PhysicsDeblur(2.0, 2.0)
-    want = tone_guard(grey, deblur(grey))  # under 1 MP: each channel
+    jittered = PhysicsDeblur(2.0, 2.0, jitter_px=LIVE_JITTER_PX)
+    want = tone_guard(grey, jittered(grey))  # under 1 MP: each channel
     got = live_deblurred(deblur, grey)
     assert torch.allclose(got, want, atol=2e-6)
 
@@ -170,3 +193,12 @@ def test_presets_of_the_command_line():
     assert isinstance(live, LiveRestorer)
     with pytest.raises(D2TurbError, match="live"):
         clip_restorer("unused", 8, deblur="none", preset="fast", fusion="sharpest")
+
+
+def test_help_states_the_loss():
+    """``restore --help`` says what ``--preset fast`` gives up, in the figure measured (clip.live.LIVE_LOSS_DB)."""
+    out = subprocess.run([sys.executable, "-m", "d2turb", "restore", "--help"], capture_output=True, text=True)
+    text = " ".join(out.stdout.split())
+    assert out.returncode == 0
+    assert f"{LIVE_LOSS_DB:.2f} dB" in text and f"{LIVE_LOSS_PLAIN_DB:.2f} dB in plain PSNR" in text
+    assert "blind test set" in text

@@ -20,8 +20,7 @@ LIVE_SCALE = 0.5  # registration at half size (docs/clips.md, "The live preset":
 # DIS per registration round: None, OpenCV's ultrafast preset; else (finest scale, patch size, patch stride, gradient
 # descent iterations, variational refinement iterations) on the image at LIVE_SCALE (docs/clips.md, "The live preset":
 # what each choice cost and lost on the blind test set)
-REF_CENTRED = False
-LIVE_DIS = [None, (0, 8, 8, 12, 1)]
+LIVE_DIS = [None, (0, 8, 6, 12, 1)]
 
 
 def live_flow_solver(k: int = 1) -> cv2.DISOpticalFlow:
@@ -50,6 +49,28 @@ def upsampled_flow(flow_small: np.ndarray, shape: tuple[int, int]) -> np.ndarray
     up[..., 0] *= np.float32(w / flow_small.shape[1])
     up[..., 1] *= np.float32(h / flow_small.shape[0])
     return up
+
+
+def upsampled_maps(flow_small: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``pixel_grid(shape) + upsampled_flow(flow_small, shape)`` (the absolute coordinates ``cv2.remap`` reads) in one
+    full-size pass: the small image's own coordinates in full-size px, (x + ½)/s − ½, plus its flow in full-size px,
+    upsampled bilinearly (a linear grid is reproduced exactly), then the outermost rows and columns, where
+    ``cv2.resize`` repeats the edge, moved by the half pixel of their place (size ratios under 3; else two steps)."""
+    h, w = shape
+    hs, ws = flow_small.shape[:2]
+    rx, ry = np.float32(w / ws), np.float32(h / hs)
+    if max(rx, ry) >= 3:  # cv2.resize repeats the edge over more than one full-size pixel: the two steps
+        return np.add(upsampled_flow(flow_small, shape), pixel_grid(shape))
+    small = np.empty_like(flow_small, dtype=np.float32)
+    small[..., 0] = flow_small[..., 0] * rx + ((np.arange(ws, dtype=np.float32) + np.float32(0.5)) * rx - 0.5)
+    small[..., 1] = flow_small[..., 1] * ry + ((np.arange(hs, dtype=np.float32) + np.float32(0.5)) * ry - 0.5)[:, None]
+    maps = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    edge_x, edge_y = np.float32((rx - 1) / 2), np.float32((ry - 1) / 2)  # the edge's repeated value less its own
+    maps[:, 0, 0] -= edge_x
+    maps[:, -1, 0] += edge_x
+    maps[0, :, 1] -= edge_y
+    maps[-1, :, 1] += edge_y
+    return maps
 
 
 class _Sum:
@@ -116,8 +137,6 @@ class LiveState:
     # -- windows ---------------------------------------------------------------------------------------------------
     def _ref_window(self, i: int) -> tuple[int, int]:
         """[lo, hi) of frame i's reference window: the N frames up to i (the first N frames: the first N)."""
-        if REF_CENTRED:
-            return self._out_window(i)
         hi = max(i + 1, self.n)
         if self.length is not None:
             hi = min(hi, self.length)
@@ -191,8 +210,7 @@ class LiveState:
             self.levels[k][i] = moved.reshape(*moved.shape, 1)
         else:
             self.flows[i] = flow
-            up = upsampled_flow(flow, self.shape[:2])
-            maps = np.add(up, pixel_grid(self.shape[:2]), out=up)
+            maps = upsampled_maps(flow, self.shape[:2])
             out = cv2.remap(self.raw.pop(i), maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             self.warped[i] = out.reshape(self.shape)
 
