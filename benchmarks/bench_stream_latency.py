@@ -8,8 +8,9 @@ command does not read yet waits in the pipe (``feed_lag_max_s``: the most a fram
 
 FRAMES_DIR holds the clip's frames (PNG, one size), played forward and back ``--pingpong`` times. Prints one JSON
 line: the median and largest latency of the steady outputs (from the window's end on, up to the last that still
-waits for an input frame), and the window's lookahead (output t needs input t + 3·(T/2 − 1) with 2 registration
-rounds over windows of T frames). The feed starts with the command, so the first outputs also wait for its start-up.
+waits for an input frame), and the windows' lookahead ``--ahead`` (output t needs input t + ahead: T/2 − 1 for a
+stream since 2092e34, ``restore --lookahead``; 3·(T/2 − 1) with 2 registration rounds over centred windows before).
+The feed starts with the command, so the first outputs also wait for its start-up.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ def main() -> None:
     ap.add_argument("--temporal", type=int, default=16)
     ap.add_argument("--src", help="PYTHONPATH of the d2turb to run (default: the installed one)")
     ap.add_argument("--pingpong", type=int, default=2, help="the frames played forward and back this many times")
+    ap.add_argument("--ahead", type=int, default=None, help="the run's lookahead in frames (default T/2 - 1)")
     ap.add_argument("more", nargs="*", help="more options of restore (after --)")
     a = ap.parse_args()
     clip = [np.asarray(Image.open(f).convert("RGB")) for f in sorted(a.frames.glob("*.png"))]
@@ -88,7 +90,7 @@ def main() -> None:
         raise SystemExit(f"restore failed ({proc.returncode}): {err[-2000:]}")
     done = [seen[n] for n in sorted(seen)]
     latency = [t - s for t, s in zip(done, captured)]
-    ahead = 3 * (a.temporal // 2 - 1)
+    ahead = a.temporal // 2 - 1 if a.ahead is None else a.ahead
     steady = latency[a.temporal : len(latency) - ahead] or latency
     print(json.dumps({
         "fps": a.fps, "temporal": a.temporal, "frames": len(done), "first_output_s": round(done[0] - start, 2),

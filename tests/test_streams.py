@@ -108,22 +108,70 @@ def _mp4_frames(path: Path) -> list[np.ndarray]:
         return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
 
 
+@pytest.mark.slow
 def test_a_pipe_restores_as_the_same_clip_from_a_file(tmp_path):
     """`... | d2turb restore - --temporal 4 --out D`: the frames of a y4m piped in are restored as those of the same
-    y4m read from a file (the oracle), and the mp4 holds them all."""
+    y4m read from a file with the stream's windows (the oracle: --lookahead 1, temporal/2 - 1), and the mp4 holds them
+    all; the file's default (centred windows) differs, and the pipe with --lookahead 3 (the centred windows' reach,
+    3·(temporal/2 − 1)) is restored as it."""
     data = _y4m_bytes(10)
     (tmp_path / "clip.y4m").write_bytes(data)
     common = ("--temporal", TEMPORAL, "--deblur", "none")
-    done = subprocess.run(
-        _d2turb("restore", "-", "--out", tmp_path / "piped", *common), input=data, env=_env(), capture_output=True
-    )
-    assert done.returncode == 0, done.stderr.decode()
-    done = subprocess.run(_d2turb("restore", tmp_path / "clip.y4m", "--out", tmp_path / "file", *common), env=_env())
-    assert done.returncode == 0
+    for name, more in (("piped", ()), ("piped_centred", ("--lookahead", 3))):
+        done = subprocess.run(
+            _d2turb("restore", "-", "--out", tmp_path / name, *common, *more),
+            input=data,
+            env=_env(),
+            capture_output=True,
+        )
+        assert done.returncode == 0, done.stderr.decode()
+    for name, more in (("file", ("--lookahead", 1)), ("file_centred", ())):
+        done = subprocess.run(
+            _d2turb("restore", tmp_path / "clip.y4m", "--out", tmp_path / name, *common, *more), env=_env()
+        )
+        assert done.returncode == 0
     piped, filed = _restored(tmp_path / "piped"), _restored(tmp_path / "file")
     assert [p.name for p in piped] == [f"stdin_{i:06d}_restored.png" for i in range(10)]
     assert [p.read_bytes() for p in piped] == [p.read_bytes() for p in filed]
+    centred = [p.read_bytes() for p in _restored(tmp_path / "file_centred")]
+    assert [p.read_bytes() for p in _restored(tmp_path / "piped_centred")] == centred != [p.read_bytes() for p in piped]
+    assert json.loads((tmp_path / "piped" / "restore.json").read_text())["lookahead"] == 1
     assert len(_mp4_frames(tmp_path / "piped" / "stdin_restored.mp4")) == 10
+
+
+@pytest.mark.slow
+def test_a_piped_stream_output_comes_half_a_window_after_its_input(tmp_path):
+    """Frames fed one at a time into `restore - --temporal 8` (a stream: windows reaching L = 8/2 − 1 = 3 frames
+    ahead), in lockstep: frame i is fed only once output i − L − 2 is written. Every output t from the first
+    window's end on is written once input t + L + 1 is fed (the threaded fusion hands each output over when the next
+    frame arrives: one frame more than the windows), so an output waits for half a window of input (4 frames) plus
+    the processing; counted in frames fed, no clock (the waits are generous timeouts)."""
+    temporal, lookahead = 8, 3
+    header, frames = _split_y4m(_y4m_bytes(6 * temporal))
+    out = tmp_path / "out"
+    argv = _d2turb("restore", "-", "--temporal", temporal, "--out", out, "--deblur", "none")
+    proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stderr=subprocess.PIPE, env=_env())
+    late = []
+    try:
+        proc.stdin.write(header)
+        for i, frame in enumerate(frames):
+            t = i - lookahead - 2  # the output that must be written before frame i is fed
+            if t >= 2 * temporal:
+                deadline = time.monotonic() + 120
+                while len(_restored(out)) <= t and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                if len(_restored(out)) <= t:
+                    late.append(t)
+                    break
+            proc.stdin.write(frame)
+            proc.stdin.flush()
+        proc.stdin.close()
+        err = _finish(proc, 300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert not late, f"output {late} not written before input {late[0] + lookahead + 2} was fed"
+    assert len(_restored(out)) == len(frames)
 
 
 def test_frames_are_written_as_they_come_and_max_frames_stops_the_stream(tmp_path):

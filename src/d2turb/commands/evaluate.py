@@ -59,6 +59,14 @@ def register(sub):
         help=f"with --real-clips: frames read per clip, from its start (default {DEFAULT_REAL_CLIP_FRAMES})",
     )
     p.add_argument(
+        "--lookahead",
+        type=int,
+        default=None,
+        metavar="L",
+        help="with --clips: windows that reach at most L frames ahead, as a stream's (restore -: N/2 - 1); default "
+        "centred, as a file's",
+    )
+    p.add_argument(
         "--preset",
         default="balanced",
         choices=["fast", "balanced", "medium", "fine"],
@@ -147,6 +155,7 @@ def run(args):
             fusion=args.fusion,
             max_samples=args.max_samples,
             device=device,
+            lookahead=args.lookahead,
         )
         print(markdown(results))
         print(f"wrote {os.path.join(args.out, 'results.json')}")

@@ -171,6 +171,7 @@ def evaluate_clips(
     max_samples: int | None = None,
     device: str = "cpu",
     progress: bool = True,
+    lookahead: int | None = None,
 ) -> dict:
     """Evaluate clip restoration on the sequence dataset at ``root``; writes OUT/results.json and results.md.
 
@@ -183,6 +184,8 @@ def evaluate_clips(
             ``passes`` unused).
         fusion: the restorer's fusion ("mean", "robust" or "fba").
         stride: image metrics on every ``stride``-th frame (the displacement error on every frame).
+        lookahead: the restorer's (:class:`~d2turb.clip.ClipRestorer`): None for centred windows (a file's), L for
+            output t waiting for input t + L at most (a stream's windows).
     """
     data = SequenceDataset(root)
     if not isinstance(stride, int) or stride < 1:
@@ -209,7 +212,8 @@ def evaluate_clips(
         if dis_preset(preset) is None:  # the live preset: one pass, its mean, its deblur (clip.live)
             restorer = LiveRestorer(temporal)
         else:
-            restorer = ClipRestorer(temporal=temporal, preset=dis_preset(preset), passes=passes, fusion=fusion)
+            dis = dis_preset(preset)
+            restorer = ClipRestorer(temporal=temporal, preset=dis, passes=passes, fusion=fusion, lookahead=lookahead)
         frame_means = _clip_scores(item, deblurs, restorer, stride)
         sample = {"id": item["id"], "bin": record["bin"], "dr0": float(record["dr0"])} | frame_means
         if isinstance(deblurs.get("blind"), BlindDeblur) and deblurs["blind"].record is not None:
@@ -230,7 +234,8 @@ def evaluate_clips(
             "passes": passes,
             "stride": stride,
             "deblur": list(options),
-        },
+        }
+        | ({} if lookahead is None else {"lookahead": lookahead}),
         "rows": rows,
         "bins": table,
         "samples": samples,

@@ -36,6 +36,9 @@ class ClipOptions(RestoreOptions):
             (:attr:`fusion_used`).
         fps: frame rate of a folder clip's mp4 (None: 30).
         linear_light: deblur in linear light (:class:`~d2turb.clip.ClipRestorer`'s ``linear_light``).
+        lookahead: output t waits for input t + lookahead at most (:class:`~d2turb.clip.ClipRestorer`'s); None:
+            centred windows for a file, :func:`~d2turb.clip.frames.stream_lookahead` for a stream
+            (:func:`~d2turb.restore.clips.restore_clip_files`).
     """
 
     deblur: str = "auto"
@@ -46,6 +49,7 @@ class ClipOptions(RestoreOptions):
     fusion: str | None = None
     fps: float | None = None
     linear_light: bool = False
+    lookahead: int | None = None
 
     @property
     def fusion_used(self) -> str:
@@ -66,7 +70,7 @@ def check_clip_settings(temporal: int, o: ClipOptions) -> str:
     dis = dis_preset(o.preset)
     if dis is None:
         _check_live(o)
-    ClipRestorer.check_settings(temporal, o.passes, o.fusion_used, dis or DIS_OF_DEFAULT)
+    ClipRestorer.check_settings(temporal, o.passes, o.fusion_used, dis or DIS_OF_DEFAULT, o.lookahead)
     return dis or DIS_OF_DEFAULT
 
 
@@ -205,4 +209,5 @@ def clip_restorer(
     if dis_preset(o.preset) is None:
         return LiveRestorer(temporal, deblur=deblur), name, record
     settings = {"passes": o.passes, "fusion": fusion, "preset": dis, "linear_light": o.linear_light}
+    settings["lookahead"] = o.lookahead
     return ClipRestorer(temporal=temporal, deblur=deblur, **settings), name, record

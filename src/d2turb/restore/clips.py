@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from d2turb.clip.blind import BlindDeblur
+from d2turb.clip.frames import stream_lookahead
 from d2turb.device import limit_malloc_arenas, resolve_device
 from d2turb.errors import D2TurbError, FileErrors, summary
 from d2turb.io.formats import RGB8
@@ -39,7 +40,8 @@ def restore_clip_files(
     Args:
         src: a video file (also SER, FITS) or a folder of frames; the outputs keep its pixels (16 bits, grey); or a
             stream read once as it comes: ``-`` (standard input, e.g. y4m), a URL, a capture device
-            (:func:`~d2turb.video.is_stream`).
+            (:func:`~d2turb.video.is_stream`), whose output t waits for input t + ``options.lookahead`` at most
+            (default temporal/2 − 1: :func:`~d2turb.clip.frames.stream_lookahead`).
         out: the output folder, or ``-``: the restored frames as a y4m stream on standard output, nothing else.
         options: :class:`ClipOptions` (None: the defaults); ``kwargs``: its fields by name, in place of those
             (``dr0=2.0, compare=True``).
@@ -54,6 +56,8 @@ def restore_clip_files(
 
 def _restore_clip_files(src, out, temporal: int, options, max_frames, **kwargs) -> int:
     o = ClipOptions.of(options, **kwargs)
+    if o.lookahead is None and is_stream(src):  # an output waits for the input half a window later, not 1.5 windows
+        o = dataclasses.replace(o, lookahead=stream_lookahead(temporal))
     to_stdout = os.fspath(out) == "-"
     _check_request(src, o, max_frames, to_stdout)  # before a stream is opened: it may wait for its first bytes
     check_clip_settings(temporal, o)  # bad settings first, in one line
@@ -86,6 +90,8 @@ def _restore_clip_files(src, out, temporal: int, options, max_frames, **kwargs) 
         settings["pixels"] = clip.fmt.describe()
         if max_frames is not None:
             settings["max_frames"] = max_frames
+        if getattr(restorer, "lookahead", None) is not None:  # the clip room's (the live preset's are its own)
+            settings["lookahead"] = restorer.lookahead
         if interrupted:
             settings["interrupted"] = True
         out.record({"input": str(src), "frames": count, **settings, "deblur": record})
