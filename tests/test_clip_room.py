@@ -100,16 +100,21 @@ def test_a_deblur_that_changes_the_shape_is_named_in_one_line():
 @pytest.mark.parametrize("fusion", CLIP_FUSIONS)
 def test_a_grey_clip_stays_grey_and_matches_the_colour_path(fusion):
     """A monochrome clip ((H,W,1) or (H,W) frames) comes out (1,H,W), and equal, to within a grey level, to each
-    channel of the same clip given as colour with R = G = B (the colour path registers on the same luma)."""
+    channel of the same clip given as colour with R = G = B (the colour path registers on the same luma). The
+    sharpest fusion chooses by the amplitude √(Σ_c d_c²) rounded to 1/64 grey level, √3 times larger on three equal
+    channels, so near-ties fall differently: its fused frames agree within a grey level (measured 0.86), and after
+    the Wiener filter, which amplifies the difference, within two (measured 1.56)."""
     grey = [f.mean(axis=2).round().astype(np.uint8) for f in _clip(6, n=8, size=64)]
     colour = [np.repeat(g[..., None], 3, axis=2) for g in grey]
     deblur = PhysicsDeblur.for_fusion(2.0, 2.0, fusion)
     mono = list(ClipRestorer(temporal=5, fusion=fusion, deblur=deblur).restore(grey))
     rgb = list(ClipRestorer(temporal=5, fusion=fusion, deblur=deblur).restore(colour))
+    levels = 2 if fusion == "sharpest" else 1
     for m, c in zip(mono, rgb, strict=True):
         assert m.restored.shape == (1, 64, 64) and c.restored.shape == (3, 64, 64)
         for ch in range(3):
-            assert float((m.restored[0] - c.restored[ch]).abs().max()) <= 1 / 255 + 1e-6
+            assert float((m.fused[0] - c.fused[ch]).abs().max()) <= 1 / 255 + 1e-6
+            assert float((m.restored[0] - c.restored[ch]).abs().max()) <= levels / 255 + 1e-6
 
 
 def test_the_tilt_spread_leaves_out_the_camera_roll_and_moving_objects():
