@@ -143,6 +143,23 @@ def test_one_output_per_input_in_order(n):
     assert all(o.restored.shape == (3, 32, 40) and o.bwd_flow_px.shape == (2, 32, 40) for o in outs)
 
 
+@pytest.mark.parametrize("temporal", [4, 8, 9])
+def test_latency(temporal):
+    """Output t is yielded before input t + L + 1 is read, L = 2·(N − N//2 − 1) (a reference window centred on the
+    frame, then the output's: each reaches N − N//2 − 1 frames ahead), and every output once the input ends."""
+    frames = [(_scene(24, 32, seed=6) * 255).astype(np.uint8)] * 30
+    read = []
+
+    def source():
+        for i, f in enumerate(frames):
+            read.append(i)
+            yield f
+
+    ahead = 2 * (temporal - temporal // 2 - 1)
+    for o in LiveRestorer(temporal, threaded=False).restore(source()):
+        assert len(read) <= min(len(frames), max(o.index + ahead + 1, temporal + ahead // 2))
+
+
 def test_threads_change_nothing():
     """The reader and deblur threads change when a step runs, never what it computes: the same outputs to the bit."""
     scene = _scene(seed=4)

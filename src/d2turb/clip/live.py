@@ -1,21 +1,24 @@
 """Live clip restoration (``restore --temporal N --preset fast``): the clip room cut to what a live camera's frame rate
-allows on two cores (1280×720 at 25 frames/s and more, benchmarks/bench_clip_live.py; docs/clips.md, "The live
-preset"). One pass over the stream, each frame touched once:
+allows on two cores (1280×720 at about 5× the default's speed; benchmarks/bench_clip_live.py; docs/clips.md, "The
+live preset"). One pass over the stream, each frame touched once:
 
 1. **register** (:class:`LiveRestorer`): frame i's 8-bit luma at ``scale`` (area-averaged; half size) is
-   registered by DIS (OpenCV's ultrafast preset, mean normalisation) to the mean of the luma of its reference window,
-   the N frames up to i (the first N frames: the first N), then again to the mean of those frames' registrations
-   (started from the first flow), and the flow is upsampled to full size (bilinear, ×1/``scale``): the tilt is smooth
-   over the isoplanatic patch, so its flow at half size, upsampled, is what the fusion needs;
+   registered by DIS (OpenCV's ultrafast preset, mean normalisation) to the mean luma of W(i), the window centred on
+   it (which sets the output's geometry: the mean tilt around the frame), then, started from that flow, by a finer
+   DIS (``live_state.LIVE_DIS``) to the mean of the first round's registrations of the N frames up to i; the flow is
+   upsampled to full size (bilinear, ×1/``scale``) and the frame remapped once: the tilt is smooth over the
+   isoplanatic patch, so its flow at half size, upsampled, is what the fusion needs;
 2. **fuse**: output t is the mean of the registered frames of its window W(t) (``window_start``, as the default's:
    centred, shifted inward at the clip's ends), kept as a running sum (the newest frame added, the oldest taken off;
    exact integers for 8-bit frames);
-3. **deblur** (:func:`live_deblurred`): the blind deblur's (or a physics) Wiener filter on the luma alone, the tone
-   guard on the luma, the change added to each channel.
+3. **deblur** (:func:`live_deblurred`): the blind deblur's (or a physics) Wiener filter on the luma alone, with the
+   live registration's residual misregistration in its OTF, the tone guard on the luma, the change added to each
+   channel.
 
 No camera following, no global shift, no moving-object fallback (moving objects ghost), a single registration
-resolution. Outputs come as soon as their window is registered: N − N//2 − 1 frames after their own (15 at N = 32:
-half a second at 30 frames/s), after the first N frames. Memory holds about 1.5·N frames.
+resolution. Output t comes once input t + 2·(N − N//2 − 1) is read (30 frames at N = 32: a second at 30 frames/s;
+issue 52 allows half a window plus a second), the first once input 2N − N//2 − 2 is. Memory holds about 2·N full-size
+frames.
 """
 
 from __future__ import annotations
@@ -43,11 +46,11 @@ LIVE_PRESET = "fast"
 DEFAULT_PRESET = "balanced"
 PRESETS = {"fast": None, "balanced": "fast", "medium": "medium", "fine": "fine"}  # command line → DIS preset
 # what the live preset gives up on the blind test set: its largest loss per bin against the default (its first 30
-# clips, --temporal 32, the blind deblur; against 0e53848's default, offset removed: +0.51 / +0.01 / -0.15 dB weak /
-# medium / strong; plain PSNR -0.27 / -0.43 / -0.57; benchmarks/results/clip_blind30_live.json, docs/clips.md "The
+# clips, --temporal 32, the blind deblur; against 0e53848's default, offset removed: +0.42 / +0.10 / -0.12 dB weak /
+# medium / strong; plain PSNR +0.09 / +0.04 / -0.04; benchmarks/results/clip_blind30_live.json, docs/clips.md "The
 # live preset"), said in the help of --preset (commands/restore.py; tests/test_clip_live.py checks it)
-LIVE_LOSS_DB = 0.15
-LIVE_LOSS_PLAIN_DB = 0.57
+LIVE_LOSS_DB = 0.12
+LIVE_LOSS_PLAIN_DB = 0.04
 LIVE_X264_PRESET = "ultrafast"  # the live preset's mp4 (restore.clip_out): 720p at 12 against 29 ms a frame
 _PREFETCH = 4  # decoded frames waiting for the registration (a reader thread of their own)
 
