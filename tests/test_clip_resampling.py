@@ -60,3 +60,5 @@ def test_the_bilinear_equivalent_filters_each_channel_and_keeps_a_flat_frame():
     assert torch.equal(rgb, grey.repeat(3, 1, 1))
     flat = torch.full((3, 20, 20), 0.3)
     assert torch.allclose(as_bilinear_mean(flat), flat, atol=1e-6)
+    hwc = rgb.permute(1, 2, 0).contiguous()  # a (C,H,W) view of an (H,W,C) frame: not contiguous
+    assert torch.equal(as_bilinear_mean(hwc.permute(2, 0, 1)), out)

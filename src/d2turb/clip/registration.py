@@ -189,8 +189,8 @@ def as_bilinear_mean(image_chw: torch.Tensor) -> torch.Tensor:
     """
     a = BILINEAR_MEAN_TAP
     k = np.array([a, 1 - 2 * a, a], np.float32)
-    planes = image_chw.detach().float().cpu().numpy()
-    out = np.empty_like(planes)  # each plane filtered into its place (1080p: no list of planes, no stacked copy)
+    planes = np.ascontiguousarray(image_chw.detach().float().cpu().numpy())  # a view where it already is
+    out = np.empty(planes.shape, np.float32)  # each plane filtered into its place (1080p: no list, no stacked copy)
     for src, dst in zip(planes, out):
         cv2.sepFilter2D(src, cv2.CV_32F, k, k, dst=dst, borderType=cv2.BORDER_REFLECT)
     return torch.from_numpy(out)
