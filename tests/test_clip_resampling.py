@@ -11,7 +11,9 @@ import torch
 from scipy import ndimage
 from skimage import data as skdata
 
+from d2turb.clip.blind import BlindDeblur
 from d2turb.clip.registration import as_bilinear_mean
+from d2turb.errors import D2TurbError
 
 SIZE = 128
 
@@ -62,3 +64,16 @@ def test_the_bilinear_equivalent_filters_each_channel_and_keeps_a_flat_frame():
     assert torch.allclose(as_bilinear_mean(flat), flat, atol=1e-6)
     hwc = rgb.permute(1, 2, 0).contiguous()  # a (C,H,W) view of an (H,W,C) frame: not contiguous
     assert torch.equal(as_bilinear_mean(hwc.permute(2, 0, 1)), out)
+
+
+def test_the_blind_deblur_reads_a_bicubic_mean_through_the_kernel_and_a_bilinear_one_as_it_is():
+    """``BlindDeblur.decide``: a frame said to be a bicubic mean (the clip room's) is decided on as its bilinear
+    equivalent; one said to be a bilinear mean (the live preset's) as it is; anything else is refused in one line."""
+    img = cv2.GaussianBlur(skdata.astronaut()[100:292, 150:342].astype(np.float32) / 255, (0, 0), 1.5)
+    frame = torch.from_numpy(img).permute(2, 0, 1).contiguous()
+    a, b = BlindDeblur(), BlindDeblur()
+    a.decide(frame, resampled="bicubic")
+    b.decide(as_bilinear_mean(frame), resampled="bilinear")
+    assert a.record == b.record
+    with pytest.raises(D2TurbError, match="resampled"):
+        BlindDeblur().decide(frame, resampled="nearest")

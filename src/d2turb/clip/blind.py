@@ -112,9 +112,14 @@ class BlindDeblur:
         if self.bwd_flow_px is None:
             self.bwd_flow_px, self.moving = frame.bwd_flow_px, frame.fallback
 
-    def decide(self, fused: torch.Tensor) -> None:
+    def decide(self, fused: torch.Tensor, resampled: str = "bicubic") -> None:
+        """Decide the deblur on a fused frame whose registered frames were ``resampled`` "bicubic" (the clip room's:
+        read through ``registration.as_bilinear_mean``, the bilinear mean the estimate was made on) or "bilinear"
+        (the live preset's, ``clip.live``: read as it is)."""
+        if resampled not in ("bicubic", "bilinear"):
+            raise D2TurbError(f"resampled must be 'bicubic' or 'bilinear', got {resampled!r}")
         with one_torch_thread():  # a few FFTs and a tiny network, beside the registration (d2turb.device)
-            self._decide(as_bilinear_mean(fused))
+            self._decide(as_bilinear_mean(fused) if resampled == "bicubic" else fused)
 
     def _decide(self, fused: torch.Tensor) -> None:
         est = estimate_blur(fused)
