@@ -56,6 +56,12 @@ def window_start(index: int, temporal: int, length: int | None, ahead: int | Non
     return lo
 
 
+def window_span(index: int, temporal: int, length: int | None, ahead: int | None = None) -> tuple[int, int]:
+    """[lo, hi) of W(index): from :func:`window_start`, ``temporal`` frames, or up to the clip's end once known."""
+    lo = window_start(index, temporal, length, ahead)
+    return lo, lo + temporal if length is None else min(length, lo + temporal)
+
+
 def lookahead_split(lookahead: int | None, temporal: int, passes: int) -> list[int | None]:
     """How far past frame i the window of each level reaches (level 0: the frames, k: registration round k; the
     window over level k is what round k + 1, or the output for k = ``passes``, averages), given that output t may

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import torch
 
-from d2turb.clip.frames import ClipFrame, window_start
-from d2turb.clip.registration import DenseFlow, check_registrable, pixel_grid, to_gray_u8, to_hwc
+from d2turb.clip.frames import ClipFrame, window_span
+from d2turb.clip.registration import DenseFlow, check_registrable, pixel_grid, remap, to_gray_u8, to_hwc
 from d2turb.device import usable_cores
 from d2turb.errors import D2TurbError
 
@@ -33,7 +33,7 @@ LIVE_DIS = [None, (0, 8, 6, 12, 0)]
 def live_flow_solver(k: int = 1) -> cv2.DISOpticalFlow:
     """OpenCV's DIS of registration round ``k`` (``LIVE_DIS``), with mean normalisation (robust to the brightness
     flicker of scintillation)."""
-    cfg = LIVE_DIS[k - 1] if isinstance(LIVE_DIS, list) else LIVE_DIS
+    cfg = LIVE_DIS[k - 1]
     if cfg is None:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)
     else:
@@ -157,10 +157,8 @@ class LiveState:
         return self._ref_window(i, k)[1] <= self.done[k - 1]
 
     def _out_window(self, t: int) -> tuple[int, int]:
-        """[lo, hi) of output t's window W(t) (``window_start``: centred, shifted inward at the clip's ends)."""
-        lo = window_start(t, self.n, self.length)
-        hi = lo + self.n if self.length is None else min(lo + self.n, self.length)
-        return lo, hi
+        """[lo, hi) of output t's window W(t) (``window_span``: centred, shifted inward at the clip's ends)."""
+        return window_span(t, self.n, self.length)
 
     def _advance(self) -> Iterator[ClipFrame]:
         """Every registration whose reference window is read (round by round), then every output whose window is
@@ -219,9 +217,7 @@ class LiveState:
         flow = self.dis[k - 1].calc(reference.reshape(grey.shape), grey, self.init.pop(i, None))
         if k < self.rounds:
             self.init[i] = flow
-            maps = np.add(flow, pixel_grid(flow.shape[:2]))
-            moved = cv2.remap(grey, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            self.levels[k][i] = moved.reshape(*moved.shape, 1)
+            self.levels[k][i] = remap(self.levels[0][i], flow)  # (h,w,1) uint8; the flow kept to start round k + 1
         else:
             self.flows[i] = flow
             maps = upsampled_maps(flow, self.shape[:2])

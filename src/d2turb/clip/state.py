@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from d2turb.clip.camera import CameraTrack
-from d2turb.clip.frames import HeldFrame, as_float, channel_mean, lookahead_split, window_start
+from d2turb.clip.frames import HeldFrame, as_float, channel_mean, lookahead_split, window_span, window_start
 from d2turb.clip.fusion import Fusion
 from d2turb.clip.registration import DenseFlow, check_registrable, is_large_frame
 from d2turb.errors import D2TurbError
@@ -97,8 +97,7 @@ class ClipState:
 
     def window_end(self, index: int, level: int) -> int:
         """One past the last frame of W(index) over level ``level``."""
-        lo = self.window_start(index, level)
-        return lo + self.temporal if self.length is None else min(self.length, lo + self.temporal)
+        return window_span(index, self.temporal, self.length, self.ahead[level])[1]
 
     def window_ready(self, index: int, level: int) -> bool:
         """Level ``level`` of every frame of W(index) is computed."""
@@ -106,7 +105,7 @@ class ClipState:
 
     def window(self, index: int, level: int) -> list[int]:
         """The frames of W(index) over level ``level``."""
-        return list(range(self.window_start(index, level), self.window_end(index, level)))
+        return list(range(*window_span(index, self.temporal, self.length, self.ahead[level])))
 
     def reference(self, index: int, level: int) -> np.ndarray:
         """Mean of level ``level`` (0: the frames' luma, k: round k's unwarped frames) over W(index), from a running sum
